@@ -1,0 +1,225 @@
+"""Run configuration: YAML validated by pydantic (unknown keys are errors naming the key).
+
+Load with :func:`load_config`; override single values with ``--set key.sub=value``
+(:func:`apply_overrides`, values parsed as YAML scalars).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+__all__ = ["Config", "load_config", "apply_overrides", "ConfigError"]
+
+Tissue = Literal["csf", "gm", "wm"]
+
+
+class ConfigError(ValueError):
+    """A configuration is invalid; the message names the offending key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class TissueValues(_Strict):
+    csf: float = Field(gt=0)
+    gm: float = Field(gt=0)
+    wm: float = Field(gt=0)
+
+
+class DataConfig(_Strict):
+    source: Literal["mni152", "nifti"] = "mni152"
+    resolution_mm: float | None = Field(2.0, gt=0, description="resample to isotropic voxels")
+    skull_margin_mm: float = Field(5.0, gt=0)
+    fixed: Path | None = Field(None, description="pre-operative T1 f (nifti source)")
+    moving: Path | None = Field(None, description="intra-operative image m (nifti, optional)")
+    labels: Path | None = Field(None, description="label map on f's world frame (nifti)")
+    label_coding: dict[str, int | list[int]] | None = None
+    intensity_percentile: float = Field(99.5, gt=0, le=100)
+
+    @model_validator(mode="after")
+    def _nifti_paths(self):
+        if self.source == "nifti":
+            missing = [k for k in ("fixed", "labels", "label_coding") if getattr(self, k) is None]
+            if missing:
+                raise ValueError(f"data.source 'nifti' needs data.{', data.'.join(missing)}")
+        return self
+
+
+class MeshConfig(_Strict):
+    edge_length_mm: float = Field(16.0, gt=0)
+    smoothing_sigma_mm: float = Field(4.0, ge=0)
+    epsilon: float = Field(2e-2, gt=0)
+
+
+class SyntheticConfig(_Strict):
+    enabled: bool = True
+    shift_mm: float = Field(10.0, gt=0)
+    n_pushed: int = Field(20, ge=1)
+    falloff_mm: float = Field(30.0, gt=0)
+    lam: TissueValues = TissueValues(csf=0.01, gm=10.0, wm=30.0)
+    mu: TissueValues = TissueValues(csf=0.01, gm=1.0, wm=1.0)
+
+
+class BetaPrior(_Strict):
+    a: float = Field(1.0, gt=0)
+    b: float = Field(1.0, gt=0)
+    r1: float = Field(0.0, ge=0)
+    r2: float = Field(gt=0)
+
+    @model_validator(mode="after")
+    def _range(self):
+        if self.r2 <= self.r1:
+            raise ValueError(f"r2 ({self.r2}) must exceed r1 ({self.r1})")
+        return self
+
+
+class FixedParam(_Strict):
+    param: Literal["lam", "mu"] = "mu"
+    group: str = "gm"
+    value: float = Field(1.0, gt=0)
+
+
+class ModelConfig(_Strict):
+    elastic: Literal["uniform", "tissue", "element"] = "tissue"
+    t_s: float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11)")
+    t_r: float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12)")
+    prior_lam: BetaPrior = BetaPrior(r2=100.0)
+    prior_mu: BetaPrior = BetaPrior(r2=10.0)
+    fixed: FixedParam | None = FixedParam()
+    initial_lam: TissueValues = TissueValues(csf=1.0, gm=5.0, wm=5.0)
+    initial_mu: TissueValues = TissueValues(csf=1.0, gm=1.0, wm=1.0)
+
+
+class SolverConfig(_Strict):
+    rtol: float = Field(1e-8, gt=0, lt=1)
+    maxiter: int = Field(1000, ge=1)
+
+
+class SamplerConfig(_Strict):
+    kind: Literal["rwmh"] = "rwmh"
+    chains: int = Field(3, ge=2)
+    thinning: int = Field(10, ge=1)
+    warmup_steps: int = Field(2000, ge=0)
+    max_draws: int = Field(2000, ge=1)
+    min_draws: int = Field(100, ge=2)
+    chunk_draws: int = Field(50, ge=2)
+    target_acceptance: float = Field(0.25, gt=0, lt=1)
+    rhat_threshold: float = Field(1.2, gt=1)
+    proposal: Literal["laplace", "isotropic"] = "laplace"
+    sigma_u: float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
+    sigma_lam: float = Field(0.5, gt=0)
+    sigma_mu: float = Field(0.05, gt=0)
+
+
+class InitConfig(_Strict):
+    fraction: float = Field(0.5, ge=0, le=1, description="start at fraction * truth")
+    perturb_mm: float = Field(0.5, ge=0, description="per-chain Gaussian jitter, mm")
+    param_jitter: float = Field(0.2, ge=0, description="log-normal sd of start parameters")
+
+
+class OutputConfig(_Strict):
+    dir: Path = Path("runs/run")
+    overwrite: bool = False
+    progress: bool = True
+
+
+class Config(_Strict):
+    """A whole run; see ``configs/quickstart.yaml`` for every key with comments."""
+
+    name: str = "run"
+    seed: int = 0
+    data: DataConfig = DataConfig()
+    mesh: MeshConfig = MeshConfig()
+    synthetic: SyntheticConfig = SyntheticConfig()
+    model: ModelConfig = ModelConfig()
+    solver: SolverConfig = SolverConfig()
+    sampler: SamplerConfig = SamplerConfig()
+    init: InitConfig = InitConfig()
+    output: OutputConfig = OutputConfig()
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        groups = {"uniform": ["all"], "tissue": ["csf", "gm", "wm"], "element": None}[
+            self.model.elastic
+        ]
+        if self.model.fixed is not None and groups is not None and self.model.fixed.group not in groups:
+            raise ValueError(
+                f"model.fixed.group '{self.model.fixed.group}' is not a group of elastic "
+                f"'{self.model.elastic}' (groups: {groups})"
+            )
+        if not self.synthetic.enabled and self.data.moving is None:
+            raise ValueError("without synthetic.enabled, data.moving (the image m) is required")
+        return self
+
+
+def _format_errors(err: ValidationError, source: str) -> str:
+    lines = [f"invalid configuration {source}:"]
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        lines.append(f"  {key}: {msg}")
+    return "\n".join(lines)
+
+
+def _set_path(d: dict, dotted: str, value):
+    keys = dotted.split(".")
+    cur = d
+    for k in keys[:-1]:
+        cur = cur.setdefault(k, {})
+        if not isinstance(cur, dict):
+            raise ConfigError(f"--set {dotted}: '{k}' is not a section")
+    cur[keys[-1]] = value
+
+
+def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
+    """Apply ``key.sub=value`` strings to a raw config dict (values parsed as YAML)."""
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"--set expects key=value, got '{item}'")
+        key, val = item.split("=", 1)
+        _set_path(raw, key.strip(), yaml.safe_load(val))
+    return raw
+
+
+def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None) -> Config:
+    """Read, override and validate a YAML config.
+
+    Relative data paths are resolved against the config file's folder.
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ConfigError
+        On YAML syntax errors, unknown keys or bad values (the message names each key).
+    """
+    raw: dict = {}
+    source = "(defaults)"
+    if path is not None:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"config not found: {path}")
+        try:
+            raw = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{path}: the top level must be a mapping")
+        source = str(path)
+        base_dir = base_dir or path.parent
+    raw = apply_overrides(raw, overrides)
+    try:
+        cfg = Config.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc, source)) from None
+    if base_dir is not None:
+        for k in ("fixed", "moving", "labels"):
+            p = getattr(cfg.data, k)
+            if p is not None and not p.is_absolute():
+                setattr(cfg.data, k, (Path(base_dir) / p).resolve())
+    return cfg

@@ -1,0 +1,418 @@
+"""Linear-elastic finite elements on linear tetrahedra (paper Eqs. 2-7).
+
+Conventions (used throughout :mod:`bayesreg`):
+
+* ``nodes``: ``(N, 3)`` float, world coordinates in mm.
+* ``tets``: ``(M, 4)`` int, positively oriented (``det[x1-x0, x2-x0, x3-x0] > 0``).
+* displacements ``u``: ``(N, 3)`` mm; flattened DOF order is node-major, ``3*i + axis``.
+* ``lam``, ``mu``: Lamé parameters per element, ``(M,)`` (a scalar broadcasts).  Their unit
+  is arbitrary (only ratios matter for the FE solve, paper Sec. 3.3); energies are in
+  ``[lam] * mm^3``.
+
+The NumPy/SciPy functions here are the reference implementation (assembly for tests and
+inspection).  :class:`ElasticOperator` is the JAX, matrix-free form used by the solver and
+the log-density: a 3x3-block ELL layout of the interior rows of ``K``, linear in the
+per-element ``lam`` and ``mu``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+
+from bayesreg import _xla
+
+_xla.configure()
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+__all__ = [
+    "shape_gradients",
+    "element_stiffness",
+    "element_stiffness_voigt",
+    "stiffness_matrix",
+    "strain_energy",
+    "strain_energy_density",
+    "ElasticOperator",
+    "build_operator",
+    "element_strain_energy",
+]
+
+# d N_a / d xi for the reference tetrahedron, N = (1 - xi - eta - zeta, xi, eta, zeta).
+_DN_DXI = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _check_mesh(nodes, tets):
+    nodes = np.asarray(nodes, dtype=np.float64)
+    tets = np.asarray(tets)
+    if nodes.ndim != 2 or nodes.shape[1] != 3:
+        raise ValueError(f"nodes must have shape (N, 3), got {nodes.shape}")
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise ValueError(f"tets must have shape (M, 4), got {tets.shape}")
+    if tets.size and (tets.min() < 0 or tets.max() >= len(nodes)):
+        raise ValueError("tets reference node indices outside [0, N)")
+    return nodes, tets.astype(np.int64)
+
+
+def _per_element(value, m, name):
+    value = np.asarray(value, dtype=np.float64)
+    if value.ndim == 0:
+        return np.full(m, float(value))
+    if value.shape != (m,):
+        raise ValueError(f"{name} must be a scalar or have shape ({m},), got {value.shape}")
+    return value
+
+
+def shape_gradients(nodes, tets):
+    """Gradients of the linear shape functions and element volumes.
+
+    Parameters
+    ----------
+    nodes : (N, 3) array_like
+        Node coordinates, world mm.
+    tets : (M, 4) array_like of int
+        Element connectivity.
+
+    Returns
+    -------
+    grads : (M, 4, 3) ndarray
+        ``grads[e, a] = grad N_a`` on element ``e`` (1/mm).
+    volumes : (M,) ndarray
+        Signed volumes (mm^3); positive for positively oriented elements.
+
+    Raises
+    ------
+    ValueError
+        On malformed shapes or a degenerate (zero-volume) element.
+    """
+    nodes, tets = _check_mesh(nodes, tets)
+    x = nodes[tets]  # (M, 4, 3)
+    jac = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1)
+    det = np.linalg.det(jac)
+    if np.any(np.abs(det) <= 1e-12 * np.max(np.abs(det), initial=1.0)):
+        raise ValueError(f"{int(np.sum(np.abs(det) <= 1e-12))} degenerate element(s)")
+    inv = np.linalg.inv(jac)  # (M, 3, 3): rows d xi / d x
+    grads = np.einsum("aj,mjk->mak", _DN_DXI, inv)
+    return grads, det / 6.0
+
+
+def element_stiffness(nodes, tets, lam, mu):
+    """Element stiffness matrices ``K_e = V_e B_e^T C_e B_e`` (paper Eq. 6).
+
+    Written in index form, ``K_e[3a+i, 3b+j] = V (lam g_ai g_bj + mu (g_aj g_bi +
+    delta_ij g_a . g_b))`` with ``g_a = grad N_a``; identical to the Voigt form of Eqs. 4-6
+    (see :func:`element_stiffness_voigt`).
+
+    Parameters
+    ----------
+    nodes : (N, 3) array_like
+    tets : (M, 4) array_like of int
+    lam, mu : float or (M,) array_like
+        Lamé parameters per element.
+
+    Returns
+    -------
+    (M, 12, 12) ndarray
+        Local DOF order ``3*a + axis`` for local node ``a``.
+    """
+    klam, kmu = _unit_element_stiffness(nodes, tets)
+    m = klam.shape[0]
+    lam = _per_element(lam, m, "lam")
+    mu = _per_element(mu, m, "mu")
+    return lam[:, None, None] * klam + mu[:, None, None] * kmu
+
+
+def _unit_element_stiffness(nodes, tets):
+    """The parts of ``K_e`` multiplying ``lam`` and ``mu`` (``(M, 12, 12)`` each)."""
+    g, vol = shape_gradients(nodes, tets)
+    vol = np.abs(vol)
+    m = g.shape[0]
+    klam = np.einsum("m,mai,mbj->maibj", vol, g, g).reshape(m, 12, 12)
+    gg = np.einsum("mak,mbk->mab", g, g)
+    kmu = np.einsum("m,maj,mbi->maibj", vol, g, g) + np.einsum(
+        "m,mab,ij->maibj", vol, gg, np.eye(3)
+    )
+    return klam, kmu.reshape(m, 12, 12)
+
+
+def strain_displacement_matrix(grads):
+    """The Voigt strain-displacement matrix ``B`` of paper Eq. 4 for linear tetrahedra.
+
+    Parameters
+    ----------
+    grads : (M, 4, 3) array_like
+        Shape-function gradients from :func:`shape_gradients`.
+
+    Returns
+    -------
+    (M, 6, 12) ndarray
+        Rows ``[e_xx, e_yy, e_zz, g_xy, g_xz, g_yz]`` (engineering shear strains).
+    """
+    g = np.asarray(grads)
+    b = np.zeros((g.shape[0], 6, 12))
+    for a in range(4):
+        gx, gy, gz = g[:, a, 0], g[:, a, 1], g[:, a, 2]
+        c = 3 * a
+        b[:, 0, c] = gx
+        b[:, 1, c + 1] = gy
+        b[:, 2, c + 2] = gz
+        b[:, 3, c], b[:, 3, c + 1] = gy, gx
+        b[:, 4, c], b[:, 4, c + 2] = gz, gx
+        b[:, 5, c + 1], b[:, 5, c + 2] = gz, gy
+    return b
+
+
+def material_matrix(lam, mu):
+    """Isotropic material matrix ``C`` of paper Eq. 5, shape ``(6, 6)``."""
+    c = np.zeros((6, 6))
+    c[:3, :3] = lam
+    c[[0, 1, 2], [0, 1, 2]] = lam + 2 * mu
+    c[[3, 4, 5], [3, 4, 5]] = mu
+    return c
+
+
+def element_stiffness_voigt(nodes, tets, lam, mu):
+    """``V_e B^T C B`` assembled literally from paper Eqs. 4-6 (a slow reference).
+
+    Same signature and result as :func:`element_stiffness`.
+    """
+    g, vol = shape_gradients(nodes, tets)
+    b = strain_displacement_matrix(g)
+    m = len(vol)
+    lam = _per_element(lam, m, "lam")
+    mu = _per_element(mu, m, "mu")
+    c = np.stack([material_matrix(l_, m_) for l_, m_ in zip(lam, mu)])
+    return np.abs(vol)[:, None, None] * np.einsum("mki,mkl,mlj->mij", b, c, b)
+
+
+def _dof_index(tets):
+    return (3 * np.asarray(tets)[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+
+
+def stiffness_matrix(nodes, tets, lam, mu):
+    """Global stiffness matrix ``K`` (paper Eq. 7) as SciPy sparse CSR.
+
+    Parameters
+    ----------
+    nodes : (N, 3) array_like
+        World mm.
+    tets : (M, 4) array_like of int
+    lam, mu : float or (M,) array_like
+        Lamé parameters, per element or uniform.
+
+    Returns
+    -------
+    scipy.sparse.csr_array, shape (3N, 3N)
+        Symmetric positive semi-definite; its null space holds the six rigid-body modes.
+    """
+    nodes, tets = _check_mesh(nodes, tets)
+    ke = element_stiffness(nodes, tets, lam, mu)
+    dof = _dof_index(tets)
+    rows = np.repeat(dof, 12, axis=1).ravel()
+    cols = np.tile(dof, (1, 12)).ravel()
+    n = 3 * len(nodes)
+    return sp.csr_array(sp.coo_array((ke.ravel(), (rows, cols)), shape=(n, n)))
+
+
+def strain_energy(nodes, tets, u, lam, mu):
+    """Linear-elastic strain energy ``E_r`` (paper Eqs. 2-3).
+
+    Parameters
+    ----------
+    nodes : (N, 3) array_like
+        World mm.
+    tets : (M, 4) array_like of int
+    u : (N, 3) array_like
+        Nodal displacements, mm.
+    lam, mu : float or (M,) array_like
+
+    Returns
+    -------
+    float
+        ``sum_e V_e (mu eps:eps + lam/2 tr(eps)^2)`` = ``u^T K u / 2``, in ``[lam] mm^3``.
+    """
+    nodes, tets = _check_mesh(nodes, tets)
+    u = np.asarray(u, dtype=np.float64)
+    if u.shape != nodes.shape:
+        raise ValueError(f"u must have shape {nodes.shape}, got {u.shape}")
+    g, vol = shape_gradients(nodes, tets)
+    m = len(vol)
+    dens = strain_energy_density(
+        jnp.asarray(g), jnp.asarray(u[tets]), _per_element(lam, m, "lam"), _per_element(mu, m, "mu")
+    )
+    return float(np.sum(np.abs(vol) * np.asarray(dens)))
+
+
+def strain_energy_density(grads, u_e, lam, mu):
+    """Energy density per element ``mu eps:eps + lam/2 (div u)^2`` (paper Eq. 2 integrand).
+
+    Parameters
+    ----------
+    grads : (M, 4, 3) array
+        Shape-function gradients.
+    u_e : (M, 4, 3) array
+        Displacements of each element's nodes, mm.
+    lam, mu : (M,) array
+
+    Returns
+    -------
+    (M,) jax array
+        Constant within each linear element.
+    """
+    du = jnp.sum(u_e[:, :, :, None] * grads[:, :, None, :], axis=1)  # du[i, j] = d u_i / d x_j
+    eps = 0.5 * (du + jnp.swapaxes(du, 1, 2))
+    tr = eps[:, 0, 0] + eps[:, 1, 1] + eps[:, 2, 2]
+    return mu * jnp.sum(eps * eps, axis=(1, 2)) + 0.5 * lam * tr * tr
+
+
+def element_strain_energy(grads, volumes, u_e, lam, mu):
+    """JAX strain energy ``E_r`` summed over elements (see :func:`strain_energy`)."""
+    return jnp.sum(volumes * strain_energy_density(grads, u_e, lam, mu))
+
+
+class ElasticOperator(NamedTuple):
+    """Static, parameter-independent data of the condensed FE system ``K_ii u_i = -K_ib u_b``.
+
+    Rows are the interior nodes; ``K`` is stored as 3x3 blocks in ELL form (a fixed number
+    of neighbour slots per row, padded with a zero block pointing at a dummy entry), which
+    needs no scatter in the mat-vec.  The blocks are linear in the per-element Lamé
+    parameters: ``blocks(lam, mu) = segment_sum(lam_e K^lam_e + mu_e K^mu_e)``.
+
+    Attributes
+    ----------
+    klam, kmu : (M, 4, 4, 3, 3)
+        Unit element blocks (multiply ``lam_e`` resp. ``mu_e``).
+    slot_ii, slot_ib : (M, 4, 4) int
+        Flat destination ``row * S + slot`` of each element block in the interior-interior
+        (resp. interior-boundary) ELL array; ``n_i * S`` is a discard bin.
+    cols_ii : (n_i, S_i) int
+        Interior column (padded with ``n_i``).
+    cols_ib : (n_i, S_b) int
+        Boundary column (padded with ``n_b``).
+    self_slot : (n_i,) int
+        Slot of the diagonal block in each interior row.
+    """
+
+    klam: jax.Array
+    kmu: jax.Array
+    slot_ii: jax.Array
+    slot_ib: jax.Array
+    cols_ii: jax.Array
+    cols_ib: jax.Array
+    self_slot: jax.Array
+
+    @property
+    def n_interior(self) -> int:
+        return self.cols_ii.shape[0]
+
+    @property
+    def n_boundary_slots(self) -> int:
+        return self.cols_ib.shape[1]
+
+    def blocks(self, lam_e, mu_e):
+        """ELL blocks of ``K_ii`` and ``K_ib`` for per-element ``lam_e``, ``mu_e`` (``(M,)``)."""
+        ke = lam_e[:, None, None, None, None] * self.klam + mu_e[:, None, None, None, None] * self.kmu
+        ke = ke.reshape(-1, 3, 3)
+        n_i, s_i = self.cols_ii.shape
+        s_b = self.cols_ib.shape[1]
+        b_ii = jax.ops.segment_sum(ke, self.slot_ii.reshape(-1), num_segments=n_i * s_i + 1)
+        b_ib = jax.ops.segment_sum(ke, self.slot_ib.reshape(-1), num_segments=n_i * s_b + 1)
+        return b_ii[:-1].reshape(n_i, s_i, 3, 3), b_ib[:-1].reshape(n_i, s_b, 3, 3)
+
+
+def ell_matvec(blocks, cols, x):
+    """``y[r] = sum_s blocks[r, s] @ x[cols[r, s]]`` with ``x`` padded by one zero row.
+
+    Parameters
+    ----------
+    blocks : (R, S, 3, 3)
+    cols : (R, S) int
+    x : (C, 3)
+
+    Returns
+    -------
+    (R, 3)
+    """
+    xp = jnp.concatenate([x, jnp.zeros((1, 3), x.dtype)], axis=0)
+    g = xp[cols]  # (R, S, 3)
+    return jnp.sum(blocks * g[:, :, None, :], axis=(1, 3))
+
+
+def build_operator(nodes, tets, boundary):
+    """Precompute the ELL layout of the interior rows of ``K`` (see :class:`ElasticOperator`).
+
+    Parameters
+    ----------
+    nodes : (N, 3) array_like
+        World mm.
+    tets : (M, 4) array_like of int
+    boundary : (n_b,) array_like of int
+        Boundary (Dirichlet, sampled) node indices; all other nodes are interior.
+
+    Returns
+    -------
+    op : ElasticOperator
+    interior : (n_i,) ndarray of int
+        Interior node indices, in the row order of ``op``.
+    """
+    nodes, tets = _check_mesh(nodes, tets)
+    n = len(nodes)
+    boundary = np.asarray(boundary, dtype=np.int64)
+    is_b = np.zeros(n, bool)
+    is_b[boundary] = True
+    interior = np.flatnonzero(~is_b)
+    pos = np.full(n, -1, np.int64)
+    pos[interior] = np.arange(len(interior))
+    pos[boundary] = np.arange(len(boundary))
+    n_i, n_b = len(interior), len(boundary)
+
+    klam, kmu = _unit_element_stiffness(nodes, tets)
+    m = len(tets)
+    klam = klam.reshape(m, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4)
+    kmu = kmu.reshape(m, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4)
+
+    # neighbour lists per interior row, split into interior and boundary columns
+    a_idx, b_idx = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
+    rows = tets[:, a_idx]  # (M, 4, 4) row node
+    cols = tets[:, b_idx]  # (M, 4, 4) column node
+    row_int = ~is_b[rows]
+    nb_ii = [set() for _ in range(n_i)]
+    nb_ib = [set() for _ in range(n_i)]
+    for r, c in zip(rows[row_int], cols[row_int]):
+        (nb_ib if is_b[c] else nb_ii)[pos[r]].add(pos[c])
+    s_i = max(len(s) for s in nb_ii) if n_i else 1
+    s_b = max((len(s) for s in nb_ib), default=0) or 1
+    cols_ii = np.full((n_i, s_i), n_i, np.int64)
+    cols_ib = np.full((n_i, s_b), n_b, np.int64)
+    slot_of_ii = {}
+    slot_of_ib = {}
+    self_slot = np.zeros(n_i, np.int64)
+    for r in range(n_i):
+        for s, c in enumerate(sorted(nb_ii[r])):
+            cols_ii[r, s] = c
+            slot_of_ii[(r, c)] = r * s_i + s
+            if c == r:
+                self_slot[r] = s
+        for s, c in enumerate(sorted(nb_ib[r])):
+            cols_ib[r, s] = c
+            slot_of_ib[(r, c)] = r * s_b + s
+    slot_ii = np.full((m, 4, 4), n_i * s_i, np.int64)
+    slot_ib = np.full((m, 4, 4), n_i * s_b, np.int64)
+    for e, a, b in zip(*np.nonzero(row_int)):
+        r, c = pos[rows[e, a, b]], pos[cols[e, a, b]]
+        if is_b[cols[e, a, b]]:
+            slot_ib[e, a, b] = slot_of_ib[(r, c)]
+        else:
+            slot_ii[e, a, b] = slot_of_ii[(r, c)]
+    op = ElasticOperator(
+        klam=jnp.asarray(klam),
+        kmu=jnp.asarray(kmu),
+        slot_ii=jnp.asarray(slot_ii, dtype=jnp.int32),
+        slot_ib=jnp.asarray(slot_ib, dtype=jnp.int32),
+        cols_ii=jnp.asarray(cols_ii, dtype=jnp.int32),
+        cols_ib=jnp.asarray(cols_ib, dtype=jnp.int32),
+        self_slot=jnp.asarray(self_slot, dtype=jnp.int32),
+    )
+    return op, interior

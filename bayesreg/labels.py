@@ -1,0 +1,131 @@
+"""Tissue label maps: CSF, GM, WM inside the intracranial volume, and the skull region.
+
+Internal label coding (used by every other module)::
+
+    0 background (free space between brain and skull: nodes may move there)
+    1 CSF   2 GM   3 WM   4 skull (hard constraint: no node may enter it)
+
+User label maps are translated with :func:`remap_labels` from a coding given in the config,
+e.g. ``{csf: 1, gm: 2, wm: 3, skull: [4, 5]}``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from bayesreg.images import Image
+
+__all__ = [
+    "BACKGROUND",
+    "CSF",
+    "GM",
+    "WM",
+    "SKULL",
+    "TISSUES",
+    "TISSUE_LABELS",
+    "labels_from_probabilities",
+    "remap_labels",
+    "check_labels",
+]
+
+BACKGROUND, CSF, GM, WM, SKULL = 0, 1, 2, 3, 4
+TISSUES = ("csf", "gm", "wm")
+"""Tissue names in the order of tissue indices 0, 1, 2 (element ``tissue`` arrays)."""
+TISSUE_LABELS = (CSF, GM, WM)
+
+
+def labels_from_probabilities(gm: Image, wm: Image, brain_mask: Image, *, skull_margin_mm=5.0):
+    """Label map from GM/WM probability maps and a brain mask (the MNI152 recipe).
+
+    The intracranial volume is the brain mask with holes filled; inside it each voxel takes
+    the most probable of CSF (``1 - GM - WM``), GM and WM, so ventricles and sulci come out
+    as CSF.  The skull region is everything outside the intracranial mask dilated by
+    ``skull_margin_mm``; the shell in between is background.
+
+    Parameters
+    ----------
+    gm, wm : Image
+        Probabilities in [0, 1], same grid.
+    brain_mask : Image
+        Non-zero inside the brain, same grid.
+    skull_margin_mm : float
+        Width of the free shell between brain and skull, mm (> 0).
+
+    Returns
+    -------
+    Image
+        uint8 labels in the internal coding.
+
+    Raises
+    ------
+    ValueError
+        Mismatched grids, a non-positive margin or an empty tissue.
+    """
+    from bayesreg.images import check_same_space
+
+    check_same_space(gm, wm, names=("gm", "wm"))
+    check_same_space(gm, brain_mask, names=("gm", "brain_mask"))
+    if skull_margin_mm <= 0:
+        raise ValueError(f"skull_margin_mm must be > 0, got {skull_margin_mm}")
+    inside = ndi.binary_fill_holes(np.asarray(brain_mask.data) > 0.5)
+    p_gm = np.clip(np.asarray(gm.data, dtype=np.float64), 0, 1)
+    p_wm = np.clip(np.asarray(wm.data, dtype=np.float64), 0, 1)
+    p_csf = np.clip(1.0 - p_gm - p_wm, 0, 1)
+    tissue = np.argmax(np.stack([p_csf, p_gm, p_wm]), axis=0) + 1
+    labels = np.where(inside, tissue, BACKGROUND).astype(np.uint8)
+    dist = ndi.distance_transform_edt(~inside, sampling=gm.spacing)
+    labels[(dist > skull_margin_mm) & ~inside] = SKULL
+    out = Image(labels, gm.affine)
+    check_labels(out)
+    return out
+
+
+def remap_labels(labels: Image, coding: dict) -> Image:
+    """Translate a user label map to the internal coding.
+
+    Parameters
+    ----------
+    labels : Image
+        Integer label map.
+    coding : dict
+        ``{"csf": int | list[int], "gm": ..., "wm": ..., "skull": ...}``; values not listed
+        become background.  ``skull`` may be omitted (no skull constraint inside the image;
+        leaving the image is still forbidden).
+
+    Raises
+    ------
+    ValueError
+        Unknown keys, a value claimed by two tissues, or an empty tissue.
+    """
+    allowed = {"csf": CSF, "gm": GM, "wm": WM, "skull": SKULL}
+    unknown = set(coding) - set(allowed)
+    if unknown:
+        raise ValueError(f"unknown label names {sorted(unknown)}; allowed: {sorted(allowed)}")
+    data = np.asarray(labels.data)
+    if not np.issubdtype(data.dtype, np.integer):
+        if not np.allclose(data, np.round(data)):
+            raise ValueError("label map must hold integer values")
+        data = np.round(data).astype(np.int64)
+    out = np.full(data.shape, BACKGROUND, np.uint8)
+    seen: dict[int, str] = {}
+    for name, values in coding.items():
+        for v in np.atleast_1d(values):
+            if int(v) in seen:
+                raise ValueError(f"label value {v} assigned to both {seen[int(v)]} and {name}")
+            seen[int(v)] = name
+            out[data == int(v)] = allowed[name]
+    res = Image(out, labels.affine)
+    check_labels(res)
+    return res
+
+
+def check_labels(labels: Image) -> None:
+    """Raise ``ValueError`` if a tissue (CSF, GM, WM) has no voxel or codes are unknown."""
+    data = np.asarray(labels.data)
+    bad = np.setdiff1d(np.unique(data), [BACKGROUND, CSF, GM, WM, SKULL])
+    if bad.size:
+        raise ValueError(f"label map holds codes {bad.tolist()} outside the internal coding")
+    for name, code in zip(TISSUES, TISSUE_LABELS):
+        if not np.any(data == code):
+            raise ValueError(f"tissue '{name}' is empty in the label map")

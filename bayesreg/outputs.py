@@ -1,0 +1,356 @@
+"""Run directory: ArviZ posterior, summaries, displacement maps, plots and ``run.json``.
+
+Files of one run (all written atomically; an existing non-empty run directory is never
+replaced unless ``overwrite`` is set, and then only after the new outputs are complete):
+
+==========================  ==========================================================
+``posterior.nc``            ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis) mm,
+                            ``lam``, ``mu``, ``ratio = lam/mu`` (chain, draw, group);
+                            sample stats ``acceptance_rate``, ``lp``, ``cg_iterations``,
+                            ``solve_failures``
+``summary.csv``             mean, sd, HDI, ESS, rank R-hat (ArviZ) and classic R-hat
+``displacement_mean.nii.gz``  posterior mean of ``u`` on the image grid, (I, J, K, 3) mm
+``displacement_sd.nii.gz``  posterior sd of ``u`` on the image grid, (I, J, K, 3) mm
+``mesh.vtu``                mesh with ``u_mean``, ``u_sd``, ``u_sd_norm``, ``u_true``;
+                            cell data ``tissue``
+``f.nii.gz``, ``m.nii.gz``, ``labels.nii.gz``  the (scaled) images and label map used
+``trace.png``, ``marginals.png``  trace and marginal plots of the elastic parameters
+``errors.json``             error of the posterior mean against the truth (synthetic)
+``run.json``                resolved config, seed, versions, timings, acceptance, CG, R-hat
+==========================  ==========================================================
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import tempfile
+from importlib import metadata
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from bayesreg.images import Image, save_nifti
+
+__all__ = ["RunDirectory", "RunResult", "write_outputs", "error_table", "format_report"]
+
+
+class RunDirectory:
+    """A run directory that is never overwritten silently.
+
+    Outputs go to a staging folder beside the target; :meth:`commit` moves them in place.
+    With ``overwrite`` an existing directory is replaced only at commit time.
+
+    Raises
+    ------
+    FileExistsError
+        At construction, if ``path`` exists, is not empty and ``overwrite`` is false.
+    """
+
+    def __init__(self, path, *, overwrite=False):
+        self.path = Path(path)
+        self.overwrite = overwrite
+        if self.path.exists() and any(self.path.iterdir()) and not overwrite:
+            raise FileExistsError(
+                f"run directory {self.path} exists and is not empty; pass --out to choose "
+                "another or --overwrite to replace it"
+            )
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.staging = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent))
+
+    def file(self, name) -> Path:
+        return self.staging / name
+
+    def commit(self) -> Path:
+        if self.path.exists():
+            if any(self.path.iterdir()) and not self.overwrite:  # appeared meanwhile
+                raise FileExistsError(f"run directory {self.path} appeared during the run; "
+                                      f"outputs kept in {self.staging}")
+            old = self.path.with_name(f".{self.path.name}.old-{os.getpid()}")
+            os.replace(self.path, old)
+            os.replace(self.staging, self.path)
+            shutil.rmtree(old)
+        else:
+            os.replace(self.staging, self.path)
+        return self.path
+
+
+class RunResult(NamedTuple):
+    """What :func:`bayesreg.run` returns.
+
+    Attributes
+    ----------
+    dir : Path  the run directory
+    posterior : DataTree  ArviZ posterior and sample stats
+    summary : pandas.DataFrame
+    errors : dict or None  error table (synthetic truth)
+    info : dict  content of ``run.json``
+    """
+
+    dir: Path
+    posterior: object
+    summary: object
+    errors: dict | None
+    info: dict
+
+
+def _atomic_text(path: Path, text: str):
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _versions():
+    out = {"python": platform.python_version()}
+    for p in ("bayesreg", "jax", "jaxlib", "blackjax", "numpyro", "arviz", "numpy", "scipy",
+              "pytetwild", "scikit-image", "nibabel", "nilearn", "meshio"):
+        try:
+            out[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            out[p] = None
+    return out
+
+
+def error_table(problem, result, x0) -> dict | None:
+    """Error of the posterior mean against the synthetic truth, mm (``None`` without truth).
+
+    Returns a dict with, for the boundary nodes (paper Table 1 style), the median, 95th
+    percentile and max of ``|E[u_b] - u_b_true|`` and of the initial configuration's error,
+    the MSE over all nodes (mm^2), and the lam/mu ratio posterior per group.
+    """
+    from bayesreg.pipeline import _groups_np
+
+    mesh, truth = problem.mesh, problem.truth
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    lam_g, mu_g = _groups_np(post, result.positions[..., nb3:])
+    ratio = lam_g / mu_g
+    ratios = {}
+    for k, name in enumerate(problem.layout.group_names[:16]):
+        r = ratio[..., k].ravel()
+        ratios[name] = {
+            "mean": float(r.mean()), "sd": float(r.std()),
+            "q05": float(np.quantile(r, 0.05)), "q95": float(np.quantile(r, 0.95)),
+        }
+    if truth is None:
+        return {"ratio": ratios}
+    if problem.layout.group_names == ("csf", "gm", "wm"):
+        true_ratio = truth.lam_e / truth.mu_e
+        for k, name in enumerate(problem.layout.group_names):
+            ratios[name]["true"] = float(np.median(true_ratio[mesh.tissue == k]))
+    u_true_b = truth.u[mesh.boundary]
+    mean_b = result.positions[..., :nb3].reshape(-1, post.n_boundary, 3).mean(0)
+    init_b = x0[:, :nb3].reshape(-1, post.n_boundary, 3).mean(0)
+
+    def stats(err):
+        return {"median": float(np.median(err)), "q95": float(np.quantile(err, 0.95)),
+                "max": float(err.max())}
+
+    u_mean = posterior_mean_displacement(problem, result)
+    return {
+        "boundary_initial_mm": stats(np.linalg.norm(init_b - u_true_b, axis=1)),
+        "boundary_posterior_mean_mm": stats(np.linalg.norm(mean_b - u_true_b, axis=1)),
+        "all_nodes_posterior_mean_mm": stats(np.linalg.norm(u_mean - truth.u, axis=1)),
+        "mse_all_nodes_mm2": float(np.mean(np.sum((u_mean - truth.u) ** 2, axis=1))),
+        "ratio": ratios,
+    }
+
+
+def _full_draws(problem, result):
+    """Nodal displacement draws ``(C*D, N, 3)``."""
+    post = problem.posterior
+    nb = post.n_boundary
+    ub = result.positions[..., : 3 * nb].reshape(-1, nb, 3)
+    ui = result.interior.reshape(-1, result.interior.shape[-2], 3)
+    full = np.concatenate([ub, ui], axis=1)
+    return full[:, np.asarray(post.perm)]
+
+
+def posterior_mean_displacement(problem, result):
+    return _full_draws(problem, result).mean(axis=0)
+
+
+def format_report(errors: dict | None, info: dict) -> str:
+    """The short table the run prints (error vs truth, ratio posteriors, sampler figures)."""
+    lines = []
+    s = info["sampler"]
+    lines.append(
+        f"draws/chain {s['draws_per_chain']}  chains {s['chains']}  acceptance {s['acceptance']:.3f}  "
+        f"classic R-hat max {s['rhat_classic_max']:.3f}  rank R-hat max {s['rhat_rank_max']:.3f}  "
+        f"ESS bulk min {s['ess_bulk_min']:.0f}"
+    )
+    lines.append(f"CG iterations/solve mean {s['cg_iterations_mean']:.1f}  failed solves {s['solve_failures']}")
+    if errors and "boundary_posterior_mean_mm" in errors:
+        lines.append("error vs truth (mm)           median    95th     max")
+        for key, label in (("boundary_initial_mm", "boundary, initial"),
+                           ("boundary_posterior_mean_mm", "boundary, posterior mean"),
+                           ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")):
+            e = errors[key]
+            lines.append(f"  {label:<27} {e['median']:7.3f} {e['q95']:7.3f} {e['max']:7.3f}")
+        lines.append(f"  MSE all nodes {errors['mse_all_nodes_mm2']:.4f} mm^2")
+    if errors:
+        lines.append("lam/mu posterior        mean      sd     5%     95%   truth")
+        for name, r in errors["ratio"].items():
+            tr = f"{r['true']:7.3g}" if "true" in r else "      -"
+            lines.append(f"  {name:<14} {r['mean']:9.3f} {r['sd']:7.3f} {r['q05']:7.3f} {r['q95']:7.3f} {tr}")
+    return "\n".join(lines)
+
+
+def _plots(run_dir: RunDirectory, tree, names, truth_ratio):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ratio = np.asarray(tree.posterior["ratio"].values)  # (C, D, G)
+    n = min(ratio.shape[-1], 6)
+    fig, axes = plt.subplots(n, 2, figsize=(10, 2.2 * n), squeeze=False)
+    for k in range(n):
+        for c in range(ratio.shape[0]):
+            axes[k, 0].plot(ratio[c, :, k], lw=0.6, label=f"chain {c}")
+            axes[k, 1].hist(ratio[c, :, k], bins=40, histtype="step", density=True)
+        axes[k, 0].set_ylabel(f"lam/mu {names[k]}")
+        if truth_ratio is not None:
+            axes[k, 0].axhline(truth_ratio[k], color="k", ls="--", lw=1)
+            axes[k, 1].axvline(truth_ratio[k], color="k", ls="--", lw=1, label="truth")
+    axes[0, 0].legend(fontsize=7)
+    axes[-1, 0].set_xlabel("draw (thinned)")
+    axes[-1, 1].set_xlabel("lam/mu")
+    fig.tight_layout()
+    fig.savefig(run_dir.file("trace.png"), dpi=90)
+    plt.close(fig)
+
+    ub = np.asarray(tree.posterior["u_b"].values)  # (C, D, nb, 3)
+    sd = ub.reshape(-1, ub.shape[2], 3).std(0).sum(1)
+    node = int(np.argmax(sd))
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3))
+    for a, ax in enumerate(axes):
+        for c in range(ub.shape[0]):
+            ax.hist(ub[c, :, node, a], bins=40, histtype="step", density=True)
+        ax.set_xlabel(f"u_{'xyz'[a]} (mm), boundary node {int(tree.posterior['node'][node])}")
+    fig.suptitle("marginal posterior of the most uncertain boundary node")
+    fig.tight_layout()
+    fig.savefig(run_dir.file("marginals.png"), dpi=90)
+    plt.close(fig)
+
+
+def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> RunResult:
+    """Write every output of a run (see module docstring) and commit the directory."""
+    import arviz as az
+    import meshio
+
+    from bayesreg.diagnostics import gelman_rubin, to_datatree
+    from bayesreg.mesh import mesh_quality
+    from bayesreg.pipeline import _groups_np
+    from bayesreg.synthetic import interpolation_matrix
+
+    post, mesh, layout = problem.posterior, problem.mesh, problem.layout
+    nb = post.n_boundary
+    pos = result.positions
+    c, d = pos.shape[:2]
+    ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
+    lam_g, mu_g = _groups_np(post, pos[..., 3 * nb:])
+    names = list(layout.group_names)
+    tree = to_datatree(
+        {"u_b": ub, "lam": lam_g, "mu": mu_g, "ratio": lam_g / mu_g},
+        sample_stats={
+            "acceptance_rate": result.acceptance,
+            "lp": result.logdensity,
+            "cg_iterations": result.cg_iterations,
+            "solve_failures": result.solve_failures,
+        },
+        dims={"u_b": ["node", "axis"], "lam": ["group"], "mu": ["group"], "ratio": ["group"]},
+        coords={"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names},
+        attrs={"units_u_b": "mm (world)", "name": cfg.name},
+    )
+    tree.to_netcdf(run_dir.file("posterior.nc"))
+
+    var_names = ["lam", "mu", "ratio", "u_b"]
+    summary = az.summary(tree, var_names=var_names)
+    classic = []
+    for v in var_names:
+        x = np.asarray(tree.posterior[v].values)
+        classic.append(gelman_rubin(x.reshape(c, d, -1)))
+    summary["rhat_classic"] = np.concatenate(classic)
+    tmp = run_dir.file("summary.csv.tmp")
+    summary.to_csv(tmp)
+    os.replace(tmp, run_dir.file("summary.csv"))
+
+    # displacement maps: on the mesh and on the image grid (FE interpolation)
+    draws = _full_draws(problem, result)
+    u_mean, u_sd = draws.mean(0), draws.std(0)
+    norm = np.linalg.norm(draws, axis=2)
+    point_data = {"u_mean": u_mean, "u_sd": u_sd, "u_norm_sd": norm.std(0),
+                  "u_norm_iqr": np.subtract(*np.quantile(norm, [0.75, 0.25], axis=0))}
+    if problem.truth is not None:
+        point_data["u_true"] = problem.truth.u
+        point_data["u_error"] = u_mean - problem.truth.u
+    meshio.write(
+        run_dir.file("mesh.vtu"),
+        meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)], point_data=point_data,
+                    cell_data={"tissue": [mesh.tissue.astype(np.int32)]}),
+    )
+    w, _ = interpolation_matrix(mesh, problem.f)
+    shape = problem.f.data.shape
+    mean_img = (w @ u_mean).reshape(*shape, 3)
+    # sd on the grid from the draws (the interpolation is linear in u)
+    acc1 = np.zeros((w.shape[0], 3))
+    acc2 = np.zeros((w.shape[0], 3))
+    for k in range(len(draws)):
+        v = w @ draws[k]
+        acc1 += v
+        acc2 += v * v
+    n = len(draws)
+    sd_img = np.sqrt(np.maximum(acc2 / n - (acc1 / n) ** 2, 0)).reshape(*shape, 3)
+    aff = problem.f.affine
+    save_nifti(Image(mean_img.astype(np.float32), aff), run_dir.file("displacement_mean.nii.gz"))
+    save_nifti(Image(sd_img.astype(np.float32), aff), run_dir.file("displacement_sd.nii.gz"))
+    save_nifti(Image(problem.f.data.astype(np.float32), aff), run_dir.file("f.nii.gz"))
+    save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
+    save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
+
+    errors = error_table(problem, result, x0)
+    truth_ratio = None
+    if errors and all("true" in errors["ratio"].get(nm, {}) for nm in names[:6]):
+        truth_ratio = [errors["ratio"][nm]["true"] for nm in names[:6]]
+    _plots(run_dir, tree, names, truth_ratio)
+
+    rank_rhat = summary["r_hat"].to_numpy(dtype=float)
+    info = {
+        "name": cfg.name,
+        "seed": cfg.seed,
+        "config": cfg.model_dump(mode="json"),
+        "versions": _versions(),
+        "timings_s": {k: round(float(v), 3) for k, v in timings.items()},
+        "mesh": mesh_quality(mesh),
+        "intensity_scale": problem.intensity_scale,
+        "parameters": {"free": layout.free_names,
+                       "fixed": [f"{p}_{names[g]}={v}" for p, g, v in layout.fixed]},
+        "sampler": {
+            "kind": cfg.sampler.kind,
+            "proposal": cfg.sampler.proposal,
+            "chains": int(c),
+            "draws_per_chain": int(d),
+            "thinning": cfg.sampler.thinning,
+            "steps_per_chain": int(d * cfg.sampler.thinning + cfg.sampler.warmup_steps),
+            "acceptance": float(result.acceptance.mean()),
+            "warmup_acceptance": float(result.warmup_acceptance),
+            "rhat_classic_max": float(summary["rhat_classic"].max()),
+            "rhat_rank_max": float(np.nanmax(rank_rhat)),
+            "ess_bulk_min": float(summary["ess_bulk"].min()),
+            "converged": bool(result.converged),
+            "rhat_threshold": cfg.sampler.rhat_threshold,
+            "rhat_history": [[int(a), float(b)] for a, b in result.rhat_history],
+            "cg_iterations_mean": float(result.cg_iterations.mean()),
+            "solve_failures": int(result.solve_failures.sum()),
+            "steps_per_s_per_chain": float(d * cfg.sampler.thinning / max(timings.get("sampling_s", 1e-9), 1e-9)),
+        },
+        "errors": errors,
+    }
+    _atomic_text(run_dir.file("errors.json"), json.dumps(errors, indent=2))
+    _atomic_text(run_dir.file("run.json"), json.dumps(info, indent=2))
+    path = run_dir.commit()
+    return RunResult(path, tree, summary, errors, info)

@@ -1,0 +1,403 @@
+"""The main job: images -> labels -> mesh -> FE operators -> posterior -> sampler -> outputs.
+
+:func:`prepare` builds a :class:`Problem` (data, mesh, synthetic truth, log-density);
+:func:`sample_problem` runs the chains; :func:`run` does both and writes the run directory
+(:mod:`bayesreg.outputs`).  From a notebook::
+
+    import bayesreg
+    result = bayesreg.run("configs/quickstart.yaml", out="runs/qs")
+    result.posterior  # ArviZ DataTree
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+from typing import NamedTuple
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from bayesreg import _xla
+
+_xla.configure()
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from bayesreg import labels as L  # noqa: E402
+from bayesreg.config import Config, load_config  # noqa: E402
+from bayesreg.fem import stiffness_matrix  # noqa: E402
+from bayesreg.images import (  # noqa: E402
+    Image, check_same_space, interpolate, load_nifti, mni152, pad, resample_to_spacing,
+)
+from bayesreg.mesh import Mesh, carve_skull, mesh_brain  # noqa: E402
+from bayesreg.posterior import ParamLayout, Posterior, build_posterior, log_density  # noqa: E402
+from bayesreg.sampler import SamplerResult, sample  # noqa: E402
+from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
+from bayesreg.synthetic import Truth, brain_shift, warp_image  # noqa: E402
+
+__all__ = ["Problem", "prepare", "initial_positions", "proposal_scale", "sample_problem", "run"]
+
+
+class Problem(NamedTuple):
+    """Everything needed to sample and to report one registration problem.
+
+    Attributes
+    ----------
+    f, m : Image  pre-/intra-operative images, intensities scaled (see :func:`prepare`)
+    labels : Image  internal label coding
+    mesh : Mesh
+    layout : ParamLayout
+    element_group : (M,) int
+    posterior : Posterior
+    truth : Truth or None  (synthetic cases)
+    phi_true : (n_free,) or None  true free parameters, where defined
+    phi_init : (n_free,)  central start of the elastic parameters
+    intensity_scale : float  f and m were divided by it
+    n_skull_carved : int  skull voxels freed next to the mesh (:func:`bayesreg.mesh.carve_skull`)
+    timings : dict
+    """
+
+    f: Image
+    m: Image
+    labels: Image
+    mesh: Mesh
+    layout: ParamLayout
+    element_group: np.ndarray
+    posterior: Posterior
+    truth: Truth | None
+    phi_true: np.ndarray | None
+    phi_init: np.ndarray
+    intensity_scale: float
+    n_skull_carved: int
+    timings: dict
+
+
+def _load_data(cfg: Config):
+    d = cfg.data
+    if d.source == "mni152":
+        # the template's field of view cuts the brainstem: pad so that the mesh (and the
+        # free shell around it) lies inside the grid
+        t1, gm, wm, mask = (pad(i, 4 * d.skull_margin_mm) for i in mni152(d.resolution_mm or 1.0))
+        labels = L.labels_from_probabilities(gm, wm, mask, skull_margin_mm=d.skull_margin_mm)
+        return t1, None, labels
+    from bayesreg.labels import remap_labels
+
+    f = load_nifti(d.fixed)
+    lab = load_nifti(d.labels)
+    m = load_nifti(d.moving) if d.moving is not None else None
+    check_same_space(f, lab, names=("data.fixed", "data.labels"))
+    if m is not None:
+        check_same_space(f, m, names=("data.fixed", "data.moving"))
+    if d.resolution_mm is not None:
+        f = resample_to_spacing(f, d.resolution_mm, order=1)
+        lab = resample_to_spacing(lab, d.resolution_mm, order=0)
+        m = resample_to_spacing(m, d.resolution_mm, order=1) if m is not None else None
+    margin = 4 * d.skull_margin_mm
+    labels = remap_labels(pad(lab, margin), d.label_coding)
+    f = pad(f, margin)
+    m = pad(m, margin) if m is not None else None
+    return f, m, labels
+
+
+def _layout(cfg: Config, mesh: Mesh):
+    mode = cfg.model.elastic
+    if mode == "uniform":
+        names, group = ("all",), np.zeros(len(mesh.tets), np.int64)
+    elif mode == "tissue":
+        names, group = L.TISSUES, mesh.tissue.astype(np.int64)
+    else:
+        names = tuple(f"e{k}" for k in range(len(mesh.tets)))
+        group = np.arange(len(mesh.tets))
+    fixed = ()
+    fx = cfg.model.fixed
+    if fx is not None:
+        if fx.group not in names:
+            raise ValueError(f"model.fixed.group '{fx.group}' is not one of the groups {names[:5]}...")
+        fixed = ((fx.param, names.index(fx.group), fx.value),)
+    free = tuple(
+        (p, g) for p in ("lam", "mu") for g in range(len(names))
+        if not any(p == fp and g == fg for fp, fg, _ in fixed)
+    )
+    return ParamLayout(tuple(names), free, fixed), group
+
+
+def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
+    """Per-group value from per-tissue values (uniform: volume-weighted tissue mean)."""
+    tissue_vals = np.array([tv.csf, tv.gm, tv.wm])
+    names = layout.group_names
+    if names == L.TISSUES:
+        return tissue_vals
+    if names == ("all",):
+        x = mesh.nodes[mesh.tets]
+        vol = np.abs(np.einsum("mi,mi->m", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]))
+        return np.array([np.sum(vol * tissue_vals[mesh.tissue]) / vol.sum()])
+    return tissue_vals[mesh.tissue]
+
+
+def prepare(cfg: Config) -> Problem:
+    """Load data, derive labels, mesh, make the synthetic truth (if enabled), build the posterior.
+
+    Intensities of ``f`` and ``m`` are divided by the ``data.intensity_percentile``-th
+    percentile of ``f`` inside the intracranial volume (about [0, 1] afterwards), so that
+    ``E_s`` and ``T_s`` have image-independent units (``intensity^2 mm^3``).
+    """
+    timings = {}
+    t = time.perf_counter()
+    f, m, labels = _load_data(cfg)
+    inside = np.isin(labels.data, L.TISSUE_LABELS)
+    scale = float(np.percentile(np.asarray(f.data)[inside], cfg.data.intensity_percentile))
+    if not scale > 0:
+        raise ValueError("the fixed image is zero inside the intracranial volume")
+    f = Image(np.asarray(f.data, np.float64) / scale, f.affine)
+    if m is not None:
+        m = Image(np.asarray(m.data, np.float64) / scale, m.affine)
+    timings["data_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    mesh = mesh_brain(
+        labels,
+        edge_length_mm=cfg.mesh.edge_length_mm,
+        smoothing_sigma_mm=cfg.mesh.smoothing_sigma_mm,
+        epsilon=cfg.mesh.epsilon,
+    )
+    labels, n_carved = carve_skull(labels, mesh)
+    timings["mesh_s"] = time.perf_counter() - t
+    empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
+    layout, group = _layout(cfg, mesh)
+    if cfg.model.elastic == "tissue" and empty:
+        raise ValueError(f"no mesh element is labelled {empty}: refine the mesh or use elastic: uniform")
+
+    truth = None
+    t = time.perf_counter()
+    if cfg.synthetic.enabled:
+        s = cfg.synthetic
+        lam_t = np.array([s.lam.csf, s.lam.gm, s.lam.wm])[mesh.tissue]
+        mu_t = np.array([s.mu.csf, s.mu.gm, s.mu.wm])[mesh.tissue]
+        truth = brain_shift(mesh, lam_t, mu_t, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
+                            falloff_mm=s.falloff_mm)
+        from bayesreg.images import interpolate_numpy
+
+        moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
+        if np.any(moved == L.SKULL):
+            raise ValueError(
+                f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
+                "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
+            )
+        m = warp_image(f, mesh, truth.u, background=0.0)
+    elif m is None:  # pragma: no cover - guarded by the config validator
+        raise ValueError("no intra-operative image")
+    timings["synthetic_s"] = time.perf_counter() - t
+
+    def free_values(lam_tv, mu_tv):
+        lam_g = _group_values(layout, lam_tv, group, mesh)
+        mu_g = _group_values(layout, mu_tv, group, mesh)
+        return np.array([(lam_g if p == "lam" else mu_g)[g] for p, g in layout.free])
+
+    phi_init = free_values(cfg.model.initial_lam, cfg.model.initial_mu)
+    phi_true = None
+    if truth is not None and layout.group_names != ("all",):
+        phi_true = free_values(cfg.synthetic.lam, cfg.synthetic.mu)
+    prior = {
+        p: (pr.a, pr.b, pr.r1, pr.r2)
+        for p, pr in (("lam", cfg.model.prior_lam), ("mu", cfg.model.prior_mu))
+    }
+    forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
+    post = build_posterior(
+        mesh, build_ssd(mesh.nodes, mesh.tets, f, m), forbidden,
+        t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
+        prior=prior, phi_ref=phi_init,
+    )
+    return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init, scale,
+                   n_carved, timings)
+
+
+def make_logdensity(problem: Problem, cfg: Config):
+    """``(theta, interior_guess) -> (logp, aux)`` closed over the problem (for the sampler)."""
+    return partial(log_density, problem.posterior, rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
+
+
+def initial_positions(problem: Problem, cfg: Config, key) -> np.ndarray:
+    """Dispersed starts ``(chains, dim)``: ``fraction * truth`` (0 without a truth) plus
+    Gaussian jitter on ``u_b`` and log-normal jitter on the parameters (clipped to support).
+    """
+    post = problem.posterior
+    nb = post.n_boundary
+    c = cfg.sampler.chains
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel()[-1])
+    base_u = np.zeros((nb, 3))
+    if problem.truth is not None:
+        base_u = cfg.init.fraction * problem.truth.u[problem.mesh.boundary]
+    u = base_u[None] + cfg.init.perturb_mm * rng.standard_normal((c, nb, 3))
+    phi = problem.phi_init[None] * np.exp(cfg.init.param_jitter * rng.standard_normal((c, post.n_free)))
+    lo = np.asarray(post.prior_r1)
+    hi = np.asarray(post.prior_r2)
+    phi = np.clip(phi, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo))
+    return np.concatenate([u.reshape(c, -1), phi], axis=1)
+
+
+def _dofs(nodes):
+    return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
+
+
+def laplace_precision(problem: Problem, theta) -> np.ndarray:
+    """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed.
+
+    ``P = 2 J^T J / T_s + S / T_r``: ``J`` is the Jacobian of the SSD residuals with respect
+    to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib u_b``, ``S`` the Schur
+    complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b / 2``).  Returns the
+    dense ``(3 n_b, 3 n_b)`` matrix.
+    """
+    post, mesh = problem.posterior, problem.mesh
+    nb = len(mesh.boundary)
+    phi = np.asarray(theta)[3 * nb:]
+    from bayesreg.posterior import elastic_groups
+
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
+    g = problem.element_group
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
+    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
+    h = -spla.splu(sp.csc_matrix(k_ii)).solve(k_ib.toarray())  # (3 n_i, 3 n_b)
+    schur = k_bb.toarray() + k_ib.T @ h
+    # residual Jacobian w.r.t. nodal displacements, through the interior map
+    u_b = np.asarray(theta)[: 3 * nb]
+    u = np.zeros(3 * len(mesh.nodes))
+    u[bd] = u_b
+    u[idf] = h @ u_b
+    u = u.reshape(-1, 3)
+    term = post.ssd
+    u_q = np.einsum("qa,mad->mqd", GAUSS_BARY, u[mesh.tets])
+    y = np.asarray(term.points) + u_q
+    grad_m = jax.vmap(jax.grad(lambda p: interpolate(term.m, term.m_inv_affine, p, term.cval)))(
+        jnp.asarray(y.reshape(-1, 3))
+    )
+    grad_m = np.asarray(grad_m).reshape(len(mesh.tets), 4, 3)
+    vals = -np.asarray(term.sqrt_w)[:, :, None, None] * GAUSS_BARY[None, :, :, None] * grad_m[:, :, None, :]
+    rows = np.broadcast_to(np.arange(4 * len(mesh.tets)).reshape(-1, 4)[:, :, None, None], vals.shape)
+    cols = 3 * mesh.tets[:, None, :, None] + np.arange(3)[None, None, None, :]
+    cols = np.broadcast_to(cols, vals.shape)
+    jac = sp.csr_array((vals.ravel(), (rows.ravel(), cols.ravel())),
+                       shape=(4 * len(mesh.tets), 3 * len(mesh.nodes)))
+    j_b = jac[:, bd].toarray() + jac[:, idf] @ h
+    prec = 2.0 * float(post.inv_t_s) * (j_b.T @ j_b) + float(post.inv_t_r) * schur
+    prec = 0.5 * (prec + prec.T)
+    ridge = 1e-6 * np.trace(prec) / len(prec)
+    return prec + ridge * np.eye(len(prec))
+
+
+def proposal_scale(problem: Problem, cfg: Config, theta) -> np.ndarray:
+    """Initial jumping-kernel scale: a ``(dim, dim)`` factor (Laplace) or a ``(dim,)`` vector.
+
+    ``laplace``: ``2.38 / sqrt(dim)`` times the Cholesky-type factor of the inverse
+    Gauss-Newton precision (:func:`laplace_precision`) for ``u_b``; ``sigma_lam``,
+    ``sigma_mu`` for the parameters.  ``isotropic``: the paper's ``sigma_u`` (Eq. 14).
+    """
+    post = problem.posterior
+    s = cfg.sampler
+    sig_p = np.array([s.sigma_lam if p == "lam" else s.sigma_mu for p, _ in problem.layout.free])
+    nb3 = 3 * post.n_boundary
+    if s.proposal == "isotropic":
+        return np.concatenate([np.full(nb3, s.sigma_u), sig_p])
+    prec = laplace_precision(problem, theta)
+    chol = sla.cholesky(prec, lower=True)
+    factor = sla.solve_triangular(chol, np.eye(nb3), lower=True).T  # cov = prec^-1
+    out = np.zeros((post.dim, post.dim))
+    out[:nb3, :nb3] = 2.38 / np.sqrt(post.dim) * factor
+    out[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sig_p
+    return out
+
+
+def sample_problem(problem: Problem, cfg: Config, *, key=None) -> tuple[SamplerResult, np.ndarray]:
+    """Run the sampler on ``problem`` as configured; returns the result and the starts."""
+    key = jax.random.key(cfg.seed) if key is None else key
+    k_init, k_run = jax.random.split(key)
+    x0 = initial_positions(problem, cfg, k_init)
+    sigma = proposal_scale(problem, cfg, x0.mean(axis=0))
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    mask = np.zeros(post.dim, bool)
+    mask[nb3:] = True
+
+    def estimands(draws):
+        # boundary coordinates, free parameters and the lam/mu ratios per group
+        phi = draws[..., nb3:]
+        lam_g, mu_g = _groups_np(post, phi)
+        return np.concatenate([draws, lam_g / mu_g], axis=-1)
+
+    s = cfg.sampler
+    result = sample(
+        k_run,
+        make_logdensity(problem, cfg),
+        x0,
+        jnp.zeros((post.op.n_interior, 3)),
+        sigma,
+        adapt_mask=mask,
+        thinning=s.thinning,
+        warmup_steps=s.warmup_steps,
+        max_draws=s.max_draws,
+        min_draws=s.min_draws,
+        chunk_draws=s.chunk_draws,
+        target_acceptance=s.target_acceptance,
+        rhat_threshold=s.rhat_threshold,
+        estimands=estimands,
+        progress=cfg.output.progress,
+    )
+    return result, x0
+
+
+def _groups_np(post: Posterior, phi):
+    """NumPy ``lam_g, mu_g`` ``(..., G)`` from free parameters ``(..., n_free)``."""
+    base = np.asarray(post.base)
+    full = np.broadcast_to(base, phi.shape[:-1] + base.shape).copy()
+    full[..., np.asarray(post.free_index)] = phi
+    g = base.shape[0] // 2
+    return full[..., :g], full[..., g:]
+
+
+def run(config, *, out=None, overrides=None, overwrite=None, progress=None):
+    """Run the whole job and write its run directory.
+
+    Parameters
+    ----------
+    config : Config, str or Path
+        A validated config or the path of a YAML file.
+    out : str or Path, optional
+        Run directory (default ``output.dir`` of the config).
+    overrides : list of str, optional
+        ``key.sub=value`` overrides (as ``--set``).
+    overwrite : bool, optional
+        Replace an existing run directory (default ``output.overwrite``).
+    progress : bool, optional
+        Progress bar (default ``output.progress``).
+
+    Returns
+    -------
+    bayesreg.outputs.RunResult
+
+    Raises
+    ------
+    FileExistsError
+        If the run directory exists and is not empty and ``overwrite`` is false.
+    """
+    from bayesreg.outputs import RunDirectory, write_outputs
+
+    cfg = config if isinstance(config, Config) else load_config(config, overrides=overrides)
+    if isinstance(config, Config) and overrides:
+        from bayesreg.config import apply_overrides
+
+        cfg = Config.model_validate(apply_overrides(cfg.model_dump(mode="json"), overrides))
+    if out is not None:
+        cfg.output.dir = out
+    if overwrite is not None:
+        cfg.output.overwrite = overwrite
+    if progress is not None:
+        cfg.output.progress = progress
+    run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite)  # fails early
+    t0 = time.perf_counter()
+    problem = prepare(cfg)
+    result, x0 = sample_problem(problem, cfg)
+    timings = {**problem.timings, **result.timings, "total_before_outputs_s": time.perf_counter() - t0}
+    return write_outputs(run_dir, cfg, problem, result, x0, timings)

@@ -1,0 +1,333 @@
+"""The posterior of paper Eqs. 8-12 over boundary displacements and Lamé parameters.
+
+``log p(u_b, lam, mu | m) = -E_s(u) / T_s - E_r(u; lam, mu) / T_r + log p(lam) + log p(mu)``
+(+ const), where ``u`` on the interior nodes solves ``K_ii u_i = -K_ib u_b`` (Sec. 3.3:
+only boundary nodes are sampled), ``E_s`` is the SSD of Eq. 1 (:mod:`bayesreg.similarity`)
+and ``E_r`` the strain energy of Eqs. 2-3.  The Lamé parameters live on groups of
+elements: one group (uniform), one per tissue (CSF, GM, WM) or one per element; one of
+them can be held fixed to pin the scale (Sec. 3.3).  Priors are Beta(A, B) scaled to
+``[r1, r2]`` (Sec. 3.1, via NumPyro).
+
+Hard constraints (Sec. 3.2) give ``log p = -inf``: a node inside the forbidden (skull)
+region or outside the image, a parameter outside its prior support or non-positive, an
+inverted element in the deformed mesh.  A CG solve that does not converge also gives
+``-inf`` (the proposal is rejected) and is flagged in :class:`Aux` so that the driver
+counts and reports it: it is never silently accepted.
+
+Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
+node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from bayesreg import _xla
+
+_xla.configure()
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpyro.distributions as dist  # noqa: E402
+
+from bayesreg.fem import ElasticOperator, build_operator, element_strain_energy, shape_gradients  # noqa: E402
+from bayesreg.mesh import Mesh  # noqa: E402
+from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
+from bayesreg.solver import SolveInfo, solve_interior  # noqa: E402
+
+__all__ = [
+    "Posterior",
+    "Aux",
+    "ParamLayout",
+    "build_posterior",
+    "log_density",
+    "split_position",
+    "elastic_groups",
+    "full_displacement",
+    "energies",
+]
+
+
+class ParamLayout(NamedTuple):
+    """Host-side description of the elastic parameters (names for reports).
+
+    Attributes
+    ----------
+    group_names : tuple of str
+        ``("all",)``, ``("csf", "gm", "wm")`` or ``("e0", ...)``.
+    free : tuple of (str, int)
+        ``("lam" | "mu", group)`` of each free parameter, in ``phi`` order.
+    fixed : tuple of (str, int, float)
+        Parameters held fixed.
+    """
+
+    group_names: tuple
+    free: tuple
+    fixed: tuple
+
+    @property
+    def free_names(self) -> list[str]:
+        return [f"{p}_{self.group_names[g]}" for p, g in self.free]
+
+
+class Posterior(NamedTuple):
+    """Static data of the log-density (a pytree of arrays; see module docstring).
+
+    Attributes
+    ----------
+    op : ElasticOperator
+    nodes : (N, 3)  world mm
+    tets : (M, 4) int
+    grads : (M, 4, 3)  shape-function gradients, 1/mm
+    volumes : (M,)  mm^3
+    perm : (N,) int
+        ``u = concat(u_b, u_i)[perm]`` scatters boundary/interior blocks to node order.
+    boundary : (n_b,) int
+    group : (M,) int
+        Parameter group of each element.
+    base : (2G,)
+        ``[lam_0..lam_G-1, mu_0..mu_G-1]`` with the fixed values in place.
+    free_index : (n_free,) int
+        Position in ``base`` of each free parameter.
+    prior_a, prior_b, prior_r1, prior_r2 : (n_free,)
+        Scaled Beta prior of each free parameter.
+    phi_ref : (n_free,)
+        A valid parameter vector, substituted in the solve when a proposal leaves the
+        support (its log-density is ``-inf`` anyway; this keeps ``K_ii`` SPD under vmap).
+    ssd : SSDTerm
+    forbidden : (I, J, K) bool
+        Hard-constraint region (skull) on the label grid.
+    forbidden_inv_affine : (4, 4)
+    inv_t_s, inv_t_r : ()
+        ``1 / T_s`` and ``1 / T_r``.
+    """
+
+    op: ElasticOperator
+    nodes: jax.Array
+    tets: jax.Array
+    grads: jax.Array
+    volumes: jax.Array
+    perm: jax.Array
+    boundary: jax.Array
+    group: jax.Array
+    base: jax.Array
+    free_index: jax.Array
+    prior_a: jax.Array
+    prior_b: jax.Array
+    prior_r1: jax.Array
+    prior_r2: jax.Array
+    phi_ref: jax.Array
+    ssd: SSDTerm
+    forbidden: jax.Array
+    forbidden_inv_affine: jax.Array
+    inv_t_s: jax.Array
+    inv_t_r: jax.Array
+
+    @property
+    def n_boundary(self) -> int:
+        return self.boundary.shape[0]
+
+    @property
+    def n_free(self) -> int:
+        return self.free_index.shape[0]
+
+    @property
+    def dim(self) -> int:
+        return 3 * self.n_boundary + self.n_free
+
+
+class Aux(NamedTuple):
+    """By-products of one log-density evaluation.
+
+    Attributes
+    ----------
+    interior : (n_i, 3)  interior displacements (the next warm start), mm
+    solve : SolveInfo
+    e_s, e_r : ()  similarity and strain energies
+    """
+
+    interior: jax.Array
+    solve: SolveInfo
+    e_s: jax.Array
+    e_r: jax.Array
+
+
+def build_posterior(
+    mesh: Mesh,
+    ssd_term: SSDTerm,
+    forbidden,
+    *,
+    t_s: float,
+    t_r: float,
+    layout: ParamLayout,
+    element_group,
+    prior: dict,
+    phi_ref,
+) -> Posterior:
+    """Assemble :class:`Posterior` from a mesh, the SSD term and the parameter layout.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    ssd_term : SSDTerm
+    forbidden : Image
+        Boolean/0-1 image of the hard-constraint (skull) region.
+    t_s, t_r : float
+        Temperatures of Eqs. 11-12 (> 0).
+    layout : ParamLayout
+    element_group : (M,) int
+        Parameter group of each element.
+    prior : dict
+        ``{"lam": (A, B, r1, r2), "mu": (A, B, r1, r2)}``.
+    phi_ref : (n_free,) array_like
+        A valid parameter vector (inside the prior support).
+
+    Raises
+    ------
+    ValueError
+        Non-positive temperatures, an invalid prior or ``phi_ref`` outside its support.
+    """
+    if not (t_s > 0 and t_r > 0 and np.isfinite(t_s) and np.isfinite(t_r)):
+        raise ValueError(f"temperatures must be finite and > 0, got T_s={t_s}, T_r={t_r}")
+    n_groups = len(layout.group_names)
+    base = np.ones(2 * n_groups)
+    for p, g, v in layout.fixed:
+        if v <= 0:
+            raise ValueError(f"fixed {p}_{layout.group_names[g]} must be > 0, got {v}")
+        base[g + (n_groups if p == "mu" else 0)] = v
+    free_index = np.array([g + (n_groups if p == "mu" else 0) for p, g in layout.free], int)
+    pri = np.array([prior[p] for p, _ in layout.free], dtype=np.float64).reshape(-1, 4)
+    a, b, r1, r2 = pri.T
+    if np.any(a <= 0) or np.any(b <= 0) or np.any(r2 <= r1) or np.any(r1 < 0):
+        raise ValueError(f"invalid Beta prior (need A, B > 0 and 0 <= r1 < r2): {prior}")
+    phi_ref = np.asarray(phi_ref, dtype=np.float64)
+    if np.any(phi_ref <= np.maximum(r1, 0)) or np.any(phi_ref >= r2):
+        raise ValueError(f"reference parameters {phi_ref} lie outside the prior support")
+    op, interior = build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    perm = np.empty(len(mesh.nodes), np.int64)
+    perm[mesh.boundary] = np.arange(len(mesh.boundary))
+    perm[interior] = len(mesh.boundary) + np.arange(len(interior))
+    grads, vol = shape_gradients(mesh.nodes, mesh.tets)
+    return Posterior(
+        op=op,
+        nodes=jnp.asarray(mesh.nodes),
+        tets=jnp.asarray(mesh.tets, dtype=jnp.int32),
+        grads=jnp.asarray(grads),
+        volumes=jnp.asarray(np.abs(vol)),
+        perm=jnp.asarray(perm, dtype=jnp.int32),
+        boundary=jnp.asarray(mesh.boundary, dtype=jnp.int32),
+        group=jnp.asarray(element_group, dtype=jnp.int32),
+        base=jnp.asarray(base),
+        free_index=jnp.asarray(free_index, dtype=jnp.int32),
+        prior_a=jnp.asarray(a),
+        prior_b=jnp.asarray(b),
+        prior_r1=jnp.asarray(r1),
+        prior_r2=jnp.asarray(r2),
+        phi_ref=jnp.asarray(phi_ref),
+        ssd=ssd_term,
+        forbidden=jnp.asarray(np.asarray(forbidden.data) > 0),
+        forbidden_inv_affine=jnp.asarray(np.linalg.inv(forbidden.affine)),
+        inv_t_s=jnp.asarray(1.0 / t_s),
+        inv_t_r=jnp.asarray(1.0 / t_r),
+    )
+
+
+def split_position(post: Posterior, theta):
+    """``theta`` ``(dim,)`` -> ``u_b`` ``(n_b, 3)`` mm and ``phi`` ``(n_free,)``."""
+    nb3 = 3 * post.n_boundary
+    return theta[:nb3].reshape(-1, 3), theta[nb3:]
+
+
+def elastic_groups(post: Posterior, phi):
+    """Lamé parameters per group, ``lam_g, mu_g`` ``(G,)``, from the free vector ``phi``."""
+    full = post.base.at[post.free_index].set(phi)
+    g = full.shape[0] // 2
+    return full[:g], full[g:]
+
+
+def full_displacement(post: Posterior, u_b, u_i):
+    """Nodal displacements ``(N, 3)`` from boundary and interior blocks (node order)."""
+    return jnp.concatenate([u_b, u_i], axis=0)[post.perm]
+
+
+def _log_prior(post: Posterior, phi):
+    x = (phi - post.prior_r1) / (post.prior_r2 - post.prior_r1)
+    inside = (x > 0) & (x < 1) & (phi > 0)
+    xs = jnp.clip(x, 1e-12, 1 - 1e-12)
+    lp = dist.Beta(post.prior_a, post.prior_b).log_prob(xs) - jnp.log(post.prior_r2 - post.prior_r1)
+    return jnp.sum(lp), jnp.all(inside)
+
+
+def _node_forbidden(post: Posterior, points):
+    c = points @ post.forbidden_inv_affine[:3, :3].T + post.forbidden_inv_affine[:3, 3]
+    idx = jnp.floor(c + 0.5).astype(jnp.int32)  # nearest voxel (as scipy's order-0)
+    shape = jnp.array(post.forbidden.shape)
+    inside = jnp.all((idx >= 0) & (idx < shape), axis=-1)
+    idc = jnp.clip(idx, 0, shape - 1)
+    return (~inside) | post.forbidden[idc[:, 0], idc[:, 1], idc[:, 2]]
+
+
+def energies(post: Posterior, u, phi):
+    """``(E_s, E_r)`` for nodal displacements ``u`` ``(N, 3)`` and parameters ``phi``."""
+    lam_g, mu_g = elastic_groups(post, phi)
+    u_e = u[post.tets]
+    e_r = element_strain_energy(post.grads, post.volumes, u_e, lam_g[post.group], mu_g[post.group])
+    r = ssd_residuals(post.ssd, u_e)
+    return jnp.sum(r * r), e_r
+
+
+def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
+    """Unnormalised log posterior (paper Eqs. 9, 11, 12) and its by-products.
+
+    Parameters
+    ----------
+    post : Posterior
+    theta : (dim,) array
+        ``[u_b.ravel() (mm), phi]``.
+    u_i0 : (n_i, 3) array
+        Warm start of the interior solve (mm).
+    rtol, maxiter
+        CG tolerance (relative residual) and iteration cap.
+
+    Returns
+    -------
+    logp : ()
+        ``-inf`` on a hard-constraint violation or a non-converged solve.
+    aux : Aux
+    """
+    u_b, phi = split_position(post, theta)
+    log_prior, in_support = _log_prior(post, phi)
+    phi_solve = jnp.where(in_support, phi, post.phi_ref)
+    lam_g, mu_g = elastic_groups(post, phi_solve)
+    u_i, info = solve_interior(
+        post.op, lam_g[post.group], mu_g[post.group], u_b, u_i0, rtol=rtol, maxiter=maxiter
+    )
+    u = full_displacement(post, u_b, u_i)
+    e_s, e_r = energies(post, u, phi_solve)
+    x = (post.nodes + u)[post.tets]
+    det = jnp.einsum(
+        "mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]
+    )
+    ok = (
+        in_support
+        & info.converged
+        & jnp.all(det > 0)
+        & ~jnp.any(_node_forbidden(post, post.nodes + u))
+        & jnp.isfinite(e_s)
+        & jnp.isfinite(e_r)
+    )
+    logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior
+    return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
+
+
+def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000):
+    """Full nodal displacement ``(N, 3)`` for a position (host convenience, jitted inside)."""
+    u_b, phi = split_position(post, jnp.asarray(theta))
+    lam_g, mu_g = elastic_groups(post, phi)
+    if u_i0 is None:
+        u_i0 = jnp.zeros((post.op.n_interior, 3))
+    u_i, info = solve_interior(
+        post.op, lam_g[post.group], mu_g[post.group], u_b, u_i0, rtol=rtol, maxiter=maxiter
+    )
+    return full_displacement(post, u_b, u_i), info

@@ -1,0 +1,57 @@
+"""Shared fixtures: structured box meshes and a small real brain mesh."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+import bayesreg  # noqa: F401  (configures JAX: float64, XLA flags)
+from bayesreg.mesh import Mesh, boundary_nodes, orient_tets
+
+# Kuhn subdivision of the unit cube into 6 tetrahedra (conforming across cubes)
+_KUHN = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
+
+
+def box_mesh(n=(3, 3, 3), size=(30.0, 30.0, 30.0), origin=(0.0, 0.0, 0.0), tissue=None) -> Mesh:
+    """Structured tetrahedral mesh of a box: ``n`` cubes per axis, 6 tets per cube (mm)."""
+    nx, ny, nz = n
+    grid = np.stack(np.meshgrid(*[np.linspace(0, s, k + 1) for s, k in zip(size, n)], indexing="ij"), -1)
+    nodes = grid.reshape(-1, 3) + np.asarray(origin)
+    idx = np.arange(len(nodes)).reshape(nx + 1, ny + 1, nz + 1)
+    tets = []
+    for i, j, k in itertools.product(range(nx), range(ny), range(nz)):
+        corner = [idx[i + a, j + b, k + c] for a, b, c in itertools.product((0, 1), repeat=3)]
+        tets += [[corner[v] for v in t] for t in _KUHN]
+    tets = orient_tets(nodes, np.array(tets))
+    if tissue is None:
+        cent = nodes[tets].mean(1)
+        tissue = np.digitize(cent[:, 0], [size[0] / 3 + origin[0], 2 * size[0] / 3 + origin[0]])
+    return Mesh(nodes, tets, np.asarray(tissue, np.int64), boundary_nodes(tets))
+
+
+def centred_cube() -> Mesh:
+    """A cube with one interior node: 8 boundary corners + centre, 12 tetrahedra."""
+    corners = np.array(list(itertools.product((0.0, 20.0), repeat=3)))
+    nodes = np.vstack([corners, [[10.0, 10.0, 10.0]]])
+    faces = [(0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5)]
+    tets = []
+    for a, b, c, d in faces:
+        tets += [[a, b, c, 8], [a, c, d, 8]]
+    tets = orient_tets(nodes, np.array(tets))
+    return Mesh(nodes, tets, np.zeros(len(tets), np.int64), boundary_nodes(tets))
+
+
+@pytest.fixture(scope="session")
+def brain():
+    """The MNI152 brain at 2 mm with labels and a coarse (~440 node) mesh."""
+    from bayesreg.images import mni152
+    from bayesreg.labels import labels_from_probabilities
+    from bayesreg.mesh import carve_skull, mesh_brain
+
+    t1, gm, wm, mask = mni152(2.0)
+    labels = labels_from_probabilities(gm, wm, mask)
+    mesh = mesh_brain(labels, edge_length_mm=20.0)
+    labels, _ = carve_skull(labels, mesh)
+    return t1, labels, mesh
