@@ -58,8 +58,17 @@ class RunDirectory:
                 f"run directory {self.path} exists and is not empty; pass --out to choose "
                 "another or --overwrite to replace it"
             )
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.staging = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent))
+        self._staging: Path | None = None
+
+    @property
+    def staging(self) -> Path:
+        """Hidden folder beside the target, created on first use."""
+        if self._staging is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._staging = Path(
+                tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent)
+            )
+        return self._staging
 
     def file(self, name) -> Path:
         return self.staging / name

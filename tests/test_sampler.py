@@ -1,0 +1,129 @@
+"""RW-MH driver against a known Gaussian posterior; classic R-hat on known cases."""
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from bayesreg import fem
+from bayesreg.diagnostics import gelman_rubin
+from bayesreg.posterior import Aux
+from bayesreg.sampler import sample
+from bayesreg.solver import solve_interior
+from conftest import centred_cube
+
+
+def test_gelman_rubin_known_cases():
+    rng = np.random.default_rng(0)
+    iid = rng.normal(size=(4, 2000, 3))
+    assert np.all(np.abs(gelman_rubin(iid) - 1) < 0.01)
+    shifted = iid + np.array([0.0, 0.0, 3.0, 3.0])[:, None, None]
+    assert np.all(gelman_rubin(shifted) > 1.5)
+    # the formula: W = mean within variance, B/n = variance of means
+    x = rng.normal(size=(3, 50))
+    n = 50
+    w = x.var(1, ddof=1).mean()
+    var_plus = (n - 1) / n * w + x.mean(1).var(ddof=1)
+    assert gelman_rubin(x) == pytest.approx(np.sqrt(var_plus / w))
+    with pytest.raises(ValueError):
+        gelman_rubin(np.zeros((1, 10)))
+
+
+def _quadratic_problem():
+    """Boundary displacements of a cube with an elastic prior and a Gaussian stand-in likelihood."""
+    mesh = centred_cube()
+    lam, mu, t_r = 10.0, 1.0, 50.0
+    op, _ = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    grads, vol = fem.shape_gradients(mesh.nodes, mesh.tets)
+    perm = np.empty(len(mesh.nodes), int)
+    perm[mesh.boundary] = np.arange(len(mesh.boundary))
+    perm[mesh.interior] = len(mesh.boundary) + np.arange(len(mesh.interior))
+    d = 3 * len(mesh.boundary)
+    rng = np.random.default_rng(42)
+    q = rng.normal(size=(d, d))
+    a_prec = q @ q.T / d * 4.0 + np.eye(d) * 2.0  # likelihood precision (1/mm^2)
+    a_mean = rng.normal(size=d)
+    lam_e = jnp.full(len(mesh.tets), lam)
+    mu_e = jnp.full(len(mesh.tets), mu)
+
+    def logdensity(theta, u_i0):
+        u_b = theta.reshape(-1, 3)
+        u_i, info = solve_interior(op, lam_e, mu_e, u_b, u_i0, rtol=1e-12)
+        u = jnp.concatenate([u_b, u_i])[perm]
+        e_r = fem.element_strain_energy(jnp.asarray(grads), jnp.asarray(np.abs(vol)), u[mesh.tets],
+                                        lam_e, mu_e)
+        r = theta - a_mean
+        e_s = 0.5 * r @ (a_prec @ r)
+        lp = -e_s - e_r / t_r
+        return jnp.where(info.converged, lp, -jnp.inf), Aux(u_i, info, e_s, e_r)
+
+    # exact posterior: precision A + S / T_r, S the Schur complement of K
+    k = fem.stiffness_matrix(mesh.nodes, mesh.tets, lam, mu).toarray()
+    bd = (3 * mesh.boundary[:, None] + np.arange(3)).ravel()
+    idf = (3 * mesh.interior[:, None] + np.arange(3)).ravel()
+    s = k[np.ix_(bd, bd)] - k[np.ix_(bd, idf)] @ np.linalg.solve(k[np.ix_(idf, idf)], k[np.ix_(idf, bd)])
+    prec = a_prec + s / t_r
+    cov = np.linalg.inv(prec)
+    mean = cov @ (a_prec @ a_mean)
+    return logdensity, mean, cov, len(mesh.interior)
+
+
+def test_rwmh_reproduces_known_gaussian_posterior():
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    d = len(mean)
+    chol = sla.cholesky(cov, lower=True)
+    chains = 4
+    x0 = mean + 3.0 * np.random.default_rng(0).normal(size=(chains, d)) @ chol.T
+    res = sample(
+        jax.random.key(7), logdensity, x0, jnp.zeros((n_i, 3)), 2.38 / np.sqrt(d) * chol,
+        thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
+        target_acceptance=0.25, progress=False,
+    )
+    draws = res.positions.reshape(-1, d)
+    assert 0.15 < res.acceptance.mean() < 0.4
+    assert res.solve_failures.sum() == 0
+    import arviz as az
+
+    ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(d)])
+    assert ess.min() > 200
+    # means within 4.5 Monte Carlo standard errors (joint over d = 24 coordinates)
+    z = (draws.mean(0) - mean) / np.sqrt(np.diag(cov) / ess)
+    assert np.max(np.abs(z)) < 4.5
+    # variances: relative error of a variance estimate ~ sqrt(2 / ESS)
+    rel = draws.var(0) / np.diag(cov) - 1
+    assert np.max(np.abs(rel) / np.sqrt(2.0 / ess)) < 4.5
+    # a cross-covariance too
+    c01 = np.cov(draws[:, 0], draws[:, 1])[0, 1]
+    assert c01 == pytest.approx(cov[0, 1], abs=4.5 * np.sqrt(cov[0, 0] * cov[1, 1] / ess[:2].min()))
+    assert gelman_rubin(res.positions).max() < 1.1
+
+
+def test_sampler_stops_at_rhat_and_is_reproducible():
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    d = len(mean)
+    chol = sla.cholesky(cov, lower=True)
+    x0 = mean + np.random.default_rng(1).normal(size=(3, d)) @ chol.T
+    run = partial(sample, jax.random.key(3), logdensity, x0, jnp.zeros((n_i, 3)),
+                  2.38 / np.sqrt(d) * chol, thinning=2, warmup_steps=200, max_draws=5000,
+                  min_draws=100, chunk_draws=100, rhat_threshold=1.2, progress=False)
+    a, b = run(), run()
+    assert a.converged and a.positions.shape[1] < 5000
+    assert a.rhat_history[-1][1] < 1.2
+    np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_sampler_rejects_bad_start():
+    logdensity, mean, cov, n_i = _quadratic_problem()
+
+    def bad(theta, u_i0):
+        lp, aux = logdensity(theta, u_i0)
+        return jnp.where(theta[0] > 100.0, -jnp.inf, lp), aux
+
+    x0 = np.tile(mean, (2, 1))
+    x0[:, 0] = 200.0
+    with pytest.raises(ValueError, match="zero posterior density"):
+        sample(jax.random.key(0), bad, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.1),
+               progress=False)
