@@ -78,6 +78,14 @@ class BetaPrior(_Strict):
         return self
 
 
+class TissuePriors(_Strict):
+    """A separate scaled Beta prior per tissue (paper Sec. 3.1: priors per compartment)."""
+
+    csf: BetaPrior
+    gm: BetaPrior
+    wm: BetaPrior
+
+
 class FixedParam(_Strict):
     param: Literal["lam", "mu"] = "mu"
     group: str = "gm"
@@ -88,8 +96,8 @@ class ModelConfig(_Strict):
     elastic: Literal["uniform", "tissue", "element"] = "tissue"
     t_s: float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11)")
     t_r: float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12)")
-    prior_lam: BetaPrior = BetaPrior(r2=100.0)
-    prior_mu: BetaPrior = BetaPrior(r2=10.0)
+    prior_lam: BetaPrior | TissuePriors = BetaPrior(r2=100.0)
+    prior_mu: BetaPrior | TissuePriors = BetaPrior(r2=10.0)
     fixed: FixedParam | None = FixedParam()
     initial_lam: TissueValues = TissueValues(csf=1.0, gm=5.0, wm=5.0)
     initial_mu: TissueValues = TissueValues(csf=1.0, gm=1.0, wm=1.0)
@@ -110,6 +118,9 @@ class SamplerConfig(_Strict):
     chunk_draws: int = Field(50, ge=2)
     target_acceptance: float = Field(0.25, gt=0, lt=1)
     rhat_threshold: float = Field(1.2, gt=1)
+    blocked: bool = Field(
+        True, description="update u_b and the elastic parameters in turn (Metropolis-within-"
+        "Gibbs, each block with its own tuned scale); false: the paper's joint proposal")
     proposal: Literal["laplace", "isotropic"] = "laplace"
     sigma_u: float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
     sigma_lam: float = Field(0.5, gt=0)
@@ -117,8 +128,17 @@ class SamplerConfig(_Strict):
 
 
 class InitConfig(_Strict):
+    method: Literal["between", "mode"] = Field(
+        "between",
+        description="between: fraction * truth (paper Sec. 4.2); mode: optimise u_b from there "
+        "(L-BFGS, parameters at their initial values) and start the chains around the mode",
+    )
     fraction: float = Field(0.5, ge=0, le=1, description="start at fraction * truth")
-    perturb_mm: float = Field(0.5, ge=0, description="per-chain Gaussian jitter, mm")
+    perturb_mm: float = Field(0.5, ge=0, description="between: per-chain Gaussian jitter, mm")
+    overdispersion: float = Field(
+        2.0, ge=0, description="mode: chains start at mode + overdispersion * Laplace draw"
+    )
+    optimizer_iterations: int = Field(300, ge=1)
     param_jitter: float = Field(0.2, ge=0, description="log-normal sd of start parameters")
 
 
@@ -152,6 +172,9 @@ class Config(_Strict):
                 f"model.fixed.group '{self.model.fixed.group}' is not a group of elastic "
                 f"'{self.model.elastic}' (groups: {groups})"
             )
+        for key in ("prior_lam", "prior_mu"):
+            if isinstance(getattr(self.model, key), TissuePriors) and self.model.elastic != "tissue":
+                raise ValueError(f"model.{key}: per-tissue priors need elastic: tissue")
         if not self.synthetic.enabled and self.data.moving is None:
             raise ValueError("without synthetic.enabled, data.moving (the image m) is required")
         return self

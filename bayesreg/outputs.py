@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 import platform
 import shutil
 import tempfile
@@ -186,12 +187,19 @@ def format_report(errors: dict | None, info: dict) -> str:
     """The short table the run prints (error vs truth, ratio posteriors, sampler figures)."""
     lines = []
     s = info["sampler"]
+    acc = ", ".join(f"{b} {a:.3f}" for b, a in zip(s["blocks"], s["acceptance"]))
     lines.append(
-        f"draws/chain {s['draws_per_chain']}  chains {s['chains']}  acceptance {s['acceptance']:.3f}  "
-        f"classic R-hat max {s['rhat_classic_max']:.3f}  rank R-hat max {s['rhat_rank_max']:.3f}  "
-        f"ESS bulk min {s['ess_bulk_min']:.0f}"
+        f"draws/chain {s['draws_per_chain']} (thinning {s['thinning']})  chains {s['chains']}  "
+        f"acceptance {acc}"
     )
-    lines.append(f"CG iterations/solve mean {s['cg_iterations_mean']:.1f}  failed solves {s['solve_failures']}")
+    lines.append(
+        f"classic R-hat max {s['rhat_classic_max']:.3f} (stop below {s['rhat_threshold']})  "
+        f"rank R-hat max {s['rhat_rank_max']:.3f}  ESS bulk min {s['ess_bulk_min']:.0f}"
+    )
+    lines.append(
+        f"CG iterations/solve mean {s['cg_iterations_per_solve_mean']:.1f}  failed solves "
+        f"{s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.0f}"
+    )
     if errors and "boundary_posterior_mean_mm" in errors:
         lines.append("error vs truth (mm)           median    95th     max")
         for key, label in (("boundary_initial_mm", "boundary, initial"),
@@ -246,7 +254,7 @@ def _plots(run_dir: RunDirectory, tree, names, truth_ratio):
     plt.close(fig)
 
 
-def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> RunResult:
+def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init_info=None) -> RunResult:
     """Write every output of a run (see module docstring) and commit the directory."""
     import arviz as az
     import meshio
@@ -254,7 +262,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> R
     from bayesreg.diagnostics import gelman_rubin, to_datatree
     from bayesreg.mesh import mesh_quality
     from bayesreg.pipeline import _groups_np
-    from bayesreg.synthetic import interpolation_matrix
+    from bayesreg.synthetic import grid_moments
 
     post, mesh, layout = problem.posterior, problem.mesh, problem.layout
     nb = post.n_boundary
@@ -263,6 +271,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> R
     ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
     lam_g, mu_g = _groups_np(post, pos[..., 3 * nb:])
     names = list(layout.group_names)
+    block_names = ["u_b", "elastic"] if result.acceptance.shape[-1] == 2 else ["joint"]
     tree = to_datatree(
         {"u_b": ub, "lam": lam_g, "mu": mu_g, "ratio": lam_g / mu_g},
         sample_stats={
@@ -271,19 +280,25 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> R
             "cg_iterations": result.cg_iterations,
             "solve_failures": result.solve_failures,
         },
-        dims={"u_b": ["node", "axis"], "lam": ["group"], "mu": ["group"], "ratio": ["group"]},
-        coords={"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names},
+        dims={"u_b": ["node", "axis"], "lam": ["group"], "mu": ["group"], "ratio": ["group"],
+              "acceptance_rate": ["block"]},
+        coords={"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names,
+                "block": block_names},
         attrs={"units_u_b": "mm (world)", "name": cfg.name},
     )
     tree.to_netcdf(run_dir.file("posterior.nc"))
 
     var_names = ["lam", "mu", "ratio", "u_b"]
-    summary = az.summary(tree, var_names=var_names)
-    classic = []
-    for v in var_names:
-        x = np.asarray(tree.posterior[v].values)
-        classic.append(gelman_rubin(x.reshape(c, d, -1)))
+    with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
+        warnings.simplefilter("ignore", RuntimeWarning)
+        summary = az.summary(tree, var_names=var_names)
+        classic = []
+        for v in var_names:
+            x = np.asarray(tree.posterior[v].values)
+            classic.append(gelman_rubin(x.reshape(c, d, -1)))
     summary["rhat_classic"] = np.concatenate(classic)
+    fixed_rows = [f"{p}[{names[g]}]" for p, g, _ in layout.fixed]
+    summary = summary.drop(index=[r for r in fixed_rows if r in summary.index])
     tmp = run_dir.file("summary.csv.tmp")
     summary.to_csv(tmp)
     os.replace(tmp, run_dir.file("summary.csv"))
@@ -302,18 +317,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> R
         meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)], point_data=point_data,
                     cell_data={"tissue": [mesh.tissue.astype(np.int32)]}),
     )
-    w, _ = interpolation_matrix(mesh, problem.f)
-    shape = problem.f.data.shape
-    mean_img = (w @ u_mean).reshape(*shape, 3)
-    # sd on the grid from the draws (the interpolation is linear in u)
-    acc1 = np.zeros((w.shape[0], 3))
-    acc2 = np.zeros((w.shape[0], 3))
-    for k in range(len(draws)):
-        v = w @ draws[k]
-        acc1 += v
-        acc2 += v * v
-    n = len(draws)
-    sd_img = np.sqrt(np.maximum(acc2 / n - (acc1 / n) ** 2, 0)).reshape(*shape, 3)
+    mean_img, sd_img = grid_moments(mesh, problem.f, draws)
     aff = problem.f.affine
     save_nifti(Image(mean_img.astype(np.float32), aff), run_dir.file("displacement_mean.nii.gz"))
     save_nifti(Image(sd_img.astype(np.float32), aff), run_dir.file("displacement_sd.nii.gz"))
@@ -345,18 +349,22 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings) -> R
             "draws_per_chain": int(d),
             "thinning": cfg.sampler.thinning,
             "steps_per_chain": int(d * cfg.sampler.thinning + cfg.sampler.warmup_steps),
-            "acceptance": float(result.acceptance.mean()),
-            "warmup_acceptance": float(result.warmup_acceptance),
+            "blocks": block_names,
+            "acceptance": [float(a) for a in result.acceptance.reshape(-1, len(block_names)).mean(0)],
+            "warmup_acceptance": [float(a) for a in result.warmup_acceptance],
             "rhat_classic_max": float(summary["rhat_classic"].max()),
             "rhat_rank_max": float(np.nanmax(rank_rhat)),
             "ess_bulk_min": float(summary["ess_bulk"].min()),
             "converged": bool(result.converged),
             "rhat_threshold": cfg.sampler.rhat_threshold,
             "rhat_history": [[int(a), float(b)] for a, b in result.rhat_history],
-            "cg_iterations_mean": float(result.cg_iterations.mean()),
+            "cg_iterations_per_step_mean": float(result.cg_iterations.mean()),
+            "cg_iterations_per_solve_mean": float(result.cg_iterations.mean() / len(block_names)),
             "solve_failures": int(result.solve_failures.sum()),
             "steps_per_s_per_chain": float(d * cfg.sampler.thinning / max(timings.get("sampling_s", 1e-9), 1e-9)),
         },
+        "init": init_info or {},
+        "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
     }
     _atomic_text(run_dir.file("errors.json"), json.dumps(errors, indent=2))

@@ -38,7 +38,10 @@ from bayesreg.sampler import SamplerResult, sample  # noqa: E402
 from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
 from bayesreg.synthetic import Truth, brain_shift, warp_image  # noqa: E402
 
-__all__ = ["Problem", "prepare", "initial_positions", "proposal_scale", "sample_problem", "run"]
+__all__ = [
+    "Problem", "prepare", "start_center", "find_mode", "laplace_precision", "initial_positions",
+    "proposal_scale", "sample_problem", "run",
+]
 
 
 class Problem(NamedTuple):
@@ -200,10 +203,12 @@ def prepare(cfg: Config) -> Problem:
     phi_true = None
     if truth is not None and layout.group_names != ("all",):
         phi_true = free_values(cfg.synthetic.lam, cfg.synthetic.mu)
-    prior = {
-        p: (pr.a, pr.b, pr.r1, pr.r2)
-        for p, pr in (("lam", cfg.model.prior_lam), ("mu", cfg.model.prior_mu))
-    }
+    def prior_tuple(pr):
+        if hasattr(pr, "csf"):
+            return [prior_tuple(getattr(pr, t)) for t in L.TISSUES]
+        return (pr.a, pr.b, pr.r1, pr.r2)
+
+    prior = {"lam": prior_tuple(cfg.model.prior_lam), "mu": prior_tuple(cfg.model.prior_mu)}
     forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
     post = build_posterior(
         mesh, build_ssd(mesh.nodes, mesh.tets, f, m), forbidden,
@@ -219,23 +224,99 @@ def make_logdensity(problem: Problem, cfg: Config):
     return partial(log_density, problem.posterior, rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
 
 
-def initial_positions(problem: Problem, cfg: Config, key) -> np.ndarray:
-    """Dispersed starts ``(chains, dim)``: ``fraction * truth`` (0 without a truth) plus
-    Gaussian jitter on ``u_b`` and log-normal jitter on the parameters (clipped to support).
-    """
-    post = problem.posterior
-    nb = post.n_boundary
-    c = cfg.sampler.chains
-    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel()[-1])
+def start_center(problem: Problem, cfg: Config) -> np.ndarray:
+    """Central start ``(dim,)``: ``fraction * truth`` for ``u_b`` (0 without a truth) and the
+    initial elastic parameters (paper Sec. 4.2: between identity and truth)."""
+    nb = problem.posterior.n_boundary
     base_u = np.zeros((nb, 3))
     if problem.truth is not None:
         base_u = cfg.init.fraction * problem.truth.u[problem.mesh.boundary]
-    u = base_u[None] + cfg.init.perturb_mm * rng.standard_normal((c, nb, 3))
-    phi = problem.phi_init[None] * np.exp(cfg.init.param_jitter * rng.standard_normal((c, post.n_free)))
+    return np.concatenate([base_u.ravel(), problem.phi_init])
+
+
+def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
+    """Maximise the log posterior over ``u_b`` with the parameters held at ``theta0``'s.
+
+    L-BFGS (SciPy) with the JAX gradient through the CG solve; a step into a hard
+    constraint returns a huge value so the line search backtracks.
+
+    Returns
+    -------
+    theta : (dim,) ndarray
+    info : dict  ``{"logp_start", "logp_mode", "iterations", "message"}``
+    """
+    from scipy.optimize import minimize
+
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    theta0 = np.asarray(theta0, dtype=np.float64)
+    phi = jnp.asarray(theta0[nb3:])
+    zeros = jnp.zeros((post.op.n_interior, 3))
+
+    @jax.jit
+    def neg(ub):
+        lp, _ = log_density(post, jnp.concatenate([ub, phi]), zeros, rtol=cfg.solver.rtol,
+                            maxiter=cfg.solver.maxiter)
+        return -lp
+
+    vg = jax.jit(jax.value_and_grad(neg))
+
+    def fun(x):
+        v, g = vg(jnp.asarray(x))
+        v = float(v)
+        if not np.isfinite(v):
+            return 1e300, np.zeros_like(x)
+        return v, np.asarray(g)
+
+    start = -float(neg(jnp.asarray(theta0[:nb3])))
+    if not np.isfinite(start):
+        raise ValueError("the central start violates a hard constraint (skull, inverted element)")
+    res = minimize(fun, theta0[:nb3], jac=True, method="L-BFGS-B",
+                   options={"maxiter": cfg.init.optimizer_iterations})
+    theta = theta0.copy()
+    theta[:nb3] = res.x
+    return theta, {"logp_start": start, "logp_mode": -float(res.fun), "iterations": int(res.nit),
+                   "message": str(res.message)}
+
+
+def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None) -> np.ndarray:
+    """Dispersed starts ``(chains, dim)`` around ``center``.
+
+    ``u_b``: Gaussian jitter of ``init.perturb_mm`` (method ``between``), or
+    ``init.overdispersion`` times a draw from the Laplace approximation ``N(0, prec^-1)``
+    (method ``mode``).  Parameters: log-normal jitter ``init.param_jitter``, clipped into
+    the prior support.  Starts that violate a hard constraint are redrawn closer to the
+    centre (halving the jitter, at most 20 times).
+    """
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    c = cfg.sampler.chains
     lo = np.asarray(post.prior_r1)
     hi = np.asarray(post.prior_r2)
-    phi = np.clip(phi, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo))
-    return np.concatenate([u.reshape(c, -1), phi], axis=1)
+    chol = None
+    if cfg.init.method == "mode":
+        chol = sla.cholesky(prec, lower=True)
+    check = jax.jit(jax.vmap(lambda th: log_density(
+        post, th, jnp.zeros((post.op.n_interior, 3)), rtol=cfg.solver.rtol,
+        maxiter=cfg.solver.maxiter)[0]))
+    out = np.tile(np.asarray(center, np.float64), (c, 1))
+    todo = np.arange(c)
+    shrink = 1.0
+    for _ in range(20):
+        z = rng.standard_normal((len(todo), nb3))
+        if chol is None:
+            du = cfg.init.perturb_mm * z
+        else:
+            du = cfg.init.overdispersion * sla.solve_triangular(chol, z.T, lower=True, trans="T").T
+        phi = center[nb3:] * np.exp(cfg.init.param_jitter * rng.standard_normal((len(todo), post.n_free)))
+        out[todo, :nb3] = center[:nb3] + shrink * du
+        out[todo, nb3:] = np.clip(phi, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo))
+        ok = np.isfinite(np.asarray(check(jnp.asarray(out))))
+        todo = np.flatnonzero(~ok)
+        if todo.size == 0:
+            return out
+        shrink *= 0.5
+    raise ValueError(f"could not find valid starts for chains {todo.tolist()}")
 
 
 def _dofs(nodes):
@@ -288,38 +369,63 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
     return prec + ridge * np.eye(len(prec))
 
 
-def proposal_scale(problem: Problem, cfg: Config, theta) -> np.ndarray:
-    """Initial jumping-kernel scale: a ``(dim, dim)`` factor (Laplace) or a ``(dim,)`` vector.
+def proposal_scale(problem: Problem, cfg: Config, prec=None):
+    """Initial jumping-kernel scales ``(sigma_u, sigma_phi)`` of the two coordinate blocks.
 
-    ``laplace``: ``2.38 / sqrt(dim)`` times the Cholesky-type factor of the inverse
-    Gauss-Newton precision (:func:`laplace_precision`) for ``u_b``; ``sigma_lam``,
-    ``sigma_mu`` for the parameters.  ``isotropic``: the paper's ``sigma_u`` (Eq. 14).
+    ``sigma_u``: for ``proposal: laplace`` the ``(3 n_b, 3 n_b)`` factor ``2.38 / sqrt(3 n_b)
+    R^-T`` with ``prec = R R^T`` the Gauss-Newton precision of ``u_b``
+    (:func:`laplace_precision`), i.e. proposal covariance ``2.38^2 / d prec^-1``; for
+    ``isotropic`` the paper's ``sigma_u`` (Eq. 14) as a ``(3 n_b,)`` vector.
+    ``sigma_phi``: ``sigma_lam`` / ``sigma_mu`` per free parameter, ``(n_free,)``.
     """
     post = problem.posterior
     s = cfg.sampler
     sig_p = np.array([s.sigma_lam if p == "lam" else s.sigma_mu for p, _ in problem.layout.free])
     nb3 = 3 * post.n_boundary
     if s.proposal == "isotropic":
-        return np.concatenate([np.full(nb3, s.sigma_u), sig_p])
-    prec = laplace_precision(problem, theta)
+        return np.full(nb3, s.sigma_u), sig_p
     chol = sla.cholesky(prec, lower=True)
-    factor = sla.solve_triangular(chol, np.eye(nb3), lower=True).T  # cov = prec^-1
-    out = np.zeros((post.dim, post.dim))
-    out[:nb3, :nb3] = 2.38 / np.sqrt(post.dim) * factor
-    out[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sig_p
-    return out
+    factor = sla.solve_triangular(chol, np.eye(nb3), lower=True, trans="T")  # R^-T
+    return 2.38 / np.sqrt(nb3) * factor, sig_p
 
 
-def sample_problem(problem: Problem, cfg: Config, *, key=None) -> tuple[SamplerResult, np.ndarray]:
-    """Run the sampler on ``problem`` as configured; returns the result and the starts."""
-    key = jax.random.key(cfg.seed) if key is None else key
-    k_init, k_run = jax.random.split(key)
-    x0 = initial_positions(problem, cfg, k_init)
-    sigma = proposal_scale(problem, cfg, x0.mean(axis=0))
+def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.ndarray, dict]:
+    """Initialise (central start, optional mode search, dispersed starts) and sample.
+
+    Returns
+    -------
+    result : SamplerResult
+    x0 : (chains, dim) ndarray  the starts
+    init_info : dict  mode search and timing figures
+    """
+    rng = np.random.default_rng(cfg.seed)
+    k_run = jax.random.key(cfg.seed)
+    t = time.perf_counter()
+    center = start_center(problem, cfg)
+    init_info: dict = {"method": cfg.init.method}
+    if cfg.init.method == "mode":
+        center, info = find_mode(problem, cfg, center)
+        init_info.update(info)
+    prec = None
+    if cfg.init.method == "mode" or cfg.sampler.proposal == "laplace":
+        prec = laplace_precision(problem, center)
+    x0 = initial_positions(problem, cfg, center, rng, prec)
+    sigma_u, sigma_p = proposal_scale(problem, cfg, prec)
+    init_info["init_s"] = time.perf_counter() - t
     post = problem.posterior
     nb3 = 3 * post.n_boundary
-    mask = np.zeros(post.dim, bool)
-    mask[nb3:] = True
+    if cfg.sampler.blocked:
+        blocks = (np.arange(nb3), np.arange(nb3, post.dim))
+        sigma, adapt = (sigma_u, sigma_p), (False, True)
+    else:  # the paper's joint proposal (Eq. 14)
+        blocks, adapt = None, None
+        if sigma_u.ndim == 1:
+            sigma = (np.concatenate([sigma_u, sigma_p]),)
+        else:
+            joint = np.zeros((post.dim, post.dim))
+            joint[:nb3, :nb3] = sigma_u * np.sqrt(nb3 / post.dim)
+            joint[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sigma_p
+            sigma = (joint,)
 
     def estimands(draws):
         # boundary coordinates, free parameters and the lam/mu ratios per group
@@ -334,7 +440,8 @@ def sample_problem(problem: Problem, cfg: Config, *, key=None) -> tuple[SamplerR
         x0,
         jnp.zeros((post.op.n_interior, 3)),
         sigma,
-        adapt_mask=mask,
+        blocks=blocks,
+        adapt_diagonal=adapt,
         thinning=s.thinning,
         warmup_steps=s.warmup_steps,
         max_draws=s.max_draws,
@@ -345,7 +452,7 @@ def sample_problem(problem: Problem, cfg: Config, *, key=None) -> tuple[SamplerR
         estimands=estimands,
         progress=cfg.output.progress,
     )
-    return result, x0
+    return result, x0, init_info
 
 
 def _groups_np(post: Posterior, phi):
@@ -398,6 +505,7 @@ def run(config, *, out=None, overrides=None, overwrite=None, progress=None):
     run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite)  # fails early
     t0 = time.perf_counter()
     problem = prepare(cfg)
-    result, x0 = sample_problem(problem, cfg)
-    timings = {**problem.timings, **result.timings, "total_before_outputs_s": time.perf_counter() - t0}
-    return write_outputs(run_dir, cfg, problem, result, x0, timings)
+    result, x0, init_info = sample_problem(problem, cfg)
+    timings = {**problem.timings, "init_s": init_info.pop("init_s"), **result.timings,
+               "total_before_outputs_s": time.perf_counter() - t0}
+    return write_outputs(run_dir, cfg, problem, result, x0, timings, init_info)

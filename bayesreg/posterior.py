@@ -179,7 +179,8 @@ def build_posterior(
     element_group : (M,) int
         Parameter group of each element.
     prior : dict
-        ``{"lam": (A, B, r1, r2), "mu": (A, B, r1, r2)}``.
+        ``{"lam": (A, B, r1, r2), "mu": ...}`` (one prior for every group) or
+        ``{"lam": [(A, B, r1, r2) per group], ...}``.
     phi_ref : (n_free,) array_like
         A valid parameter vector (inside the prior support).
 
@@ -197,7 +198,11 @@ def build_posterior(
             raise ValueError(f"fixed {p}_{layout.group_names[g]} must be > 0, got {v}")
         base[g + (n_groups if p == "mu" else 0)] = v
     free_index = np.array([g + (n_groups if p == "mu" else 0) for p, g in layout.free], int)
-    pri = np.array([prior[p] for p, _ in layout.free], dtype=np.float64).reshape(-1, 4)
+    def prior_of(p, g):
+        pr = np.asarray(prior[p], dtype=np.float64)
+        return pr if pr.ndim == 1 else pr[g]
+
+    pri = np.array([prior_of(p, g) for p, g in layout.free], dtype=np.float64).reshape(-1, 4)
     a, b, r1, r2 = pri.T
     if np.any(a <= 0) or np.any(b <= 0) or np.any(r2 <= r1) or np.any(r1 < 0):
         raise ValueError(f"invalid Beta prior (need A, B > 0 and 0 <= r1 < r2): {prior}")

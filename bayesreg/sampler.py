@@ -50,14 +50,14 @@ class RWMHState(NamedTuple):
 
 
 class RWMHInfo(NamedTuple):
-    """Information about one transition.
+    """Information about one transition (one MH update per block).
 
     Attributes
     ----------
-    acceptance_rate : ()   ``min(1, p(theta*) / p(theta^n))`` (Eq. 13)
-    is_accepted : () bool
-    cg_iterations : ()  CG iterations of the proposal's solve
-    solve_failed : () bool  the proposal's solve did not converge (it was rejected)
+    acceptance_rate : (B,)   ``min(1, p(theta*) / p(theta^n))`` (Eq. 13) per block
+    is_accepted : (B,) bool
+    cg_iterations : ()  CG iterations of the proposals' solves, summed over blocks
+    solve_failed : ()  number of proposals whose solve did not converge (rejected)
     """
 
     acceptance_rate: jax.Array
@@ -72,24 +72,50 @@ def init(position, logdensity_fn: Callable, interior0) -> RWMHState:
     return RWMHState(position, logp, aux.interior)
 
 
-def build_kernel(logdensity_fn: Callable) -> Callable:
-    """Kernel ``(rng_key, state, sigma) -> (state, info)`` for a fixed log-density.
+def build_kernel(logdensity_fn: Callable, blocks=None) -> Callable:
+    """RW-MH kernel ``(rng_key, state, sigmas) -> (state, info)`` for a fixed log-density.
 
-    ``sigma`` is the Normal jumping kernel's scale: a vector (independent scales) or a
-    matrix ``L`` (proposal covariance ``L L^T``).
+    Parameters
+    ----------
+    logdensity_fn : callable
+        ``(position, interior_guess) -> (logp, aux)``.
+    blocks : sequence of int arrays, optional
+        Coordinate blocks updated in turn, each by its own Metropolis step with a Normal
+        jumping kernel (systematic-scan Metropolis-within-Gibbs; each update leaves the
+        posterior invariant, so their composition does).  ``None``: one block with every
+        coordinate, the paper's joint proposal (Eq. 14).
+
+    Notes
+    -----
+    ``sigmas[b]`` is block ``b``'s jumping-kernel scale: a vector (independent scales) or a
+    matrix ``L`` (proposal covariance ``L L^T``), as in
+    :func:`blackjax.mcmc.random_walk.normal`.
     """
 
-    def kernel(rng_key, state: RWMHState, sigma):
+    def update(rng_key, state: RWMHState, idx, sigma):
         key_prop, key_acc = jax.random.split(rng_key)
-        move = normal_jumping_kernel(sigma)(key_prop, state.position)
-        proposal = state.position + move
+        sub = state.position[idx]
+        move = normal_jumping_kernel(sigma)(key_prop, sub)
+        proposal = state.position.at[idx].set(sub + move)
         logp, aux = logdensity_fn(proposal, state.interior)
         log_ratio = logp - state.logdensity
         log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
         new = RWMHState(proposal, logp, aux.interior)
         state, (accepted, p_accept, _) = static_binomial_sampling(key_acc, log_ratio, state, new)
+        return state, (p_accept, accepted, aux.solve.iterations, ~aux.solve.converged)
+
+    def kernel(rng_key, state: RWMHState, sigmas):
+        idxs = blocks if blocks is not None else [jnp.arange(state.position.shape[0])]
+        keys = jax.random.split(rng_key, len(idxs))
+        out = []
+        for b, idx in enumerate(idxs):
+            state, o = update(keys[b], state, jnp.asarray(idx), sigmas[b])
+            out.append(o)
         return state, RWMHInfo(
-            p_accept, accepted, aux.solve.iterations, ~aux.solve.converged
+            jnp.stack([o[0] for o in out]),
+            jnp.stack([o[1] for o in out]),
+            sum(o[2] for o in out),
+            sum(o[3].astype(jnp.int32) for o in out),
         )
 
     return kernel
@@ -103,12 +129,12 @@ class SamplerResult(NamedTuple):
     positions : (C, D, dim)   thinned post-warm-up draws
     interior : (C, D, n_i, 3)   interior FE solution of each draw
     logdensity : (C, D)
-    acceptance : (C, D)   mean acceptance probability over each thinning interval
+    acceptance : (C, D, B)   mean acceptance probability per block over each thinning interval
     cg_iterations : (C, D)   mean CG iterations per step over each interval
     solve_failures : (C, D)   non-converged (rejected) solves per interval
     rhat_history : list of (draws per chain, max classic R-hat)
-    sigma : the frozen proposal scale
-    warmup_acceptance : float
+    sigma : tuple  the frozen proposal scale of each block
+    warmup_acceptance : (B,) ndarray  acceptance per block in the last warm-up chunk
     timings : dict  seconds for compile, warm-up, sampling
     converged : bool   max R-hat < threshold at the end
     final_states : RWMHState  (to continue a run)
@@ -121,8 +147,8 @@ class SamplerResult(NamedTuple):
     cg_iterations: np.ndarray
     solve_failures: np.ndarray
     rhat_history: list
-    sigma: np.ndarray
-    warmup_acceptance: float
+    sigma: tuple
+    warmup_acceptance: np.ndarray
     timings: dict
     converged: bool
     final_states: RWMHState
@@ -139,7 +165,7 @@ def _build_chunk(kernel, n_draws: int, thin: int):
                 state.position,
                 state.interior,
                 state.logdensity,
-                jnp.mean(info.acceptance_rate),
+                jnp.mean(info.acceptance_rate, axis=0),
                 jnp.mean(info.cg_iterations.astype(jnp.float64)),
                 jnp.sum(info.solve_failed),
             )
@@ -149,6 +175,10 @@ def _build_chunk(kernel, n_draws: int, thin: int):
     return jax.jit(jax.vmap(one_chain, in_axes=(0, 0, None)))
 
 
+def _scaled(sigmas, log_scales):
+    return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
+
+
 def sample(
     rng_key,
     logdensity_fn: Callable,
@@ -156,7 +186,8 @@ def sample(
     interior0,
     sigma,
     *,
-    adapt_mask=None,
+    blocks=None,
+    adapt_diagonal=None,
     thinning: int = 10,
     warmup_steps: int = 2000,
     max_draws: int = 2000,
@@ -179,17 +210,20 @@ def sample(
         One start per chain (dispersed starts make R-hat meaningful).
     interior0 : (n_i, 3) array
         Initial interior warm start.
-    sigma : (dim,) or (dim, dim) array
-        Initial proposal scale (vector) or Cholesky-type factor (matrix).
-    adapt_mask : (dim,) bool array, optional
-        Coordinates whose scale is re-estimated in the second half of the warm-up (the
-        elastic parameters): their diagonal entries of ``sigma`` become ``2.38 / sqrt(dim)``
-        times the pooled standard deviation of the last warm-up chunk.  With a matrix
-        ``sigma`` the masked rows and columns must be zero off the diagonal.
+    sigma : array or tuple of arrays
+        Initial jumping-kernel scale per block: ``(d_b,)`` vector or ``(d_b, d_b)`` factor.
+    blocks : sequence of int arrays, optional
+        Coordinate blocks (see :func:`build_kernel`); ``None``: one joint block.
+    adapt_diagonal : sequence of bool, optional
+        Per block: at 1/2 and 3/4 of the warm-up, replace a vector ``sigma`` by
+        ``2.38 / sqrt(d_b)`` times the pooled standard deviation of the chains' draws since
+        the previous window (Haario-style diagonal adaptation); the scale adaptation then
+        restarts.
     thinning : int
         Steps per stored draw (paper: 10).
     warmup_steps : int
-        Steps per chain spent tuning (discarded); rounded up to whole chunks.
+        Steps per chain spent tuning (discarded); rounded up to whole chunks.  Each block's
+        scale follows Robbins-Monro on its log toward ``target_acceptance``; frozen after.
     max_draws, min_draws : int
         Bounds on stored draws per chain after warm-up.
     chunk_draws : int
@@ -225,13 +259,19 @@ def sample(
         raise ValueError("thinning, chunk_draws and max_draws must be >= 1")
     if not 0 < target_acceptance < 1:
         raise ValueError(f"target_acceptance must lie in (0, 1), got {target_acceptance}")
-    sigma = jnp.asarray(sigma, dtype=jnp.float64)
+    idxs = [np.arange(dim)] if blocks is None else [np.asarray(b) for b in blocks]
+    sigmas = tuple(np.asarray(s_, np.float64) for s_ in (sigma if isinstance(sigma, tuple) else (sigma,)))
+    if len(sigmas) != len(idxs):
+        raise ValueError(f"{len(idxs)} blocks but {len(sigmas)} sigmas")
+    for k, (s_, ix) in enumerate(zip(sigmas, idxs)):
+        if s_.shape not in ((len(ix),), (len(ix), len(ix))):
+            raise ValueError(f"sigma of block {k} has shape {s_.shape}, block size {len(ix)}")
+    adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * len(idxs)
     estimands = estimands or (lambda d: d)
 
-    kernel = build_kernel(logdensity_fn)
+    kernel = build_kernel(logdensity_fn, None if blocks is None else idxs)
     t0 = time.perf_counter()
-    init_fn = jax.jit(jax.vmap(lambda x: init(x, logdensity_fn, interior0)))
-    states = init_fn(x0)
+    states = jax.jit(jax.vmap(lambda x: init(x, logdensity_fn, interior0)))(x0)
     bad = ~np.isfinite(np.asarray(states.logdensity))
     if bad.any():
         raise ValueError(
@@ -242,76 +282,77 @@ def sample(
     key_warm, key_samp = jax.random.split(rng_key)
     timings = {}
 
-    # ---- warm-up: Robbins-Monro on a global log-scale, parameter scales from draws ----
-    n_warm_chunks = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
-    log_scale = 0.0
-    base_sigma = sigma
-    warm_acc = float("nan")
-    bar = tqdm(total=n_warm_chunks + int(np.ceil(max_draws / chunk_draws)), disable=not progress,
-               desc="warm-up", unit="chunk")
-    for k in range(n_warm_chunks):
-        cur = base_sigma * np.exp(log_scale)
-        states, out = chunk(jax.random.split(jax.random.fold_in(key_warm, k), n_chains), states, cur)
+    # ---- warm-up: Robbins-Monro on each block's log-scale, diagonal scales from draws ----
+    n_warm = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
+    log_scales = np.zeros(len(idxs))
+    warm_acc = np.full(len(idxs), np.nan)
+    n_samp = int(np.ceil(max_draws / chunk_draws))
+    bar = tqdm(total=n_warm + n_samp, disable=not progress, desc="warm-up", unit="chunk")
+    # windows: scales re-estimated from the draws of [n/4, n/2) and [n/2, 3n/4)
+    window_ends = {n_warm // 2, (3 * n_warm) // 4} - {0}
+    window: list[np.ndarray] = []
+    k_gain = 0
+    for k in range(n_warm):
+        states, out = chunk(jax.random.split(jax.random.fold_in(key_warm, k), n_chains), states,
+                            _scaled(sigmas, log_scales))
         if k == 0:
             timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
-        warm_acc = float(np.mean(np.asarray(out[3])))
-        gain = 1.0 / np.sqrt(k + 1.0)
-        log_scale += 2.0 * gain * (warm_acc - target_acceptance)
-        if adapt_mask is not None and k >= n_warm_chunks // 2 and k < n_warm_chunks - 1:
-            pos = np.asarray(out[0]).reshape(-1, dim)
-            sd = pos.std(axis=0)
-            mask = np.asarray(adapt_mask)
-            new = np.asarray(base_sigma).copy()
-            scale_new = 2.38 / np.sqrt(dim) * np.maximum(sd, 1e-6 * np.abs(pos.mean(0)) + 1e-12)
-            if new.ndim == 1:
-                new[mask] = np.where(sd[mask] > 0, scale_new[mask], new[mask])
-            else:
-                idx = np.flatnonzero(mask)
-                new[idx, idx] = np.where(sd[idx] > 0, scale_new[idx], new[idx, idx])
-            base_sigma = jnp.asarray(new)
-        bar.set_postfix(acc=f"{warm_acc:.2f}", scale=f"{np.exp(log_scale):.3g}")
+        warm_acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
+        k_gain += 1
+        log_scales += 2.0 / np.sqrt(k_gain) * (warm_acc - target_acceptance)
+        if k >= n_warm // 4:
+            window.append(np.asarray(out[0]).reshape(-1, dim))
+        if k + 1 in window_ends and window:
+            pos = np.concatenate(window)
+            window = []
+            new = list(sigmas)
+            for b, ix in enumerate(idxs):
+                sd = pos[:, ix].std(axis=0)
+                if adapt[b] and sigmas[b].ndim == 1 and np.all(sd > 0):
+                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
+                    log_scales[b] = 0.0
+            sigmas = tuple(new)
+            k_gain = 0
+        bar.set_postfix(acc=np.array2string(warm_acc, precision=2),
+                        scale=np.array2string(np.exp(log_scales), precision=2))
         bar.update(1)
     timings["warmup_s"] = time.perf_counter() - t0
-    sigma_frozen = base_sigma * np.exp(log_scale)
+    frozen = _scaled(sigmas, log_scales)
 
     # ---- sampling ----
     bar.set_description("sampling")
     t1 = time.perf_counter()
-    pos_chunks, int_chunks, lp_chunks, acc_chunks, cg_chunks, fail_chunks = [], [], [], [], [], []
+    parts: list[list[np.ndarray]] = [[] for _ in range(6)]
     history = []
     n_draws = 0
     rhat = np.inf
     k = 0
     while n_draws < max_draws:
-        states, out = chunk(jax.random.split(jax.random.fold_in(key_samp, k), n_chains), states,
-                            sigma_frozen)
+        states, out = chunk(jax.random.split(jax.random.fold_in(key_samp, k), n_chains), states, frozen)
         k += 1
-        pos_chunks.append(np.asarray(out[0]))
-        int_chunks.append(np.asarray(out[1]))
-        lp_chunks.append(np.asarray(out[2]))
-        acc_chunks.append(np.asarray(out[3]))
-        cg_chunks.append(np.asarray(out[4]))
-        fail_chunks.append(np.asarray(out[5]))
+        for lst, o in zip(parts, out):
+            lst.append(np.asarray(o))
         n_draws += chunk_draws
-        draws = np.concatenate(pos_chunks, axis=1)
+        draws = np.concatenate(parts[0], axis=1)
         rhat = float(np.nanmax(gelman_rubin(estimands(draws))))
         history.append((n_draws, rhat))
-        acc = float(np.mean(np.concatenate(acc_chunks, axis=1)))
-        bar.set_postfix(acc=f"{acc:.2f}", rhat=f"{rhat:.3f}", draws=n_draws)
+        acc = np.concatenate(parts[3], axis=1).reshape(-1, len(idxs)).mean(axis=0)
+        bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
         bar.update(1)
         if n_draws >= min_draws and rhat < rhat_threshold:
             break
     bar.close()
     timings["sampling_s"] = time.perf_counter() - t1
+    pos, interior, lp, acc, cg, fail = (np.concatenate(p_, axis=1) for p_ in parts)
     return SamplerResult(
-        positions=np.concatenate(pos_chunks, axis=1),
-        interior=np.concatenate(int_chunks, axis=1),
-        logdensity=np.concatenate(lp_chunks, axis=1),
-        acceptance=np.concatenate(acc_chunks, axis=1),
-        cg_iterations=np.concatenate(cg_chunks, axis=1),
-        solve_failures=np.concatenate(fail_chunks, axis=1),
+        positions=pos,
+        interior=interior,
+        logdensity=lp,
+        acceptance=acc,
+        cg_iterations=cg,
+        solve_failures=fail,
         rhat_history=history,
-        sigma=np.asarray(sigma_frozen),
+        sigma=tuple(np.asarray(f_) for f_ in frozen),
         warmup_acceptance=warm_acc,
         timings=timings,
         converged=bool(rhat < rhat_threshold),

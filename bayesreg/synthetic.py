@@ -22,7 +22,10 @@ from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image, interpolate_numpy
 from bayesreg.mesh import Mesh
 
-__all__ = ["Truth", "brain_shift", "locate", "interpolation_matrix", "warp_image", "solve_dirichlet"]
+__all__ = [
+    "Truth", "brain_shift", "locate", "interpolation_matrix", "grid_moments", "warp_image",
+    "solve_dirichlet",
+]
 
 
 class Truth(NamedTuple):
@@ -159,6 +162,43 @@ def interpolation_matrix(mesh: Mesh, grid: Image):
         (bary[rows].ravel(), (np.repeat(rows, 4), cols.ravel())), shape=(len(pts), len(mesh.nodes))
     )
     return w, (elem >= 0).reshape(grid.data.shape[:3])
+
+
+def grid_moments(mesh: Mesh, grid: Image, draws):
+    """Posterior mean and sd of the FE-interpolated displacement on an image grid.
+
+    The interpolant is linear in the nodal values, so per voxel ``v`` and axis ``c``
+    ``Var u_c(v) = w_v^T Cov_c w_v`` with ``w_v`` the 4 barycentric weights of the element
+    containing ``v`` and ``Cov_c`` the ``(N, N)`` posterior covariance of axis ``c``; no
+    per-draw interpolation is needed.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    grid : Image  (only its shape and affine are used)
+    draws : (S, N, 3) array  nodal displacement draws, mm
+
+    Returns
+    -------
+    mean, sd : (I, J, K, 3) ndarray  mm; zero outside the mesh
+    """
+    draws = np.asarray(draws, np.float64)
+    pts = _grid_points(grid)
+    elem, bary = locate(mesh.nodes, mesh.tets, pts)
+    inside = np.flatnonzero(elem >= 0)
+    idx = mesh.tets[elem[inside]]  # (P, 4)
+    w = bary[inside]
+    mean_n = draws.mean(0)
+    centred = draws - mean_n
+    mean = np.zeros((len(pts), 3))
+    sd = np.zeros((len(pts), 3))
+    mean[inside] = np.einsum("pa,pac->pc", w, mean_n[idx])
+    for c in range(3):
+        cov = centred[:, :, c].T @ centred[:, :, c] / len(draws)
+        var = np.einsum("pa,pb,pab->p", w, w, cov[idx[:, :, None], idx[:, None, :]])
+        sd[inside, c] = np.sqrt(np.maximum(var, 0.0))
+    shape = grid.data.shape[:3]
+    return mean.reshape(*shape, 3), sd.reshape(*shape, 3)
 
 
 def warp_image(f: Image, mesh: Mesh, u, *, background=0.0) -> Image:
