@@ -131,12 +131,12 @@ def error_table(problem, result, x0) -> dict | None:
     percentile and max of ``|E[u_b] - u_b_true|`` and of the initial configuration's error,
     the MSE over all nodes (mm^2), and the lam/mu ratio posterior per group.
     """
-    from bayesreg.pipeline import _groups_np
+    from bayesreg.posterior import elastic_groups
 
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
     nb3 = 3 * post.n_boundary
-    lam_g, mu_g = _groups_np(post, result.positions[..., nb3:])
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, result.positions[..., nb3:]))
     ratio = lam_g / mu_g
     ratios = {}
     for k, name in enumerate(problem.layout.group_names[:16]):
@@ -261,7 +261,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
 
     from bayesreg.diagnostics import gelman_rubin, to_datatree
     from bayesreg.mesh import mesh_quality
-    from bayesreg.pipeline import _groups_np
+    from bayesreg.posterior import elastic_groups
     from bayesreg.synthetic import grid_moments
 
     post, mesh, layout = problem.posterior, problem.mesh, problem.layout
@@ -269,7 +269,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
     pos = result.positions
     c, d = pos.shape[:2]
     ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
-    lam_g, mu_g = _groups_np(post, pos[..., 3 * nb:])
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, pos[..., 3 * nb:]))
     names = list(layout.group_names)
     block_names = ["u_b", "elastic"] if result.acceptance.shape[-1] == 2 else ["joint"]
     tree = to_datatree(

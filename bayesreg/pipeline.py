@@ -33,7 +33,9 @@ from bayesreg.images import (  # noqa: E402
     Image, check_same_space, interpolate, load_nifti, mni152, pad, resample_to_spacing,
 )
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain  # noqa: E402
-from bayesreg.posterior import ParamLayout, Posterior, build_posterior, log_density  # noqa: E402
+from bayesreg.posterior import (  # noqa: E402
+    ParamLayout, Posterior, build_posterior, elastic_groups, log_density,
+)
 from bayesreg.sampler import SamplerResult, sample  # noqa: E402
 from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
 from bayesreg.synthetic import Truth, brain_shift, warp_image  # noqa: E402
@@ -334,8 +336,6 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
     post, mesh = problem.posterior, problem.mesh
     nb = len(mesh.boundary)
     phi = np.asarray(theta)[3 * nb:]
-    from bayesreg.posterior import elastic_groups
-
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
     g = problem.element_group
     k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
@@ -416,7 +416,7 @@ def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.nda
     nb3 = 3 * post.n_boundary
     if cfg.sampler.blocked:
         blocks = (np.arange(nb3), np.arange(nb3, post.dim))
-        sigma, adapt = (sigma_u, sigma_p), (False, True)
+        sigma, adapt = (sigma_u, sigma_p), (True, True)
     else:  # the paper's joint proposal (Eq. 14)
         blocks, adapt = None, None
         if sigma_u.ndim == 1:
@@ -430,7 +430,7 @@ def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.nda
     def estimands(draws):
         # boundary coordinates, free parameters and the lam/mu ratios per group
         phi = draws[..., nb3:]
-        lam_g, mu_g = _groups_np(post, phi)
+        lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, phi))
         return np.concatenate([draws, lam_g / mu_g], axis=-1)
 
     s = cfg.sampler
@@ -453,15 +453,6 @@ def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.nda
         progress=cfg.output.progress,
     )
     return result, x0, init_info
-
-
-def _groups_np(post: Posterior, phi):
-    """NumPy ``lam_g, mu_g`` ``(..., G)`` from free parameters ``(..., n_free)``."""
-    base = np.asarray(post.base)
-    full = np.broadcast_to(base, phi.shape[:-1] + base.shape).copy()
-    full[..., np.asarray(post.free_index)] = phi
-    g = base.shape[0] // 2
-    return full[..., :g], full[..., g:]
 
 
 def run(config, *, out=None, overrides=None, overwrite=None, progress=None):

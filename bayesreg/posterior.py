@@ -245,10 +245,22 @@ def split_position(post: Posterior, theta):
 
 
 def elastic_groups(post: Posterior, phi):
-    """Lamé parameters per group, ``lam_g, mu_g`` ``(G,)``, from the free vector ``phi``."""
-    full = post.base.at[post.free_index].set(phi)
-    g = full.shape[0] // 2
-    return full[:g], full[g:]
+    """Lamé parameters per group from the free parameters.
+
+    Parameters
+    ----------
+    post : Posterior
+    phi : (..., n_free) array  (batched draws allowed)
+
+    Returns
+    -------
+    lam_g, mu_g : (..., G) arrays, the fixed parameters in place
+    """
+    phi = jnp.asarray(phi)
+    full = jnp.broadcast_to(post.base, phi.shape[:-1] + post.base.shape)
+    full = full.at[..., post.free_index].set(phi)
+    g = post.base.shape[0] // 2
+    return full[..., :g], full[..., g:]
 
 
 def full_displacement(post: Posterior, u_b, u_i):

@@ -215,10 +215,11 @@ def sample(
     blocks : sequence of int arrays, optional
         Coordinate blocks (see :func:`build_kernel`); ``None``: one joint block.
     adapt_diagonal : sequence of bool, optional
-        Per block: at 1/2 and 3/4 of the warm-up, replace a vector ``sigma`` by
+        Per block: at 1/2 and 3/4 of the warm-up, set the proposal's marginal scales to
         ``2.38 / sqrt(d_b)`` times the pooled standard deviation of the chains' draws since
-        the previous window (Haario-style diagonal adaptation); the scale adaptation then
-        restarts.
+        the previous window (Haario-style diagonal adaptation): a vector ``sigma`` is
+        replaced, the rows of a matrix factor are rescaled (its correlations are kept).  The
+        scale adaptation then restarts.
     thinning : int
         Steps per stored draw (paper: 10).
     warmup_steps : int
@@ -308,9 +309,15 @@ def sample(
             new = list(sigmas)
             for b, ix in enumerate(idxs):
                 sd = pos[:, ix].std(axis=0)
-                if adapt[b] and sigmas[b].ndim == 1 and np.all(sd > 0):
-                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
-                    log_scales[b] = 0.0
+                if not adapt[b] or not np.all(sd > 0):
+                    continue
+                target = 2.38 / np.sqrt(len(ix)) * sd
+                if sigmas[b].ndim == 1:
+                    new[b] = target
+                else:  # keep the correlations of the factor, match its marginal scales
+                    implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
+                    new[b] = (target / implied)[:, None] * sigmas[b]
+                log_scales[b] = 0.0
             sigmas = tuple(new)
             k_gain = 0
         bar.set_postfix(acc=np.array2string(warm_acc, precision=2),

@@ -88,3 +88,17 @@ def test_mismatched_nifti_images_fail_clearly(tmp_path, capsys):
     )
     assert main(["run", str(cfg), "--out", str(tmp_path / "r")]) == 2
     assert "data.fixed and data.labels affines disagree" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_quickstart_notebook_executes(tmp_path):
+    import nbformat
+    from nbclient import NotebookClient
+
+    nb = nbformat.read("notebooks/01_quickstart.ipynb", as_version=4)
+    NotebookClient(nb, timeout=600, kernel_name="python3",
+                   resources={"metadata": {"path": "notebooks"}}).execute()
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not any(o.get("output_type") == "error" for o in outputs)
+    text = "".join(o.get("text", "") for o in outputs)
+    assert "lam/mu posterior" in text
