@@ -118,6 +118,9 @@ class SamplerConfig(_Strict):
     chunk_draws: int = Field(50, ge=2)
     target_acceptance: float = Field(0.25, gt=0, lt=1)
     rhat_threshold: float = Field(1.2, gt=1)
+    rhat_split: bool = Field(
+        False, description="monitor the split-chain Gelman-Rubin R-hat (catches a common drift) "
+        "instead of the paper's whole-chain one")
     blocked: bool = Field(
         True, description="update u_b and the elastic parameters in turn (Metropolis-within-"
         "Gibbs, each block with its own tuned scale); false: the paper's joint proposal")

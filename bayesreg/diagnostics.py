@@ -13,13 +13,16 @@ import numpy as np
 __all__ = ["gelman_rubin", "to_datatree"]
 
 
-def gelman_rubin(draws) -> np.ndarray:
+def gelman_rubin(draws, *, split: bool = False) -> np.ndarray:
     """Classic potential scale reduction factor per estimand.
 
     Parameters
     ----------
     draws : (C, D, ...) array_like
         ``C >= 2`` chains of ``D >= 2`` draws.
+    split : bool
+        Split every chain into halves first (BDA 3rd ed., Sec. 11.4): detects a trend that
+        all chains share, which the whole-chain statistic cannot see.
 
     Returns
     -------
@@ -34,8 +37,11 @@ def gelman_rubin(draws) -> np.ndarray:
         Fewer than 2 chains or 2 draws.
     """
     x = np.asarray(draws, dtype=np.float64)
-    if x.ndim < 2 or x.shape[0] < 2 or x.shape[1] < 2:
-        raise ValueError(f"need at least 2 chains x 2 draws, got shape {x.shape}")
+    if x.ndim < 2 or x.shape[0] < 2 or x.shape[1] < (4 if split else 2):
+        raise ValueError(f"need at least 2 chains x {4 if split else 2} draws, got shape {x.shape}")
+    if split:
+        half = x.shape[1] // 2
+        x = np.concatenate([x[:, :half], x[:, x.shape[1] - half:]], axis=0)
     n = x.shape[1]
     w = x.var(axis=1, ddof=1).mean(axis=0)
     b_over_n = x.mean(axis=1).var(axis=0, ddof=1)

@@ -449,6 +449,7 @@ def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.nda
         chunk_draws=s.chunk_draws,
         target_acceptance=s.target_acceptance,
         rhat_threshold=s.rhat_threshold,
+        rhat_split=s.rhat_split,
         estimands=estimands,
         progress=cfg.output.progress,
     )

@@ -132,7 +132,7 @@ class SamplerResult(NamedTuple):
     acceptance : (C, D, B)   mean acceptance probability per block over each thinning interval
     cg_iterations : (C, D)   mean CG iterations per step over each interval
     solve_failures : (C, D)   non-converged (rejected) solves per interval
-    rhat_history : list of (draws per chain, max classic R-hat)
+    rhat_history : list of (draws per chain, max monitored R-hat)
     sigma : tuple  the frozen proposal scale of each block
     warmup_acceptance : (B,) ndarray  acceptance per block in the last warm-up chunk
     timings : dict  seconds for compile, warm-up, sampling
@@ -195,6 +195,7 @@ def sample(
     chunk_draws: int = 50,
     target_acceptance: float = 0.25,
     rhat_threshold: float = 1.2,
+    rhat_split: bool = False,
     estimands: Callable | None = None,
     progress: bool = True,
 ) -> SamplerResult:
@@ -233,6 +234,8 @@ def sample(
         Warm-up target of the mean acceptance probability (paper: about 0.25).
     rhat_threshold : float
         Stop when the classic Gelman-Rubin R-hat of every estimand is below it.
+    rhat_split : bool
+        Monitor the split-chain version (see :func:`bayesreg.diagnostics.gelman_rubin`).
     estimands : callable, optional
         ``(draws (C, D, dim) ndarray) -> (C, D, K) ndarray`` of the scalars to monitor;
         default: the position coordinates.
@@ -341,12 +344,12 @@ def sample(
             lst.append(np.asarray(o))
         n_draws += chunk_draws
         draws = np.concatenate(parts[0], axis=1)
-        rhat = float(np.nanmax(gelman_rubin(estimands(draws))))
+        rhat = float(np.nanmax(gelman_rubin(estimands(draws), split=rhat_split)))
         history.append((n_draws, rhat))
         acc = np.concatenate(parts[3], axis=1).reshape(-1, len(idxs)).mean(axis=0)
         bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
         bar.update(1)
-        if n_draws >= min_draws and rhat < rhat_threshold:
+        if n_draws >= max(min_draws, 4) and rhat < rhat_threshold:
             break
     bar.close()
     timings["sampling_s"] = time.perf_counter() - t1

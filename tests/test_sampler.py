@@ -149,3 +149,12 @@ def test_blocked_kernel_targets_the_same_posterior():
     assert np.max(np.abs(z)) < 4.5
     rel = draws.var(0) / np.diag(cov) - 1
     assert np.max(np.abs(rel) / np.sqrt(2.0 / ess)) < 4.5
+
+
+def test_split_rhat_detects_a_common_drift():
+    rng = np.random.default_rng(5)
+    trend = np.linspace(0.0, 5.0, 1000)
+    drifting = rng.normal(size=(3, 1000)) + trend  # every chain drifts the same way
+    assert gelman_rubin(drifting) < 1.01  # whole-chain R-hat is blind to it
+    assert gelman_rubin(drifting, split=True) > 1.2  # the stopping threshold catches it
+    assert abs(gelman_rubin(rng.normal(size=(3, 1000)), split=True) - 1) < 0.01
