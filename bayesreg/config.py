@@ -40,6 +40,9 @@ class DataConfig(_Strict):
     labels: Path | None = Field(None, description="label map on f's world frame (nifti)")
     label_coding: dict[str, int | list[int]] | None = None
     intensity_percentile: float = Field(99.5, gt=0, le=100)
+    smoothing_mm: float = Field(
+        0.0, ge=0, description="Gaussian sigma (mm) applied to f and m before the SSD; smooths "
+        "the likelihood surface sampled at the Gauss points")
 
     @model_validator(mode="after")
     def _nifti_paths(self):

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -30,7 +31,8 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg.config import Config, load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
 from bayesreg.images import (  # noqa: E402
-    Image, check_same_space, interpolate, load_nifti, mni152, pad, resample_to_spacing,
+    Image, check_same_space, interpolate, interpolate_numpy, load_nifti, mni152, pad,
+    resample_to_spacing,
 )
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
@@ -147,7 +149,9 @@ def prepare(cfg: Config) -> Problem:
 
     Intensities of ``f`` and ``m`` are divided by the ``data.intensity_percentile``-th
     percentile of ``f`` inside the intracranial volume (about [0, 1] afterwards), so that
-    ``E_s`` and ``T_s`` have image-independent units (``intensity^2 mm^3``).
+    ``E_s`` and ``T_s`` have image-independent units (``intensity^2 mm^3``); with
+    ``data.smoothing_mm > 0`` both are then smoothed by a Gaussian of that sigma (after the
+    synthetic warp, so ``m`` is made from the unsmoothed ``f``).
     """
     timings = {}
     t = time.perf_counter()
@@ -183,8 +187,6 @@ def prepare(cfg: Config) -> Problem:
         mu_t = np.array([s.mu.csf, s.mu.gm, s.mu.wm])[mesh.tissue]
         truth = brain_shift(mesh, lam_t, mu_t, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
                             falloff_mm=s.falloff_mm)
-        from bayesreg.images import interpolate_numpy
-
         moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
         if np.any(moved == L.SKULL):
             raise ValueError(
@@ -205,12 +207,16 @@ def prepare(cfg: Config) -> Problem:
     phi_true = None
     if truth is not None and layout.group_names != ("all",):
         phi_true = free_values(cfg.synthetic.lam, cfg.synthetic.mu)
+
     def prior_tuple(pr):
         if hasattr(pr, "csf"):
             return [prior_tuple(getattr(pr, t)) for t in L.TISSUES]
         return (pr.a, pr.b, pr.r1, pr.r2)
 
     prior = {"lam": prior_tuple(cfg.model.prior_lam), "mu": prior_tuple(cfg.model.prior_mu)}
+    if cfg.data.smoothing_mm > 0:
+        f, m = (Image(ndi.gaussian_filter(i.data, cfg.data.smoothing_mm / i.spacing), i.affine)
+                for i in (f, m))
     forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
     post = build_posterior(
         mesh, build_ssd(mesh.nodes, mesh.tets, f, m), forbidden,
@@ -254,12 +260,11 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     theta0 = np.asarray(theta0, dtype=np.float64)
     phi = jnp.asarray(theta0[nb3:])
     zeros = jnp.zeros((post.op.n_interior, 3))
+    logdensity = make_logdensity(problem, cfg)
 
     @jax.jit
     def neg(ub):
-        lp, _ = log_density(post, jnp.concatenate([ub, phi]), zeros, rtol=cfg.solver.rtol,
-                            maxiter=cfg.solver.maxiter)
-        return -lp
+        return -logdensity(jnp.concatenate([ub, phi]), zeros)[0]
 
     vg = jax.jit(jax.value_and_grad(neg))
 
@@ -298,9 +303,8 @@ def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None) -> 
     chol = None
     if cfg.init.method == "mode":
         chol = sla.cholesky(prec, lower=True)
-    check = jax.jit(jax.vmap(lambda th: log_density(
-        post, th, jnp.zeros((post.op.n_interior, 3)), rtol=cfg.solver.rtol,
-        maxiter=cfg.solver.maxiter)[0]))
+    logdensity = make_logdensity(problem, cfg)
+    check = jax.jit(jax.vmap(lambda th: logdensity(th, jnp.zeros((post.op.n_interior, 3)))[0]))
     out = np.tile(np.asarray(center, np.float64), (c, 1))
     todo = np.arange(c)
     shrink = 1.0
