@@ -243,10 +243,12 @@ def start_center(problem: Problem, cfg: Config) -> np.ndarray:
 
 
 def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
-    """Maximise the log posterior over ``u_b`` with the parameters held at ``theta0``'s.
+    """Maximise the log posterior from ``theta0`` (L-BFGS-B, JAX gradients through the solve).
 
-    L-BFGS (SciPy) with the JAX gradient through the CG solve; a step into a hard
-    constraint returns a huge value so the line search backtracks.
+    Optimises ``u_b`` and, with ``init.optimize_parameters``, the free elastic parameters
+    too (bounded to their prior support, relative margin 1e-3); otherwise the parameters
+    stay at ``theta0``'s.  A step into a hard constraint returns a huge value, so the line
+    search backtracks.
 
     Returns
     -------
@@ -258,13 +260,15 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     post = problem.posterior
     nb3 = 3 * post.n_boundary
     theta0 = np.asarray(theta0, dtype=np.float64)
-    phi = jnp.asarray(theta0[nb3:])
     zeros = jnp.zeros((post.op.n_interior, 3))
     logdensity = make_logdensity(problem, cfg)
+    joint = cfg.init.optimize_parameters
+    free = slice(0, post.dim if joint else nb3)
+    rest = jnp.asarray(theta0[free.stop:])
 
     @jax.jit
-    def neg(ub):
-        return -logdensity(jnp.concatenate([ub, phi]), zeros)[0]
+    def neg(x):
+        return -logdensity(jnp.concatenate([x, rest]), zeros)[0]
 
     vg = jax.jit(jax.value_and_grad(neg))
 
@@ -275,15 +279,20 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
             return 1e300, np.zeros_like(x)
         return v, np.asarray(g)
 
-    start = -float(neg(jnp.asarray(theta0[:nb3])))
+    start = -float(neg(jnp.asarray(theta0[free])))
     if not np.isfinite(start):
         raise ValueError("the central start violates a hard constraint (skull, inverted element)")
-    res = minimize(fun, theta0[:nb3], jac=True, method="L-BFGS-B",
+    bounds = None
+    if joint:
+        lo, hi = np.asarray(post.prior_r1), np.asarray(post.prior_r2)
+        margin = 1e-3 * (hi - lo)
+        bounds = [(None, None)] * nb3 + list(zip(lo + margin, hi - margin))
+    res = minimize(fun, theta0[free], jac=True, method="L-BFGS-B", bounds=bounds,
                    options={"maxiter": cfg.init.optimizer_iterations})
     theta = theta0.copy()
-    theta[:nb3] = res.x
+    theta[free] = res.x
     return theta, {"logp_start": start, "logp_mode": -float(res.fun), "iterations": int(res.nit),
-                   "message": str(res.message)}
+                   "message": str(res.message), "parameters_optimized": bool(joint)}
 
 
 def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None) -> np.ndarray:

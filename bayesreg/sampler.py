@@ -217,8 +217,8 @@ def sample(
         Coordinate blocks (see :func:`build_kernel`); ``None``: one joint block.
     adapt_diagonal : sequence of bool, optional
         Per block: at 1/2 and 3/4 of the warm-up, set the proposal's marginal scales to
-        ``2.38 / sqrt(d_b)`` times the pooled standard deviation of the chains' draws since
-        the previous window (Haario-style diagonal adaptation): a vector ``sigma`` is
+        ``2.38 / sqrt(d_b)`` times the within-chain standard deviation of the chains' draws
+        since the previous window (Haario-style diagonal adaptation): a vector ``sigma`` is
         replaced, the rows of a matrix factor are rescaled (its correlations are kept).  The
         scale adaptation then restarts.
     thinning : int
@@ -305,21 +305,20 @@ def sample(
         k_gain += 1
         log_scales += 2.0 / np.sqrt(k_gain) * (warm_acc - target_acceptance)
         if k >= n_warm // 4:
-            window.append(np.asarray(out[0]).reshape(-1, dim))
+            window.append(np.asarray(out[0]))  # (C, chunk, dim)
         if k + 1 in window_ends and window:
-            pos = np.concatenate(window)
+            pos = np.concatenate(window, axis=1)
             window = []
             new = list(sigmas)
             for b, ix in enumerate(idxs):
-                sd = pos[:, ix].std(axis=0)
+                sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
                 if not adapt[b] or not np.all(sd > 0):
                     continue
-                target = 2.38 / np.sqrt(len(ix)) * sd
                 if sigmas[b].ndim == 1:
-                    new[b] = target
+                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
                 else:  # keep the correlations of the factor, match its marginal scales
                     implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
-                    new[b] = (target / implied)[:, None] * sigmas[b]
+                    new[b] = (2.38 / np.sqrt(len(ix)) * sd / implied)[:, None] * sigmas[b]
                 log_scales[b] = 0.0
             sigmas = tuple(new)
             k_gain = 0
