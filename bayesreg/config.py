@@ -144,7 +144,7 @@ class InitConfig(_Strict):
     overdispersion: float = Field(
         2.0, ge=0, description="mode: chains start at mode + overdispersion * Laplace draw"
     )
-    optimizer_iterations: int = Field(300, ge=1)
+    optimizer_iterations: int = Field(1000, ge=1)
     optimize_parameters: bool = Field(
         True, description="mode: optimise the free elastic parameters jointly with u_b")
     param_jitter: float = Field(0.2, ge=0, description="log-normal sd of start parameters")

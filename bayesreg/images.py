@@ -237,13 +237,16 @@ def interpolate_numpy(img: Image, points, *, order=1, cval=0.0):
     return vals.reshape(c.shape[:-1])
 
 
-def mni152(resolution_mm: float = 2.0):
+def mni152(resolution_mm: float = 2.0, *, margin_mm: float = 20.0):
     """The MNI ICBM152 2009a brain shipped inside the nilearn wheel (no download).
 
     Parameters
     ----------
     resolution_mm : float
         Isotropic output spacing; the 1 mm template is resampled when different.
+    margin_mm : float
+        Zero padding on every side (:func:`pad`): the template's field of view cuts the
+        brainstem, and the mesh and the free shell around it must lie inside the grid.
 
     Returns
     -------
@@ -263,4 +266,4 @@ def mni152(resolution_mm: float = 2.0):
     if not np.isclose(resolution_mm, 1.0):
         out = [resample_to_spacing(o, resolution_mm, order=1) for o in out]
         out[3] = Image((out[3].data > 0.5).astype(np.float64), out[3].affine)
-    return tuple(out)
+    return tuple(pad(o, margin_mm) for o in out)

@@ -85,9 +85,7 @@ class Problem(NamedTuple):
 def _load_data(cfg: Config):
     d = cfg.data
     if d.source == "mni152":
-        # the template's field of view cuts the brainstem: pad so that the mesh (and the
-        # free shell around it) lies inside the grid
-        t1, gm, wm, mask = (pad(i, 4 * d.skull_margin_mm) for i in mni152(d.resolution_mm or 1.0))
+        t1, gm, wm, mask = mni152(d.resolution_mm or 1.0, margin_mm=4 * d.skull_margin_mm)
         labels = L.labels_from_probabilities(gm, wm, mask, skull_margin_mm=d.skull_margin_mm)
         return t1, None, labels
     from bayesreg.labels import remap_labels
