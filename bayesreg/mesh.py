@@ -71,6 +71,7 @@ def boundary_nodes(tets):
 
 
 def signed_volumes(nodes, tets):
+    """Signed element volumes ``(M,)``, mm^3 (positive for positive orientation)."""
     x = np.asarray(nodes)[np.asarray(tets)]
     return np.einsum(
         "mi,mi->m", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]

@@ -34,7 +34,7 @@ from bayesreg.images import (  # noqa: E402
     Image, check_same_space, interpolate, interpolate_numpy, load_nifti, mni152, pad,
     resample_to_spacing,
 )
-from bayesreg.mesh import Mesh, carve_skull, mesh_brain  # noqa: E402
+from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
     ParamLayout, Posterior, build_posterior, elastic_groups, log_density,
 )
@@ -136,8 +136,7 @@ def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
     if names == L.TISSUES:
         return tissue_vals
     if names == ("all",):
-        x = mesh.nodes[mesh.tets]
-        vol = np.abs(np.einsum("mi,mi->m", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]))
+        vol = signed_volumes(mesh.nodes, mesh.tets)
         return np.array([np.sum(vol * tissue_vals[mesh.tissue]) / vol.sum()])
     return tissue_vals[mesh.tissue]
 

@@ -6,11 +6,12 @@ step (:func:`blackjax.mcmc.proposal.static_binomial_sampling`) are BlackJAX's.  
 also carries the chain's interior FE solution, the warm start of the next solve.
 
 :func:`sample` is the driver: N chains vmapped inside one jitted ``lax.scan`` per chunk
-of thinned draws, a warm-up that tunes one global scale of the proposal toward a target
-acceptance rate (Robbins-Monro on the log scale) together with the proposal scales of the
-elastic parameters (from the warm-up draws), then frozen; sampling stops once the classic
-Gelman-Rubin R-hat is below a threshold for every estimand, or at a maximum number of draws.
-The proposal is symmetric, so the acceptance ratio is the posterior ratio of Eq. 13.
+of thinned draws; coordinates may be updated in blocks (Metropolis-within-Gibbs); a
+warm-up tunes each block's scale toward a target acceptance rate (Robbins-Monro on the log
+scale) and its marginal scales from the warm-up draws, then freezes them; sampling stops
+once the classic Gelman-Rubin R-hat is below a threshold for every estimand, or at a
+maximum number of draws.  Proposals are symmetric, so the acceptance probability is the
+posterior ratio of Eq. 13.
 """
 
 from __future__ import annotations

@@ -24,6 +24,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from bayesreg.images import Image, interpolate  # noqa: E402
+from bayesreg.mesh import signed_volumes  # noqa: E402
 
 __all__ = ["GAUSS_BARY", "gauss_points", "SSDTerm", "build_ssd", "ssd_residuals", "ssd"]
 
@@ -37,8 +38,7 @@ def gauss_points(nodes, tets):
     """World coordinates ``(M, 4, 3)`` and weights ``(M, 4)`` (mm^3) of the Gauss points."""
     x = np.asarray(nodes, dtype=np.float64)[np.asarray(tets)]
     pts = np.einsum("qa,mad->mqd", GAUSS_BARY, x)
-    e1, e2, e3 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
-    vol = np.abs(np.einsum("mi,mi->m", np.cross(e1, e2), e3)) / 6.0
+    vol = np.abs(signed_volumes(nodes, tets))
     return pts, np.repeat(vol[:, None] / 4.0, 4, axis=1)
 
 

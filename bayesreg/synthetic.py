@@ -20,7 +20,7 @@ import scipy.sparse.linalg as spla
 
 from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image, interpolate_numpy
-from bayesreg.mesh import Mesh
+from bayesreg.mesh import Mesh, signed_volumes
 
 __all__ = [
     "Truth", "brain_shift", "locate", "interpolation_matrix", "grid_moments", "warp_image",
@@ -76,10 +76,8 @@ def brain_shift(mesh: Mesh, lam_e, mu_e, *, shift_mm=10.0, n_pushed=20, falloff_
         raise ValueError(f"n_pushed must lie in [1, {nb}], got {n_pushed}")
     if shift_mm <= 0 or falloff_mm <= 0:
         raise ValueError("shift_mm and falloff_mm must be > 0")
-    x = mesh.nodes[mesh.tets]
-    vol = np.abs(np.einsum("mi,mi->m", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]),
-                           x[:, 3] - x[:, 0])) / 6
-    cog = (vol[:, None] * x.mean(axis=1)).sum(0) / vol.sum()
+    vol = np.abs(signed_volumes(mesh.nodes, mesh.tets))
+    cog = (vol[:, None] * mesh.nodes[mesh.tets].mean(axis=1)).sum(0) / vol.sum()
     pb = mesh.nodes[mesh.boundary]
     order = np.argsort(-pb[:, 2])
     pushed_local = order[:n_pushed]
@@ -216,10 +214,9 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0) -> Image:
     """
     u = np.asarray(u, np.float64)
     deformed = mesh.nodes + u
-    xd = deformed[mesh.tets]
-    det = np.einsum("mi,mi->m", np.cross(xd[:, 1] - xd[:, 0], xd[:, 2] - xd[:, 0]), xd[:, 3] - xd[:, 0])
-    if np.any(det <= 0):
-        raise ValueError(f"{int(np.sum(det <= 0))} inverted element(s) in the deformed mesh")
+    vol = signed_volumes(deformed, mesh.tets)
+    if np.any(vol <= 0):
+        raise ValueError(f"{int(np.sum(vol <= 0))} inverted element(s) in the deformed mesh")
     pts = _grid_points(f)
     elem, bary = locate(deformed, mesh.tets, pts)
     inside = elem >= 0
