@@ -11,6 +11,8 @@ Meshing is not bit-reproducible (fTetWild); store the mesh with a run's outputs.
 
 from __future__ import annotations
 
+import contextlib
+import tempfile
 from typing import NamedTuple
 
 import numpy as np
@@ -192,13 +194,15 @@ def mesh_brain(
     sigma_vox = smoothing_sigma_mm / float(np.mean(labels.spacing))
     verts, faces = _surface(inside, labels.affine, sigma_vox, step_size)
     try:
-        nodes, tets = pytetwild.tetrahedralize(
-            verts,
-            faces,
-            edge_length_abs=float(edge_length_mm),
-            epsilon=float(epsilon),
-            num_threads=num_threads,
-        )
+        # fTetWild writes a scratch file (__tracked_surface.stl) into the working folder
+        with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
+            nodes, tets = pytetwild.tetrahedralize(
+                verts,
+                faces,
+                edge_length_abs=float(edge_length_mm),
+                epsilon=float(epsilon),
+                num_threads=num_threads,
+            )
     except Exception as exc:  # pragma: no cover - mesher internals
         raise MeshError(f"fTetWild failed: {exc}") from exc
     tets = np.asarray(tets, dtype=np.int64)
