@@ -11,7 +11,7 @@ replaced unless ``overwrite`` is set, and then only after the new outputs are co
 ``summary.csv``             mean, sd, HDI, ESS, rank R-hat (ArviZ) and classic R-hat
 ``displacement_mean.nii.gz``  posterior mean of ``u`` on the image grid, (I, J, K, 3) mm
 ``displacement_sd.nii.gz``  posterior sd of ``u`` on the image grid, (I, J, K, 3) mm
-``mesh.vtu``                mesh with ``u_mean``, ``u_sd``, ``u_sd_norm``, ``u_true``;
+``mesh.vtu``                mesh with ``u_mean``, ``u_sd``, ``u_norm_sd``, ``u_norm_iqr``, ``u_true``, ``u_error``;
                             cell data ``tissue``
 ``f.nii.gz``, ``m.nii.gz``, ``labels.nii.gz``  the (scaled) images and label map used
 ``trace.png``, ``marginals.png``  trace and marginal plots of the elastic parameters
@@ -124,12 +124,13 @@ def _versions():
     return out
 
 
-def error_table(problem, result, x0) -> dict | None:
+def error_table(problem, result, x0, u_mean=None) -> dict | None:
     """Error of the posterior mean against the synthetic truth, mm (``None`` without truth).
 
     Returns a dict with, for the boundary nodes (paper Table 1 style), the median, 95th
     percentile and max of ``|E[u_b] - u_b_true|`` and of the initial configuration's error,
-    the MSE over all nodes (mm^2), and the lam/mu ratio posterior per group.
+    the MSE over all nodes (mm^2), and the lam/mu ratio posterior per group.  ``u_mean``
+    ``(N, 3)``: the posterior mean nodal displacement, if already computed.
     """
     from bayesreg.posterior import elastic_groups
 
@@ -159,7 +160,8 @@ def error_table(problem, result, x0) -> dict | None:
         return {"median": float(np.median(err)), "q95": float(np.quantile(err, 0.95)),
                 "max": float(err.max())}
 
-    u_mean = posterior_mean_displacement(problem, result)
+    if u_mean is None:
+        u_mean = _full_draws(problem, result).mean(axis=0)
     return {
         "boundary_initial_mm": stats(np.linalg.norm(init_b - u_true_b, axis=1)),
         "boundary_posterior_mean_mm": stats(np.linalg.norm(mean_b - u_true_b, axis=1)),
@@ -177,10 +179,6 @@ def _full_draws(problem, result):
     ui = result.interior.reshape(-1, result.interior.shape[-2], 3)
     full = np.concatenate([ub, ui], axis=1)
     return full[:, np.asarray(post.perm)]
-
-
-def posterior_mean_displacement(problem, result):
-    return _full_draws(problem, result).mean(axis=0)
 
 
 def format_report(errors: dict | None, info: dict) -> str:
@@ -328,7 +326,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
 
-    errors = error_table(problem, result, x0)
+    errors = error_table(problem, result, x0, u_mean)
     truth_ratio = None
     if errors and all("true" in errors["ratio"].get(nm, {}) for nm in names[:6]):
         truth_ratio = [errors["ratio"][nm]["true"] for nm in names[:6]]

@@ -344,12 +344,13 @@ def sample(
             lst.append(np.asarray(o))
         n_draws += chunk_draws
         draws = np.concatenate(parts[0], axis=1)
-        rhat = float(np.nanmax(gelman_rubin(estimands(draws), split=rhat_split)))
+        if n_draws >= (4 if rhat_split else 2):  # split halves need 2 draws each
+            rhat = float(np.nanmax(gelman_rubin(estimands(draws), split=rhat_split)))
         history.append((n_draws, rhat))
         acc = np.concatenate(parts[3], axis=1).reshape(-1, len(idxs)).mean(axis=0)
         bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
         bar.update(1)
-        if n_draws >= max(min_draws, 4) and rhat < rhat_threshold:
+        if n_draws >= min_draws and rhat < rhat_threshold:
             break
     bar.close()
     timings["sampling_s"] = time.perf_counter() - t1

@@ -158,3 +158,14 @@ def test_split_rhat_detects_a_common_drift():
     assert gelman_rubin(drifting) < 1.01  # whole-chain R-hat is blind to it
     assert gelman_rubin(drifting, split=True) > 1.2  # the stopping threshold catches it
     assert abs(gelman_rubin(rng.normal(size=(3, 1000)), split=True) - 1) < 0.01
+
+
+def test_split_rhat_monitor_waits_for_enough_draws():
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    x0 = np.tile(mean, (2, 1)) + 0.01
+    res = sample(jax.random.key(2), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
+                 thinning=1, warmup_steps=0, max_draws=6, min_draws=2, chunk_draws=2,
+                 rhat_split=True, progress=False)
+    assert res.positions.shape[1] >= 4
+    assert res.rhat_history[0][1] == np.inf  # 2 draws: no split R-hat yet
+    assert np.isfinite(res.rhat_history[-1][1])
