@@ -1,45 +1,133 @@
-"""Command line: ``bayesreg run CONFIG [--out DIR] [--set key=value ...] [--overwrite]``."""
+"""Command line.
+
+``bayesreg run CONFIG [--out DIR] [--set key=value ...] [--overwrite]``
+    one run (:func:`bayesreg.run`); ``bayesreg run --resume RUN_DIR`` continues a killed one.
+``bayesreg reproduce [--out DIR] [--set key=value ...]``
+    the paper's two experiments (``configs/paper_uniform.yaml``,
+    ``configs/paper_three_compartment.yaml``) and their report (Tables 1-2, Figures 2-5).
+``bayesreg report RUN_DIR ... --out DIR``
+    the report of finished runs.
+
+Exit status 2 on bad input (the message names the problem), 0 on success.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-__all__ = ["main"]
+__all__ = ["main", "PAPER_CONFIGS"]
+
+PAPER_CONFIGS = {
+    "three_compartment": "paper_three_compartment.yaml",
+    "uniform": "paper_uniform.yaml",
+}
 
 
 def _parser():
     p = argparse.ArgumentParser(prog="bayesreg", description="Bayesian biomechanical registration")
     sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="run a YAML config end to end")
-    r.add_argument("config", help="YAML config file")
+    r = sub.add_parser("run", help="run a YAML config end to end (or --resume a killed run)")
+    r.add_argument("config", nargs="?", help="YAML config file (omit with --resume)")
     r.add_argument("--out", help="run directory (default: output.dir of the config)")
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set sampler.max_draws=500 (repeatable)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
+    r.add_argument("--resume", metavar="RUN_DIR",
+                   help="continue the unfinished run in RUN_DIR (same draws as an uninterrupted run)")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    q = sub.add_parser("reproduce", help="the paper's two experiments and their report")
+    q.add_argument("--out", default="runs/paper", help="folder of the two runs and the report")
+    q.add_argument("--configs", default=None,
+                   help="folder holding paper_uniform.yaml and paper_three_compartment.yaml "
+                        "(default: configs/ of the working folder or of the source tree)")
+    q.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a value in both configs (repeatable)")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    w = sub.add_parser("report", help="tables and figures of finished runs")
+    w.add_argument("runs", nargs="+", metavar="[LABEL=]RUN_DIR")
+    w.add_argument("--out", required=True, help="report directory")
+    w.add_argument("--overwrite", action="store_true", help="replace an existing report directory")
     return p
+
+
+def _configs_dir(arg) -> Path:
+    if arg is not None:
+        return Path(arg)
+    for cand in (Path("configs"), Path(__file__).resolve().parent.parent / "configs"):
+        if all((cand / f).is_file() for f in PAPER_CONFIGS.values()):
+            return cand
+    raise FileNotFoundError("paper configs not found: pass --configs DIR (holding "
+                            + ", ".join(PAPER_CONFIGS.values()) + ")")
+
+
+def _run_or_resume(config, out: Path, overrides, progress):
+    """Run ``config`` into ``out``; resume it if unfinished; reuse it if finished."""
+    import json
+
+    from bayesreg.outputs import RunResult
+    from bayesreg.pipeline import run
+
+    if (out / "run.json").is_file():
+        print(f"{out}: finished run found, reused")
+        return RunResult(out, None, None, None, json.loads((out / "run.json").read_text()))
+    if (out / "checkpoint" / "config.json").is_file():
+        print(f"{out}: unfinished run found, resumed")
+        return run(resume=out, progress=progress)
+    return run(config, out=out, overrides=overrides, progress=progress)
 
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from bayesreg.config import ConfigError
 
-    if args.command == "run":
-        from bayesreg.outputs import format_report
-        from bayesreg.pipeline import run
+    errors = (ConfigError, FileExistsError, FileNotFoundError, ValueError)
+    progress = False if getattr(args, "no_progress", False) else None
+    try:
+        if args.command == "run":
+            from bayesreg.outputs import format_report
+            from bayesreg.pipeline import run
 
-        try:
-            res = run(args.config, out=args.out, overrides=args.set,
-                      overwrite=True if args.overwrite else None,
-                      progress=False if args.no_progress else None)
-        except (ConfigError, FileExistsError, FileNotFoundError, ValueError) as exc:
-            print(f"bayesreg: error: {exc}", file=sys.stderr)
-            return 2
-        print(format_report(res.errors, res.info))
-        t = res.info["timings_s"]
-        print(f"wall time before outputs {t.get('total_before_outputs_s', float('nan')):.1f} s; "
-              f"outputs in {res.dir}")
+            if (args.config is None) == (args.resume is None):
+                raise ValueError("give either CONFIG or --resume RUN_DIR")
+            if args.resume is not None:
+                if args.set or args.out or args.overwrite:
+                    raise ValueError("--resume continues a run as configured: no --set/--out/--overwrite")
+                res = run(resume=args.resume, progress=progress)
+            else:
+                res = run(args.config, out=args.out, overrides=args.set,
+                          overwrite=True if args.overwrite else None, progress=progress)
+            print(format_report(res.errors, res.info))
+            t = res.info["timings_s"]
+            print(f"wall time before outputs {t.get('total_before_outputs_s', float('nan')):.1f} s; "
+                  f"outputs in {res.dir}")
+        elif args.command == "reproduce":
+            from bayesreg.report import write_report
+
+            cdir = _configs_dir(args.configs)
+            out = Path(args.out)
+            runs = {}
+            for label, fname in PAPER_CONFIGS.items():
+                print(f"== {label}: {cdir / fname}")
+                res = _run_or_resume(cdir / fname, out / label, args.set, progress)
+                runs[label] = res.dir
+            path = write_report(runs, out / "report", overwrite=True)
+            print(f"report in {path / 'report.md'}")
+        elif args.command == "report":
+            from bayesreg.report import write_report
+
+            runs = {}
+            for item in args.runs:
+                label, _, path = item.rpartition("=")
+                runs[label or Path(path).name] = Path(path)
+            path = write_report(runs, args.out, overwrite=args.overwrite)
+            print(f"report in {path / 'report.md'}")
+    except errors as exc:
+        print(f"bayesreg: error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

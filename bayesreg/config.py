@@ -60,12 +60,25 @@ class MeshConfig(_Strict):
 
 
 class SyntheticConfig(_Strict):
+    """A synthetic case: ``m`` is ``f`` warped exactly by a known FE deformation (Sec. 4.1)."""
+
     enabled: bool = True
-    shift_mm: float = Field(10.0, gt=0)
-    n_pushed: int = Field(20, ge=1)
-    falloff_mm: float = Field(30.0, gt=0)
-    lam: TissueValues = TissueValues(csf=0.01, gm=10.0, wm=30.0)
-    mu: TissueValues = TissueValues(csf=0.01, gm=1.0, wm=1.0)
+    truth: Literal["constrained", "smooth"] = Field(
+        "constrained", description="constrained: the pushed nodes fixed, every other boundary node "
+        "at the minimum elastic energy subject to the skull constraint (paper Sec. 4.1); smooth: "
+        "the push fades over the boundary with falloff_mm (no minimisation)")
+    shift_mm: float = Field(15.0, gt=0, description="displacement of the pushed nodes toward the "
+                            "brain's centre of gravity")
+    n_pushed: int = Field(20, ge=1, description="pushed nodes: the n_pushed boundary nodes with the "
+                          "largest world z (top of the head)")
+    pushed_nodes: list[int] | None = Field(None, description="explicit mesh node indices instead")
+    falloff_mm: float = Field(30.0, gt=0, description="smooth truth only")
+    clearance_mm: float | None = Field(
+        None, ge=0, description="constrained truth: distance kept from the skull region (default "
+        "half a voxel diagonal, so no node's nearest voxel is skull)")
+    tol_mm: float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
+    lam: TissueValues = TissueValues(csf=1e-6, gm=10.0, wm=30.0)
+    mu: TissueValues = TissueValues(csf=1e-6, gm=1.0, wm=1.0)
 
 
 class BetaPrior(_Strict):
@@ -134,13 +147,21 @@ class SamplerConfig(_Strict):
 
 
 class InitConfig(_Strict):
-    method: Literal["between", "mode"] = Field(
+    start: Literal["between", "registration"] = Field(
         "between",
-        description="between: fraction * truth (paper Sec. 4.2); mode: optimise u_b from there "
-        "(L-BFGS, parameters at their initial values) and start the chains around the mode",
+        description="central start of u_b: between: fraction * truth (paper Sec. 4.2, synthetic "
+        "cases only); registration: a fast registration of f to m (scikit-image optical flow) "
+        "sampled at the boundary nodes")
+    method: Literal["perturb", "mode"] = Field(
+        "perturb",
+        description="perturb: chains at the central start plus Gaussian jitter perturb_mm; mode: "
+        "maximise the posterior from the central start (L-BFGS-B) and start the chains "
+        "overdispersed around the mode",
     )
-    fraction: float = Field(0.5, ge=0, le=1, description="start at fraction * truth")
-    perturb_mm: float = Field(0.5, ge=0, description="between: per-chain Gaussian jitter, mm")
+    fraction: float = Field(0.5, ge=0, le=1, description="between: start at fraction * truth")
+    registration: Literal["tvl1", "ilk"] = Field(
+        "tvl1", description="registration: skimage.registration.optical_flow_<method>")
+    perturb_mm: float = Field(0.5, ge=0, description="perturb: per-chain Gaussian jitter, mm")
     overdispersion: float = Field(
         2.0, ge=0, description="mode: chains start at mode + overdispersion * Laplace draw"
     )
@@ -154,6 +175,10 @@ class OutputConfig(_Strict):
     dir: Path = Path("runs/run")
     overwrite: bool = False
     progress: bool = True
+    checkpoint: bool = Field(
+        True, description="write the draws chunk by chunk and the sampler state after each chunk "
+        "(checkpoint/ in the run directory), so that a killed run keeps its draws and "
+        "`bayesreg run --resume RUN_DIR` continues it")
 
 
 class Config(_Strict):
@@ -185,6 +210,9 @@ class Config(_Strict):
                 raise ValueError(f"model.{key}: per-tissue priors need elastic: tissue")
         if not self.synthetic.enabled and self.data.moving is None:
             raise ValueError("without synthetic.enabled, data.moving (the image m) is required")
+        if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:
+            raise ValueError("init.start 'between' needs a synthetic truth (synthetic.enabled); "
+                             "use init.start: registration for real data")
         return self
 
 

@@ -24,6 +24,9 @@ __all__ = [
     "Image",
     "load_nifti",
     "save_nifti",
+    "nifti_frame",
+    "check_same_frame",
+    "to_reference_grid",
     "resample",
     "resample_to_spacing",
     "check_same_space",
@@ -66,15 +69,37 @@ def _check_image(img: Image, name: str = "image") -> Image:
     return Image(data, affine)
 
 
+#: Tolerances of :func:`load_nifti`'s qform/sform agreement check.
+QFORM_SFORM_ATOL_MM = 1e-3
+QFORM_SFORM_ATOL_LINEAR = 1e-4
+
+
 def load_nifti(path) -> Image:
     """Load a 3D NIfTI image (``.nii`` / ``.nii.gz``) with nibabel.
+
+    The affine is nibabel's best affine (the sform when its code is > 0, else the qform).
+    When the header carries both a qform and an sform with codes > 0 they must describe the
+    same voxel-to-world map, otherwise it is ambiguous which one the user meant.  The frame
+    the affine refers to (scanner, aligned, MNI, ...) is not stored on the returned
+    :class:`Image`; read it with :func:`nifti_frame`.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    Image
+        ``data`` of shape ``(I, J, K)`` and the ``(4, 4)`` voxel-to-world affine (mm).
 
     Raises
     ------
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        If the image is not 3D (a trailing singleton 4th axis is dropped).
+        If the image is not 3D (a trailing singleton 4th axis is dropped), or its qform
+        and sform (both with codes > 0) disagree by more than ``1e-3`` mm in translation or
+        ``1e-4`` in the linear part.
     """
     import nibabel as nib
 
@@ -82,10 +107,133 @@ def load_nifti(path) -> Image:
     if not path.exists():
         raise FileNotFoundError(f"image not found: {path}")
     nii = nib.load(str(path))
+    _check_qform_sform(nii, path)
     data = np.asanyarray(nii.dataobj)
     if data.ndim == 4 and data.shape[3] == 1:
         data = data[..., 0]
     return _check_image(Image(np.asarray(data), nii.affine), str(path))
+
+
+def _check_qform_sform(nii, path) -> None:
+    header = nii.header
+    if not hasattr(header, "get_qform") or not hasattr(header, "get_sform"):
+        return  # not a NIfTI header (Analyze, MGH, ...): a single affine
+    q, q_code = header.get_qform(coded=True)
+    s, s_code = header.get_sform(coded=True)
+    if q is None or s is None or int(q_code) <= 0 or int(s_code) <= 0:
+        return
+    d_lin = float(np.max(np.abs(q[:3, :3] - s[:3, :3])))
+    d_trans = float(np.max(np.abs(q[:3, 3] - s[:3, 3])))
+    if d_lin > QFORM_SFORM_ATOL_LINEAR or d_trans > QFORM_SFORM_ATOL_MM:
+        raise ValueError(
+            f"{path}: qform and sform disagree (linear part by up to {d_lin:.3g}, translation "
+            f"by up to {d_trans:.3g} mm; tolerances {QFORM_SFORM_ATOL_LINEAR:g} and "
+            f"{QFORM_SFORM_ATOL_MM:g} mm), so the voxel-to-world map is ambiguous.\n"
+            f"  qform (code {_frame_name(q_code)}): {_fmt_affine(q)}\n"
+            f"  sform (code {_frame_name(s_code)}): {_fmt_affine(s)}\n"
+            "Fix the header, e.g. set the wrong one's code to 0 (nibabel: "
+            "img.set_qform(None, code=0)) or copy one onto the other (FSL: fslorient "
+            "-copysform2qform)."
+        )
+
+
+def _frame_name(code) -> str:
+    import nibabel as nib
+
+    try:
+        return str(nib.nifti1.xform_codes.label[int(code)])
+    except KeyError:
+        return f"code {int(code)}"
+
+
+def _fmt_affine(a) -> str:
+    return str(np.round(np.asarray(a, dtype=np.float64), 3).tolist())
+
+
+def nifti_frame(path) -> str:
+    """Name of the world frame a NIfTI file's affine refers to.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    str
+        nibabel's xform code label of the affine :func:`load_nifti` uses: the sform code
+        when > 0, else the qform code: ``"unknown"`` (0, or not a NIfTI file),
+        ``"scanner"`` (1), ``"aligned"`` (2), ``"talairach"`` (3), ``"mni"`` (4),
+        ``"template"`` (5).
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    """
+    import nibabel as nib
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"image not found: {path}")
+    header = nib.load(str(path)).header
+    if not hasattr(header, "get_qform") or not hasattr(header, "get_sform"):
+        return "unknown"
+    s_code = int(header["sform_code"])
+    q_code = int(header["qform_code"])
+    return _frame_name(s_code if s_code > 0 else q_code)
+
+
+#: Frames treated as one by :func:`check_same_frame` unless ``strict``: nibabel (and so
+#: :func:`save_nifti`) and SPM write "aligned" for images derived from a scanner image.
+_SUBJECT_FRAMES = frozenset({"scanner", "aligned"})
+
+
+def check_same_frame(*paths, names=None, strict: bool = False) -> None:
+    """Raise ``ValueError`` if NIfTI files' xform codes name different world frames.
+
+    Parameters
+    ----------
+    *paths : str, path-like or None
+        Files to compare; ``None`` entries (an optional input not given) are skipped.
+    names : sequence of str, optional
+        Names used in the message (default: the paths), one per entry of ``paths``.
+    strict : bool
+        If False (default), ``"scanner"`` and ``"aligned"`` count as one frame (a subject's
+        own space: nibabel and SPM label derived images "aligned").  Files whose frame is
+        ``"unknown"`` are never in conflict.
+
+    Raises
+    ------
+    ValueError
+        If two files have known frames (code > 0) that differ, e.g. ``"scanner"`` and
+        ``"mni"``; or if ``names`` does not match ``paths`` in length.
+    FileNotFoundError
+        If a path does not exist.
+    """
+    if names is None:
+        names = [str(p) for p in paths]
+    names = list(names)
+    if len(names) != len(paths):
+        raise ValueError(f"check_same_frame: {len(paths)} paths but {len(names)} names")
+    known = []
+    for p, n in zip(paths, names):
+        if p is None:
+            continue
+        frame = nifti_frame(p)
+        if frame != "unknown":
+            known.append((n, frame))
+
+    def key(frame):
+        return "subject" if not strict and frame in _SUBJECT_FRAMES else frame
+
+    if len({key(f) for _, f in known}) > 1:
+        listing = ", ".join(f"{n}: {f}" for n, f in known)
+        raise ValueError(
+            f"the inputs' NIfTI headers name different world frames ({listing}): their "
+            "world coordinates are not comparable. Bring them into one space first "
+            "(e.g. register the label map to the fixed image) and save them with that "
+            "space's code."
+        )
 
 
 def save_nifti(img: Image, path) -> None:
@@ -117,7 +265,7 @@ def check_same_space(a: Image, b: Image, *, names=("f", "m"), atol_mm=1e-3) -> N
         )
 
 
-def resample(img: Image, affine, shape, *, order=1, cval=0.0) -> Image:
+def resample(img: Image, affine, shape, *, order=1, cval=0.0, mode="constant") -> Image:
     """Resample ``img`` onto the grid ``(affine, shape)`` sharing its world frame (SciPy).
 
     Parameters
@@ -131,6 +279,11 @@ def resample(img: Image, affine, shape, *, order=1, cval=0.0) -> Image:
         Spline order (0 for label maps, 1 for intensities/probabilities).
     cval : float
         Value outside the source grid.
+    mode : str
+        :func:`scipy.ndimage.affine_transform` boundary mode: ``"constant"`` gives ``cval``
+        beyond the outermost voxel centres; ``"grid-constant"`` treats each voxel as
+        covering its extent (with ``order=0``, nearest neighbour up to half a voxel
+        outside the centres).
     """
     img = _check_image(img)
     affine = np.asarray(affine, dtype=np.float64)
@@ -141,10 +294,107 @@ def resample(img: Image, affine, shape, *, order=1, cval=0.0) -> Image:
         offset=src_from_tgt[:3, 3],
         output_shape=tuple(int(s) for s in shape),
         order=order,
-        mode="constant",
+        mode=mode,
         cval=cval,
     )
     return Image(data, affine)
+
+
+def _grid_box(affine, shape) -> np.ndarray:
+    """World axis-aligned bounding box ``(2, 3)`` (min, max rows) of a grid's voxel extent."""
+    corners = np.array(np.meshgrid(*[(-0.5, n - 0.5) for n in shape], indexing="ij"))
+    corners = corners.reshape(3, -1).T
+    world = corners @ np.asarray(affine)[:3, :3].T + np.asarray(affine)[:3, 3]
+    return np.stack([world.min(axis=0), world.max(axis=0)])
+
+
+def to_reference_grid(
+    img: Image,
+    reference: Image,
+    *,
+    name: str,
+    reference_name: str,
+    order: int,
+    atol_mm: float = 1e-3,
+    min_overlap: float = 0.5,
+    cval: float = 0.0,
+) -> Image:
+    """Put ``img`` on ``reference``'s voxel grid (both must share the world frame).
+
+    Parameters
+    ----------
+    img : Image
+        ``data`` of shape ``(I', J', K')`` or a vector image ``(I', J', K', C)`` (each
+        component is resampled separately; world-mm vector components are unchanged by a
+        change of grid in the same world frame).
+    reference : Image
+        Target grid: ``reference.data.shape[:3]`` and ``reference.affine``; its data are
+        not used.
+    name, reference_name : str
+        Names of the two inputs in error messages (e.g. ``"data.labels"``,
+        ``"data.fixed"``).
+    order : int
+        Spline order: 0 (nearest neighbour) for label maps, 1 (trilinear) for intensities.
+    atol_mm : float
+        Affines equal within this tolerance (as :func:`check_same_space`) and equal shapes
+        mean "already on the grid".
+    min_overlap : float
+        Smallest accepted fraction of the reference grid's world bounding box that
+        ``img``'s world bounding box covers.
+    cval : float
+        Value of reference voxels outside ``img``'s grid: with ``order=0`` a voxel of
+        ``img`` covers its extent (centre +- half a voxel); with ``order > 0`` values are
+        interpolated between voxel centres only and ``cval`` is used beyond them.
+
+    Returns
+    -------
+    Image
+        ``img`` itself (the same object, data untouched) when it is already on the
+        reference grid; else a new image with ``data`` of shape ``reference.shape[:3]``
+        (``+ (C,)`` for vector images; float64 for ``order > 0``, ``img``'s dtype for
+        ``order == 0``) and ``reference``'s affine.
+
+    Raises
+    ------
+    ValueError
+        If ``img`` is not 3D/4D, an affine is not a finite invertible ``(4, 4)`` matrix,
+        or the world bounding boxes overlap less than ``min_overlap`` of the reference's
+        volume: the two images then do not appear to share a world frame.
+    """
+    data = np.asarray(img.data)
+    if data.ndim not in (3, 4):
+        raise ValueError(f"{name} must be 3D or a 4D vector image, got shape {data.shape}")
+    ref_shape = tuple(int(n) for n in np.shape(reference.data)[:3])
+    ref = _check_image(Image(np.empty(ref_shape, dtype=np.uint8), reference.affine), reference_name)
+    src = _check_image(Image(data[..., 0] if data.ndim == 4 else data, img.affine), name)
+    if data.shape[:3] == ref_shape and np.allclose(src.affine, ref.affine, atol=atol_mm):
+        return img
+    box_src = _grid_box(src.affine, data.shape[:3])
+    box_ref = _grid_box(ref.affine, ref_shape)
+    inter = np.minimum(box_src[1], box_ref[1]) - np.maximum(box_src[0], box_ref[0])
+    inter = np.clip(inter, 0.0, None)
+    fraction = float(np.prod(inter) / np.prod(box_ref[1] - box_ref[0]))
+    if fraction < min_overlap:
+        raise ValueError(
+            f"{name} and {reference_name} do not appear to share a world frame: {name}'s "
+            f"world bounding box covers {100 * fraction:.1f}% of {reference_name}'s "
+            f"(minimum {100 * min_overlap:.0f}%).\n"
+            f"  {name}: affine {_fmt_affine(src.affine)}, shape {data.shape[:3]}, "
+            f"box {_fmt_affine(box_src)} mm\n"
+            f"  {reference_name}: affine {_fmt_affine(ref.affine)}, shape {ref_shape}, "
+            f"box {_fmt_affine(box_ref)} mm\n"
+            "Check that both files are in the same space (same subject, same scanner "
+            "session or registered) and that their qform/sform are right."
+        )
+    mode = "grid-constant" if order == 0 else "constant"
+    if data.ndim == 3:
+        return resample(src, ref.affine, ref_shape, order=order, cval=cval, mode=mode)
+    comps = [
+        resample(Image(data[..., c], src.affine), ref.affine, ref_shape, order=order, cval=cval,
+                 mode=mode).data
+        for c in range(data.shape[3])
+    ]
+    return Image(np.stack(comps, axis=-1), ref.affine)
 
 
 def resample_to_spacing(img: Image, spacing_mm: float, *, order=1) -> Image:

@@ -1,7 +1,8 @@
 """Run directory: ArviZ posterior, summaries, displacement maps, plots and ``run.json``.
 
 Files of one run (all written atomically; an existing non-empty run directory is never
-replaced unless ``overwrite`` is set, and then only after the new outputs are complete):
+replaced unless ``overwrite`` is set; a run in progress keeps its draws in ``checkpoint/``,
+see :mod:`bayesreg.checkpoint`):
 
 ==========================  ==========================================================
 ``posterior.nc``            ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis) mm,
@@ -27,7 +28,6 @@ import os
 import warnings
 import platform
 import shutil
-import tempfile
 from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple
@@ -40,51 +40,72 @@ __all__ = ["RunDirectory", "RunResult", "write_outputs", "error_table", "format_
 
 
 class RunDirectory:
-    """A run directory that is never overwritten silently.
+    """A run directory, written in place while the run goes and never overwritten silently.
 
-    Outputs go to a staging folder beside the target; :meth:`commit` moves them in place.
-    With ``overwrite`` an existing directory is replaced only at commit time.
+    The run's checkpoint (:class:`bayesreg.checkpoint.Checkpoint`) lives in
+    ``path/checkpoint``; final outputs are staged in ``path/.outputs-partial`` and moved in
+    by :meth:`commit`, ``run.json`` last (its presence marks a finished run).
+
+    Parameters
+    ----------
+    path : str or Path
+    overwrite : bool
+        Replace an existing non-empty directory: it is moved aside to a hidden sibling
+        (``.NAME.replaced-PID``) at once and deleted only when the new run commits.
+    resume : bool
+        Continue the unfinished run in ``path`` (it must hold ``checkpoint/config.json`` and
+        no ``run.json``).
 
     Raises
     ------
     FileExistsError
-        At construction, if ``path`` exists, is not empty and ``overwrite`` is false.
+        If ``path`` exists, is not empty and neither ``overwrite`` nor ``resume`` is set, or
+        ``resume`` is set and the run there is already finished.
+    FileNotFoundError
+        With ``resume``, if ``path`` holds no checkpoint.
     """
 
-    def __init__(self, path, *, overwrite=False):
+    def __init__(self, path, *, overwrite=False, resume=False):
         self.path = Path(path)
         self.overwrite = overwrite
-        if self.path.exists() and any(self.path.iterdir()) and not overwrite:
-            raise FileExistsError(
-                f"run directory {self.path} exists and is not empty; pass --out to choose "
-                "another or --overwrite to replace it"
-            )
-        self._staging: Path | None = None
+        self._old: Path | None = None
+        if resume:
+            if (self.path / "run.json").is_file():
+                raise FileExistsError(f"run {self.path} is finished (run.json exists): nothing to resume")
+            if not (self.path / "checkpoint" / "config.json").is_file():
+                raise FileNotFoundError(f"{self.path} holds no checkpoint/config.json: nothing to resume")
+        elif self.path.exists() and any(self.path.iterdir()):
+            if not overwrite:
+                hint = (" (an unfinished run: continue it with --resume)"
+                        if (self.path / "checkpoint").is_dir() and not (self.path / "run.json").exists()
+                        else "")
+                raise FileExistsError(
+                    f"run directory {self.path} exists and is not empty{hint}; pass --out to "
+                    "choose another or --overwrite to replace it"
+                )
+            self._old = self.path.with_name(f".{self.path.name}.replaced-{os.getpid()}")
+            os.replace(self.path, self._old)
+        self.path.mkdir(parents=True, exist_ok=True)
+        self._staging = self.path / ".outputs-partial"
 
     @property
     def staging(self) -> Path:
-        """Hidden folder beside the target, created on first use."""
-        if self._staging is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._staging = Path(
-                tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent)
-            )
+        """Hidden folder for the final outputs, created on first use."""
+        self._staging.mkdir(exist_ok=True)
         return self._staging
 
     def file(self, name) -> Path:
         return self.staging / name
 
     def commit(self) -> Path:
-        if self.path.exists():
-            if any(self.path.iterdir()) and not self.overwrite:  # appeared meanwhile
-                raise FileExistsError(f"run directory {self.path} appeared during the run; "
-                                      f"outputs kept in {self.staging}")
-            old = self.path.with_name(f".{self.path.name}.old-{os.getpid()}")
-            os.replace(self.path, old)
-            os.replace(self.staging, self.path)
-            shutil.rmtree(old)
-        else:
-            os.replace(self.staging, self.path)
+        """Move the staged outputs in (each file atomically, ``run.json`` last)."""
+        names = sorted(p.name for p in self.staging.iterdir())
+        for name in [n for n in names if n != "run.json"] + [n for n in names if n == "run.json"]:
+            os.replace(self.staging / name, self.path / name)
+        self.staging.rmdir()
+        if self._old is not None:
+            shutil.rmtree(self._old)
+            self._old = None
         return self.path
 
 
@@ -124,14 +145,28 @@ def _versions():
     return out
 
 
-def error_table(problem, result, x0, u_mean=None) -> dict | None:
+def error_table(problem, result, u_init, u_mean=None) -> dict | None:
     """Error of the posterior mean against the synthetic truth, mm (``None`` without truth).
 
-    Returns a dict with, for the boundary nodes (paper Table 1 style), the median, 95th
-    percentile and max of ``|E[u_b] - u_b_true|`` and of the initial configuration's error,
-    the MSE over all nodes (mm^2), and the lam/mu ratio posterior per group.  ``u_mean``
-    ``(N, 3)``: the posterior mean nodal displacement, if already computed.
+    Parameters
+    ----------
+    problem : bayesreg.pipeline.Problem
+    result : bayesreg.sampler.SamplerResult
+    u_init : (N, 3) ndarray
+        Nodal displacement of the chains' central start (mm).
+    u_mean : (N, 3) ndarray, optional
+        The posterior mean nodal displacement, if already computed.
+
+    Returns
+    -------
+    dict
+        For the boundary nodes (paper Table 1 style) the median, 95th percentile and max of
+        ``|E[u_b] - u_b_true|`` and of the initial configuration's error; the MSE over all
+        nodes (mm^2); coverage of the true boundary displacement components by the central
+        50/90/95% credible intervals; the lam/mu ratio posterior per group.
     """
+    from bayesreg.diagnostics import coverage
+
     from bayesreg.posterior import elastic_groups
 
     mesh, truth = problem.mesh, problem.truth
@@ -154,7 +189,7 @@ def error_table(problem, result, x0, u_mean=None) -> dict | None:
             ratios[name]["true"] = float(np.median(true_ratio[mesh.tissue == k]))
     u_true_b = truth.u[mesh.boundary]
     mean_b = result.positions[..., :nb3].reshape(-1, post.n_boundary, 3).mean(0)
-    init_b = x0[:, :nb3].reshape(-1, post.n_boundary, 3).mean(0)
+    init_b = np.asarray(u_init)[mesh.boundary]
 
     def stats(err):
         return {"median": float(np.median(err)), "q95": float(np.quantile(err, 0.95)),
@@ -167,6 +202,9 @@ def error_table(problem, result, x0, u_mean=None) -> dict | None:
         "boundary_posterior_mean_mm": stats(np.linalg.norm(mean_b - u_true_b, axis=1)),
         "all_nodes_posterior_mean_mm": stats(np.linalg.norm(u_mean - truth.u, axis=1)),
         "mse_all_nodes_mm2": float(np.mean(np.sum((u_mean - truth.u) ** 2, axis=1))),
+        "mse_all_nodes_initial_mm2": float(np.mean(np.sum((u_init - truth.u) ** 2, axis=1))),
+        "coverage_boundary": {str(k): float(v) for k, v in coverage(
+            result.positions[..., :nb3].reshape(-1, nb3), u_true_b.ravel()).items()},
         "ratio": ratios,
     }
 
@@ -253,15 +291,69 @@ def _plots(run_dir: RunDirectory, tree, names, truth_ratio):
     plt.close(fig)
 
 
-def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init_info=None) -> RunResult:
-    """Write every output of a run (see module docstring) and commit the directory."""
+def _voxel_norm_spread(w, draws, max_draws=400, block=8192):
+    """Per-voxel sd and inter-quartile range of ``|u|`` from FE-interpolated draws.
+
+    ``w`` is the ``(P, N)`` interpolation matrix, ``draws`` ``(S, N, 3)``; at most
+    ``max_draws`` evenly spaced draws are used, voxels in blocks (memory ``block x S x 3``).
+    Returns two ``(P,)`` arrays, mm.
+    """
+    step = max(1, len(draws) // max_draws)
+    d = np.asarray(draws[::step], np.float64)
+    flat = d.transpose(1, 0, 2).reshape(d.shape[1], -1)  # (N, S*3)
+    sd = np.zeros(w.shape[0])
+    iqr = np.zeros(w.shape[0])
+    rows = np.flatnonzero(np.diff(w.indptr) > 0)
+    for a in range(0, len(rows), block):
+        r = rows[a:a + block]
+        vals = (w[r] @ flat).reshape(len(r), len(d), 3)
+        norm = np.linalg.norm(vals, axis=2)
+        sd[r] = norm.std(axis=1)
+        q75, q25 = np.quantile(norm, [0.75, 0.25], axis=1)
+        iqr[r] = q75 - q25
+    return sd, iqr
+
+
+def _overlay(run_dir: RunDirectory, f: Image, iqr, labels: Image):
+    """``uncertainty.png``: IQR of ``|u|`` over ``f`` on three orthogonal slices."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    brain = np.isin(labels.data, (1, 2, 3))
+    c = np.round(np.argwhere(brain).mean(0)).astype(int) if brain.any() else np.array(f.data.shape) // 2
+    vmax = float(np.quantile(iqr[brain], 0.99)) if brain.any() and iqr[brain].max() > 0 else None
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4))
+    for ax, axis, name in zip(axes, range(3), ("sagittal", "coronal", "axial")):
+        sl = [slice(None)] * 3
+        sl[axis] = c[axis]
+        img = np.asarray(f.data)[tuple(sl)].T
+        unc = np.ma.masked_where(~brain[tuple(sl)].T, iqr[tuple(sl)].T)
+        ax.imshow(img, cmap="gray", origin="lower")
+        im = ax.imshow(unc, cmap="magma", alpha=0.7, origin="lower", vmin=0, vmax=vmax)
+        ax.set_title(f"{name} slice {c[axis]}")
+        ax.axis("off")
+    fig.colorbar(im, ax=axes, shrink=0.8, label="IQR of |u| (mm)")
+    fig.suptitle("posterior uncertainty of the displacement magnitude over f")
+    fig.savefig(run_dir.file("uncertainty.png"), dpi=90)
+    plt.close(fig)
+
+
+def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, init_info=None, *,
+                  resumed=False) -> RunResult:
+    """Write every output of a run (see module docstring) and commit the directory.
+
+    ``init`` is the run's :class:`bayesreg.pipeline.Initialisation` (its central start is
+    the "initial configuration" of the error table).
+    """
     import arviz as az
     import meshio
 
     from bayesreg.diagnostics import gelman_rubin, to_datatree
     from bayesreg.mesh import mesh_quality
-    from bayesreg.posterior import elastic_groups
-    from bayesreg.synthetic import grid_moments
+    from bayesreg.posterior import elastic_groups, solve_position
+    from bayesreg.synthetic import grid_moments, interpolation_matrix, locate_grid
 
     post, mesh, layout = problem.posterior, problem.mesh, problem.layout
     nb = post.n_boundary
@@ -290,7 +382,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
     var_names = ["lam", "mu", "ratio", "u_b"]
     with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
-        summary = az.summary(tree, var_names=var_names)
+        summary = az.summary(tree, var_names=var_names, ci_prob=0.9, ci_kind="eti")
         classic, split = [], []
         for v in var_names:
             x = np.asarray(tree.posterior[v].values)
@@ -307,9 +399,12 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
     # displacement maps: on the mesh and on the image grid (FE interpolation)
     draws = _full_draws(problem, result)
     u_mean, u_sd = draws.mean(0), draws.std(0)
+    u_init = np.asarray(solve_position(post, init.center, rtol=cfg.solver.rtol,
+                                       maxiter=cfg.solver.maxiter)[0])
     norm = np.linalg.norm(draws, axis=2)
     point_data = {"u_mean": u_mean, "u_sd": u_sd, "u_norm_sd": norm.std(0),
-                  "u_norm_iqr": np.subtract(*np.quantile(norm, [0.75, 0.25], axis=0))}
+                  "u_norm_iqr": np.subtract(*np.quantile(norm, [0.75, 0.25], axis=0)),
+                  "u_init": u_init}
     if problem.truth is not None:
         point_data["u_true"] = problem.truth.u
         point_data["u_error"] = u_mean - problem.truth.u
@@ -318,15 +413,25 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
         meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)], point_data=point_data,
                     cell_data={"tissue": [mesh.tissue.astype(np.int32)]}),
     )
-    mean_img, sd_img = grid_moments(mesh, problem.f, draws)
+    located = locate_grid(mesh, problem.f)
+    w, _ = interpolation_matrix(mesh, problem.f, located=located)
+    grid = problem.f.data.shape[:3]
+    mean_img, sd_img = grid_moments(mesh, problem.f, draws, located=located)
+    norm_sd, norm_iqr = _voxel_norm_spread(w, draws)
     aff = problem.f.affine
-    save_nifti(Image(mean_img.astype(np.float32), aff), run_dir.file("displacement_mean.nii.gz"))
-    save_nifti(Image(sd_img.astype(np.float32), aff), run_dir.file("displacement_sd.nii.gz"))
+    vol = {"displacement_mean": mean_img, "displacement_sd": sd_img,
+           "displacement_norm_sd": norm_sd.reshape(grid), "displacement_norm_iqr": norm_iqr.reshape(grid),
+           "displacement_init": (w @ u_init).reshape(*grid, 3)}
+    if problem.truth is not None:
+        vol["displacement_true"] = (w @ problem.truth.u).reshape(*grid, 3)
+    for name, arr in vol.items():
+        save_nifti(Image(arr.astype(np.float32), aff), run_dir.file(f"{name}.nii.gz"))
+    _overlay(run_dir, problem.f, norm_iqr.reshape(grid), problem.labels)
     save_nifti(Image(problem.f.data.astype(np.float32), aff), run_dir.file("f.nii.gz"))
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
 
-    errors = error_table(problem, result, x0, u_mean)
+    errors = error_table(problem, result, u_init, u_mean)
     truth_ratio = None
     if errors and all("true" in errors["ratio"].get(nm, {}) for nm in names[:6]):
         truth_ratio = [errors["ratio"][nm]["true"] for nm in names[:6]]
@@ -367,6 +472,8 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, x0, timings, init
             "steps_per_s_per_chain": float(d * cfg.sampler.thinning / max(timings.get("sampling_s", 1e-9), 1e-9)),
         },
         "init": init_info or {},
+        "truth": problem.truth_info,
+        "resumed": bool(resumed),
         "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
     }

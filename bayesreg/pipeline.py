@@ -31,8 +31,8 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg.config import Config, load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
 from bayesreg.images import (  # noqa: E402
-    Image, check_same_space, interpolate, interpolate_numpy, load_nifti, mni152, pad,
-    resample_to_spacing,
+    Image, check_same_frame, interpolate, interpolate_numpy, load_nifti, mni152, pad,
+    resample_to_spacing, to_reference_grid,
 )
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
@@ -40,11 +40,12 @@ from bayesreg.posterior import (  # noqa: E402
 )
 from bayesreg.sampler import SamplerResult, sample  # noqa: E402
 from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
-from bayesreg.synthetic import Truth, brain_shift, warp_image  # noqa: E402
+from bayesreg.synthetic import Truth, brain_shift, constrained_shift, warp_image  # noqa: E402
 
 __all__ = [
-    "Problem", "prepare", "start_center", "find_mode", "laplace_precision", "initial_positions",
-    "proposal_scale", "sample_problem", "run",
+    "Problem", "make_data", "assemble", "prepare", "save_problem", "load_problem", "start_center",
+    "find_mode", "laplace_precision", "initial_positions", "proposal_scale", "Initialisation",
+    "initialise", "sample_problem", "run",
 ]
 
 
@@ -65,6 +66,7 @@ class Problem(NamedTuple):
     intensity_scale : float  f and m were divided by it
     n_skull_carved : int  skull voxels freed next to the mesh (:func:`bayesreg.mesh.carve_skull`)
     timings : dict
+    truth_info : dict or None  how the truth was made (constrained minimiser figures)
     """
 
     f: Image
@@ -80,6 +82,7 @@ class Problem(NamedTuple):
     intensity_scale: float
     n_skull_carved: int
     timings: dict
+    truth_info: dict | None = None
 
 
 def _load_data(cfg: Config):
@@ -93,9 +96,11 @@ def _load_data(cfg: Config):
     f = load_nifti(d.fixed)
     lab = load_nifti(d.labels)
     m = load_nifti(d.moving) if d.moving is not None else None
-    check_same_space(f, lab, names=("data.fixed", "data.labels"))
+    # the images may lie on different grids of one world frame: resampled onto f's grid
+    check_same_frame(d.fixed, d.labels, d.moving, names=("data.fixed", "data.labels", "data.moving"))
+    lab = to_reference_grid(lab, f, name="data.labels", reference_name="data.fixed", order=0)
     if m is not None:
-        check_same_space(f, m, names=("data.fixed", "data.moving"))
+        m = to_reference_grid(m, f, name="data.moving", reference_name="data.fixed", order=1)
     if d.resolution_mm is not None:
         f = resample_to_spacing(f, d.resolution_mm, order=1)
         lab = resample_to_spacing(lab, d.resolution_mm, order=0)
@@ -141,14 +146,61 @@ def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
     return tissue_vals[mesh.tissue]
 
 
-def prepare(cfg: Config) -> Problem:
-    """Load data, derive labels, mesh, make the synthetic truth (if enabled), build the posterior.
+def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
+    """Synthetic truth per ``cfg.synthetic``; returns ``(Truth, info dict)``.
+
+    Raises
+    ------
+    ValueError
+        If the constrained minimiser does not converge, or the truth puts a node in the
+        skull region or inverts an element (nothing is hidden: the figures are in the message).
+    """
+    s = cfg.synthetic
+    lam_t = np.array([s.lam.csf, s.lam.gm, s.lam.wm])[mesh.tissue]
+    mu_t = np.array([s.mu.csf, s.mu.gm, s.mu.wm])[mesh.tissue]
+    pushed = None if s.pushed_nodes is None else np.asarray(s.pushed_nodes, np.int64)
+    if s.truth == "constrained":
+        forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
+        truth, info = constrained_shift(
+            mesh, lam_t, mu_t, forbidden, shift_mm=s.shift_mm, n_pushed=s.n_pushed, pushed=pushed,
+            clearance_mm=s.clearance_mm, tol_mm=s.tol_mm,
+        )
+        if not info["converged"] or info["n_forbidden_nodes"] or info["n_inverted"]:
+            raise ValueError(
+                "the constrained ground truth failed: converged {converged}, max violation "
+                "{max_violation_mm:.3g} mm (tol {tol_mm}), nodes in the skull {n_forbidden_nodes}, "
+                "inverted elements {n_inverted}".format(**info)
+            )
+    else:
+        if pushed is not None:
+            raise ValueError("synthetic.pushed_nodes needs synthetic.truth: constrained")
+        truth = brain_shift(mesh, lam_t, mu_t, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
+                            falloff_mm=s.falloff_mm)
+        info = {"truth": "smooth", "shift_mm": s.shift_mm, "pushed": truth.pushed.tolist()}
+    moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
+    if np.any(moved == L.SKULL):
+        raise ValueError(
+            f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
+            "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
+        )
+    info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
+    info["lam"] = s.lam.model_dump()
+    info["mu"] = s.mu.model_dump()
+    return truth, info
+
+
+def make_data(cfg: Config) -> dict:
+    """The expensive, non-reproducible part of :func:`prepare`: images, labels, mesh, truth.
 
     Intensities of ``f`` and ``m`` are divided by the ``data.intensity_percentile``-th
     percentile of ``f`` inside the intracranial volume (about [0, 1] afterwards), so that
-    ``E_s`` and ``T_s`` have image-independent units (``intensity^2 mm^3``); with
-    ``data.smoothing_mm > 0`` both are then smoothed by a Gaussian of that sigma (after the
-    synthetic warp, so ``m`` is made from the unsmoothed ``f``).
+    ``E_s`` and ``T_s`` have image-independent units (``intensity^2 mm^3``).  With a
+    synthetic case, ``m`` is ``f`` warped exactly through the FE map of the truth.
+
+    Returns
+    -------
+    dict with ``f, m, labels`` (Image), ``mesh``, ``truth`` (Truth or None),
+    ``truth_info`` (dict or None), ``intensity_scale``, ``n_skull_carved``, ``timings``.
     """
     timings = {}
     t = time.perf_counter()
@@ -172,28 +224,30 @@ def prepare(cfg: Config) -> Problem:
     labels, n_carved = carve_skull(labels, mesh)
     timings["mesh_s"] = time.perf_counter() - t
     empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
-    layout, group = _layout(cfg, mesh)
     if cfg.model.elastic == "tissue" and empty:
         raise ValueError(f"no mesh element is labelled {empty}: refine the mesh or use elastic: uniform")
 
-    truth = None
+    truth = truth_info = None
     t = time.perf_counter()
     if cfg.synthetic.enabled:
-        s = cfg.synthetic
-        lam_t = np.array([s.lam.csf, s.lam.gm, s.lam.wm])[mesh.tissue]
-        mu_t = np.array([s.mu.csf, s.mu.gm, s.mu.wm])[mesh.tissue]
-        truth = brain_shift(mesh, lam_t, mu_t, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
-                            falloff_mm=s.falloff_mm)
-        moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
-        if np.any(moved == L.SKULL):
-            raise ValueError(
-                f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
-                "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
-            )
+        truth, truth_info = _make_truth(cfg, mesh, labels)
         m = warp_image(f, mesh, truth.u, background=0.0)
     elif m is None:  # pragma: no cover - guarded by the config validator
         raise ValueError("no intra-operative image")
     timings["synthetic_s"] = time.perf_counter() - t
+    return {"f": f, "m": m, "labels": labels, "mesh": mesh, "truth": truth,
+            "truth_info": truth_info, "intensity_scale": scale, "n_skull_carved": n_carved,
+            "timings": timings}
+
+
+def assemble(cfg: Config, data: dict) -> Problem:
+    """Build the parameter layout, priors and posterior of :func:`make_data`'s output.
+
+    With ``data.smoothing_mm > 0`` the posterior's copies of ``f`` and ``m`` are smoothed
+    by a Gaussian of that sigma (``m`` was made from the unsmoothed ``f``).
+    """
+    f, m, labels, mesh, truth = (data[k] for k in ("f", "m", "labels", "mesh", "truth"))
+    layout, group = _layout(cfg, mesh)
 
     def free_values(lam_tv, mu_tv):
         lam_g = _group_values(layout, lam_tv, group, mesh)
@@ -211,17 +265,75 @@ def prepare(cfg: Config) -> Problem:
         return (pr.a, pr.b, pr.r1, pr.r2)
 
     prior = {"lam": prior_tuple(cfg.model.prior_lam), "mu": prior_tuple(cfg.model.prior_mu)}
+    f_s, m_s = f, m
     if cfg.data.smoothing_mm > 0:
-        f, m = (Image(ndi.gaussian_filter(i.data, cfg.data.smoothing_mm / i.spacing), i.affine)
-                for i in (f, m))
+        f_s, m_s = (Image(ndi.gaussian_filter(i.data, cfg.data.smoothing_mm / i.spacing), i.affine)
+                    for i in (f, m))
     forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
     post = build_posterior(
-        mesh, build_ssd(mesh.nodes, mesh.tets, f, m), forbidden,
+        mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s), forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
         prior=prior, phi_ref=phi_init,
     )
-    return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init, scale,
-                   n_carved, timings)
+    return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init,
+                   data["intensity_scale"], data["n_skull_carved"], dict(data["timings"]),
+                   data.get("truth_info"))
+
+
+def prepare(cfg: Config) -> Problem:
+    """Load data, derive labels, mesh, make the synthetic truth (if enabled), build the posterior
+    (:func:`make_data` then :func:`assemble`)."""
+    return assemble(cfg, make_data(cfg))
+
+
+def save_problem(problem: Problem, path) -> None:
+    """Write the data of a problem (images, mesh, truth) to one compressed ``.npz``, atomically.
+
+    :func:`load_problem` rebuilds the same :class:`Problem` without meshing again (meshing
+    with fTetWild is not bit-reproducible, so a resumed run must reuse the mesh).
+    """
+    import json
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    arrays = {
+        "f": problem.f.data, "f_affine": problem.f.affine,
+        "m": np.asarray(problem.m.data), "m_affine": problem.m.affine,
+        "labels": problem.labels.data, "labels_affine": problem.labels.affine,
+        "nodes": problem.mesh.nodes, "tets": problem.mesh.tets, "tissue": problem.mesh.tissue,
+        "boundary": problem.mesh.boundary,
+        "meta": np.array(json.dumps({
+            "intensity_scale": problem.intensity_scale, "n_skull_carved": problem.n_skull_carved,
+            "timings": problem.timings, "truth_info": problem.truth_info,
+        })),
+    }
+    if problem.truth is not None:
+        t = problem.truth
+        arrays.update(truth_u=t.u, truth_lam_e=t.lam_e, truth_mu_e=t.mu_e, truth_pushed=t.pushed)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def load_problem(path, cfg: Config) -> Problem:
+    """Inverse of :func:`save_problem` (the posterior is rebuilt from ``cfg``)."""
+    import json
+
+    z = np.load(path, allow_pickle=False)
+    meta = json.loads(str(z["meta"]))
+    truth = None
+    if "truth_u" in z:
+        truth = Truth(z["truth_u"], z["truth_lam_e"], z["truth_mu_e"], z["truth_pushed"])
+    data = {
+        "f": Image(z["f"], z["f_affine"]), "m": Image(z["m"], z["m_affine"]),
+        "labels": Image(z["labels"], z["labels_affine"]),
+        "mesh": Mesh(z["nodes"], z["tets"], z["tissue"], z["boundary"]),
+        "truth": truth, "truth_info": meta["truth_info"],
+        "intensity_scale": meta["intensity_scale"], "n_skull_carved": meta["n_skull_carved"],
+        "timings": meta["timings"],
+    }
+    return assemble(cfg, data)
 
 
 def make_logdensity(problem: Problem, cfg: Config):
@@ -229,14 +341,52 @@ def make_logdensity(problem: Problem, cfg: Config):
     return partial(log_density, problem.posterior, rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
 
 
-def start_center(problem: Problem, cfg: Config) -> np.ndarray:
-    """Central start ``(dim,)``: ``fraction * truth`` for ``u_b`` (0 without a truth) and the
-    initial elastic parameters (paper Sec. 4.2: between identity and truth)."""
-    nb = problem.posterior.n_boundary
+def start_center(problem: Problem, cfg: Config) -> tuple[np.ndarray, dict]:
+    """Central start ``(dim,)`` of the chains and how it was made.
+
+    ``u_b``: ``init.fraction * truth`` (``init.start: between``, paper Sec. 4.2; identity
+    without a truth) or the displacement of a fast registration of ``f`` to ``m``
+    (``init.start: registration``: scikit-image optical flow, see
+    :func:`bayesreg.registration.optical_flow_displacement`) at the boundary nodes.  Nodes
+    that the start would put into the skull (or an element it would invert) are pulled back
+    toward zero by halving until the start is valid.  Parameters: ``model.initial_*``.
+
+    Returns
+    -------
+    theta : (dim,) ndarray
+    info : dict  ``{"start", "shrink"}`` (and the registration time)
+    """
+    post, mesh = problem.posterior, problem.mesh
+    nb = post.n_boundary
+    info: dict = {"start": cfg.init.start}
     base_u = np.zeros((nb, 3))
-    if problem.truth is not None:
-        base_u = cfg.init.fraction * problem.truth.u[problem.mesh.boundary]
-    return np.concatenate([base_u.ravel(), problem.phi_init])
+    if cfg.init.start == "registration":
+        from bayesreg.registration import displacement_at, optical_flow_displacement
+
+        t = time.perf_counter()
+        brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
+        flow = optical_flow_displacement(problem.f, problem.m, method=cfg.init.registration,
+                                         mask=ndi.binary_dilation(brain, iterations=3))
+        base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
+        info["registration_s"] = time.perf_counter() - t
+    elif problem.truth is not None:
+        base_u = cfg.init.fraction * problem.truth.u[mesh.boundary]
+    theta = np.concatenate([base_u.ravel(), problem.phi_init])
+    logdensity = make_logdensity(problem, cfg)
+    valid = jax.jit(lambda th: jnp.isfinite(logdensity(th, jnp.zeros((post.op.n_interior, 3)))[0]))
+    shrink = 1.0
+    for _ in range(30):
+        if bool(valid(jnp.asarray(theta))):
+            info["shrink"] = shrink
+            return theta, info
+        # pull back only the offending nodes (in the skull or out of the image) first
+        moved = mesh.nodes[mesh.boundary] + theta[: 3 * nb].reshape(nb, 3)
+        bad = interpolate_numpy(problem.labels, moved, order=0, cval=L.SKULL) == L.SKULL
+        u = theta[: 3 * nb].reshape(nb, 3)
+        u[bad if bad.any() else slice(None)] *= 0.5
+        theta[: 3 * nb] = u.ravel()
+        shrink *= 0.5
+    raise ValueError("could not find a valid central start (skull, inverted element or solve)")
 
 
 def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
@@ -399,43 +549,73 @@ def proposal_scale(problem: Problem, cfg: Config, prec=None):
     return 2.38 / np.sqrt(nb3) * factor, sig_p
 
 
-def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.ndarray, dict]:
-    """Initialise (central start, optional mode search, dispersed starts) and sample.
+class Initialisation(NamedTuple):
+    """Starts and jumping kernels of a run (saved with it, so a resumed run reuses them).
 
-    Returns
-    -------
-    result : SamplerResult
-    x0 : (chains, dim) ndarray  the starts
-    init_info : dict  mode search and timing figures
+    Attributes
+    ----------
+    x0 : (C, dim)  chain starts
+    center : (dim,)  central start (after the mode search, if any)
+    sigma : tuple of arrays  initial jumping-kernel scale per block
+    blocked : bool  u_b and the elastic parameters in separate blocks
+    info : dict  how the starts were made (mode search figures, timings)
     """
+
+    x0: np.ndarray
+    center: np.ndarray
+    sigma: tuple
+    blocked: bool
+    info: dict
+
+
+def initialise(problem: Problem, cfg: Config) -> Initialisation:
+    """Central start (:func:`start_center`), optional mode search, dispersed starts, kernels."""
     rng = np.random.default_rng(cfg.seed)
-    k_run = jax.random.key(cfg.seed)
     t = time.perf_counter()
-    center = start_center(problem, cfg)
-    init_info: dict = {"method": cfg.init.method}
+    center, info = start_center(problem, cfg)
+    info["method"] = cfg.init.method
     if cfg.init.method == "mode":
-        center, info = find_mode(problem, cfg, center)
-        init_info.update(info)
+        center, mode_info = find_mode(problem, cfg, center)
+        info.update(mode_info)
     prec = None
     if cfg.init.method == "mode" or cfg.sampler.proposal == "laplace":
         prec = laplace_precision(problem, center)
     x0 = initial_positions(problem, cfg, center, rng, prec)
     sigma_u, sigma_p = proposal_scale(problem, cfg, prec)
-    init_info["init_s"] = time.perf_counter() - t
+    info["init_s"] = time.perf_counter() - t
     post = problem.posterior
     nb3 = 3 * post.n_boundary
     if cfg.sampler.blocked:
-        blocks = (np.arange(nb3), np.arange(nb3, post.dim))
-        sigma, adapt = (sigma_u, sigma_p), (True, True)
-    else:  # the paper's joint proposal (Eq. 14)
+        sigma = (sigma_u, sigma_p)
+    elif sigma_u.ndim == 1:  # the paper's joint proposal (Eq. 14)
+        sigma = (np.concatenate([sigma_u, sigma_p]),)
+    else:
+        joint = np.zeros((post.dim, post.dim))
+        joint[:nb3, :nb3] = sigma_u * np.sqrt(nb3 / post.dim)
+        joint[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sigma_p
+        sigma = (joint,)
+    return Initialisation(x0, center, sigma, cfg.sampler.blocked, info)
+
+
+def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = None, *,
+                   on_chunk=None, resume=None, resume_draws=None) -> tuple[SamplerResult, Initialisation]:
+    """Initialise (unless ``init`` is given) and sample.
+
+    ``on_chunk``, ``resume`` and ``resume_draws`` are passed to
+    :func:`bayesreg.sampler.sample` (checkpointing; see :func:`run`).
+
+    Returns
+    -------
+    result : SamplerResult
+    init : Initialisation
+    """
+    init = init or initialise(problem, cfg)
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    if init.blocked:
+        blocks, adapt = (np.arange(nb3), np.arange(nb3, post.dim)), (True, True)
+    else:
         blocks, adapt = None, None
-        if sigma_u.ndim == 1:
-            sigma = (np.concatenate([sigma_u, sigma_p]),)
-        else:
-            joint = np.zeros((post.dim, post.dim))
-            joint[:nb3, :nb3] = sigma_u * np.sqrt(nb3 / post.dim)
-            joint[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sigma_p
-            sigma = (joint,)
 
     def estimands(draws):
         # boundary coordinates, free parameters and the lam/mu ratios per group
@@ -445,11 +625,11 @@ def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.nda
 
     s = cfg.sampler
     result = sample(
-        k_run,
+        jax.random.key(cfg.seed),
         make_logdensity(problem, cfg),
-        x0,
+        init.x0,
         jnp.zeros((post.op.n_interior, 3)),
-        sigma,
+        tuple(init.sigma),
         blocks=blocks,
         adapt_diagonal=adapt,
         thinning=s.thinning,
@@ -462,17 +642,20 @@ def sample_problem(problem: Problem, cfg: Config) -> tuple[SamplerResult, np.nda
         rhat_split=s.rhat_split,
         estimands=estimands,
         progress=cfg.output.progress,
+        on_chunk=on_chunk,
+        resume=resume,
+        resume_draws=resume_draws,
     )
-    return result, x0, init_info
+    return result, init
 
 
-def run(config, *, out=None, overrides=None, overwrite=None, progress=None):
+def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None, resume=None):
     """Run the whole job and write its run directory.
 
     Parameters
     ----------
     config : Config, str or Path
-        A validated config or the path of a YAML file.
+        A validated config or the path of a YAML file (not needed with ``resume``).
     out : str or Path, optional
         Run directory (default ``output.dir`` of the config).
     overrides : list of str, optional
@@ -481,6 +664,10 @@ def run(config, *, out=None, overrides=None, overwrite=None, progress=None):
         Replace an existing run directory (default ``output.overwrite``).
     progress : bool, optional
         Progress bar (default ``output.progress``).
+    resume : str or Path, optional
+        Continue the unfinished run in this directory, with its saved config, problem (mesh,
+        images, truth), starts and sampler state: the result equals that of the run never
+        interrupted (same draws).  ``config`` and ``overrides`` must then be omitted.
 
     Returns
     -------
@@ -489,25 +676,59 @@ def run(config, *, out=None, overrides=None, overwrite=None, progress=None):
     Raises
     ------
     FileExistsError
-        If the run directory exists and is not empty and ``overwrite`` is false.
+        If the run directory exists and is not empty and ``overwrite`` is false, or a run to
+        resume is already finished.
+    FileNotFoundError
+        If ``resume`` names a directory without a checkpoint.
     """
+    from bayesreg.checkpoint import Checkpoint
     from bayesreg.outputs import RunDirectory, write_outputs
 
-    cfg = config if isinstance(config, Config) else load_config(config, overrides=overrides)
-    if isinstance(config, Config) and overrides:
-        from bayesreg.config import apply_overrides
+    t0 = time.perf_counter()
+    if resume is not None:
+        if config is not None or overrides:
+            raise ValueError("resume continues a run with its own config: give no config or overrides")
+        run_dir = RunDirectory(resume, resume=True)
+        ckpt = Checkpoint(run_dir.path)
+        cfg = ckpt.load_config()
+        cfg.output.dir = run_dir.path
+    else:
+        cfg = config if isinstance(config, Config) else load_config(config, overrides=overrides)
+        if isinstance(config, Config) and overrides:
+            from bayesreg.config import apply_overrides
 
-        cfg = Config.model_validate(apply_overrides(cfg.model_dump(mode="json"), overrides))
-    if out is not None:
-        cfg.output.dir = out
-    if overwrite is not None:
-        cfg.output.overwrite = overwrite
+            cfg = Config.model_validate(apply_overrides(cfg.model_dump(mode="json"), overrides))
+        if out is not None:
+            cfg.output.dir = out
+        if overwrite is not None:
+            cfg.output.overwrite = overwrite
+        run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite)  # fails early
+        ckpt = Checkpoint(run_dir.path)
+        if cfg.output.checkpoint:
+            ckpt.save_config(cfg)
     if progress is not None:
         cfg.output.progress = progress
-    run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite)  # fails early
-    t0 = time.perf_counter()
-    problem = prepare(cfg)
-    result, x0, init_info = sample_problem(problem, cfg)
-    timings = {**problem.timings, "init_s": init_info.pop("init_s"), **result.timings,
+
+    saved = resume is not None and ckpt.problem_path.is_file()
+    problem = load_problem(ckpt.problem_path, cfg) if saved else prepare(cfg)
+    if cfg.output.checkpoint and not saved:
+        save_problem(problem, ckpt.problem_path)
+    init = ckpt.load_init() if resume is not None else None
+    if init is None:
+        init = initialise(problem, cfg)
+        if cfg.output.checkpoint:
+            ckpt.save_init(init)
+    state = ckpt.load_state() if resume is not None else None
+    result, init = sample_problem(
+        problem, cfg, init,
+        on_chunk=ckpt.on_chunk if cfg.output.checkpoint else None,
+        resume=None if state is None else state[0],
+        resume_draws=None if state is None else state[1],
+    )
+    init_info = dict(init.info)
+    timings = {**problem.timings, "init_s": init_info.pop("init_s", float("nan")), **result.timings,
                "total_before_outputs_s": time.perf_counter() - t0}
-    return write_outputs(run_dir, cfg, problem, result, x0, timings, init_info)
+    res = write_outputs(run_dir, cfg, problem, result, init, timings, init_info,
+                        resumed=resume is not None)
+    ckpt.clear_progress()
+    return res

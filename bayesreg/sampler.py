@@ -31,7 +31,9 @@ from blackjax.mcmc.random_walk import normal as normal_jumping_kernel  # noqa: E
 
 from bayesreg.diagnostics import gelman_rubin  # noqa: E402
 
-__all__ = ["RWMHState", "RWMHInfo", "init", "build_kernel", "SamplerResult", "sample"]
+__all__ = [
+    "RWMHState", "RWMHInfo", "init", "build_kernel", "SamplerResult", "SamplerCheckpoint", "sample",
+]
 
 
 class RWMHState(NamedTuple):
@@ -155,6 +157,30 @@ class SamplerResult(NamedTuple):
     final_states: RWMHState
 
 
+class SamplerCheckpoint(NamedTuple):
+    """Everything :func:`sample` needs to continue after a chunk (host NumPy arrays).
+
+    The stored draws are not part of it: they are handed to the ``on_chunk`` callback one
+    chunk at a time and given back through ``resume_draws``.
+
+    Attributes
+    ----------
+    states : RWMHState  leaves ``(C, ...)``: the chains after the last finished chunk
+    sigma : tuple  the frozen proposal scale of each block (after warm-up)
+    warmup_acceptance : (B,) ndarray
+    chunks_done : int  sampling chunks finished (0 right after the warm-up)
+    rhat_history : list of (draws per chain, max monitored R-hat)
+    timings : dict  seconds spent so far
+    """
+
+    states: RWMHState
+    sigma: tuple
+    warmup_acceptance: np.ndarray
+    chunks_done: int
+    rhat_history: list
+    timings: dict
+
+
 def _build_chunk(kernel, n_draws: int, thin: int):
     def one_chain(key, state, sigma):
         def draw(state, key):
@@ -180,6 +206,58 @@ def _scaled(sigmas, log_scales):
     return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
 
 
+def _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps, chunk_draws,
+            thinning, target_acceptance, progress):
+    """Robbins-Monro on each block's log-scale; diagonal scales re-estimated from draws.
+
+    Returns ``(states, frozen sigmas, last acceptance per block, timings)``.
+    """
+    from tqdm.auto import tqdm
+
+    t0 = time.perf_counter()
+    timings = {}
+    n_warm = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
+    log_scales = np.zeros(len(idxs))
+    warm_acc = np.full(len(idxs), np.nan)
+    bar = tqdm(total=n_warm, disable=not progress or n_warm == 0, desc="warm-up", unit="chunk")
+    # windows: scales re-estimated from the draws of [n/4, n/2) and [n/2, 3n/4)
+    window_ends = {n_warm // 2, (3 * n_warm) // 4} - {0}
+    window: list[np.ndarray] = []
+    k_gain = 0
+    for k in range(n_warm):
+        states, out = chunk(jax.random.split(jax.random.fold_in(key_warm, k), n_chains), states,
+                            _scaled(sigmas, log_scales))
+        if k == 0:
+            timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
+        warm_acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
+        k_gain += 1
+        log_scales += 2.0 / np.sqrt(k_gain) * (warm_acc - target_acceptance)
+        if k >= n_warm // 4:
+            window.append(np.asarray(out[0]))  # (C, chunk, dim)
+        if k + 1 in window_ends and window:
+            pos = np.concatenate(window, axis=1)
+            window = []
+            new = list(sigmas)
+            for b, ix in enumerate(idxs):
+                sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
+                if not adapt[b] or not np.all(sd > 0):
+                    continue
+                if sigmas[b].ndim == 1:
+                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
+                else:  # keep the correlations of the factor, match its marginal scales
+                    implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
+                    new[b] = (2.38 / np.sqrt(len(ix)) * sd / implied)[:, None] * sigmas[b]
+                log_scales[b] = 0.0
+            sigmas = tuple(new)
+            k_gain = 0
+        bar.set_postfix(acc=np.array2string(warm_acc, precision=2),
+                        scale=np.array2string(np.exp(log_scales), precision=2))
+        bar.update(1)
+    bar.close()
+    frozen = tuple(np.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
+    return states, frozen, warm_acc, timings
+
+
 def sample(
     rng_key,
     logdensity_fn: Callable,
@@ -199,6 +277,9 @@ def sample(
     rhat_split: bool = False,
     estimands: Callable | None = None,
     progress: bool = True,
+    on_chunk: Callable | None = None,
+    resume: SamplerCheckpoint | None = None,
+    resume_draws: tuple | None = None,
 ) -> SamplerResult:
     """Run parallel RW-MH chains with warm-up, thinning and R-hat stopping.
 
@@ -242,6 +323,19 @@ def sample(
         default: the position coordinates.
     progress : bool
         Show a tqdm progress bar with acceptance and the worst R-hat.
+    on_chunk : callable, optional
+        ``on_chunk(checkpoint, out)`` after the warm-up (``out=None``) and after every
+        sampling chunk; ``out`` is the chunk's ``(positions (C, n, dim), interior
+        (C, n, n_i, 3), logdensity (C, n), acceptance (C, n, B), cg_iterations (C, n),
+        solve_failures (C, n))`` with ``n = chunk_draws``.  Persisting both lets a killed
+        run continue (``resume``).
+    resume : SamplerCheckpoint, optional
+        Continue from a checkpoint (warm-up skipped).  Chunk ``k`` always uses the key
+        ``fold_in(split(rng_key)[1], k)``, so a resumed run gives the same draws as an
+        uninterrupted one with the same ``rng_key``.
+    resume_draws : tuple of 6 arrays, optional
+        The draws of the finished chunks (as ``out``, concatenated along axis 1); required
+        with ``resume``.
 
     Returns
     -------
@@ -252,8 +346,6 @@ def sample(
     ValueError
         On bad arguments or if any chain starts at a point of zero posterior density.
     """
-    from tqdm.auto import tqdm
-
     x0 = jnp.asarray(initial_positions, dtype=jnp.float64)
     if x0.ndim != 2:
         raise ValueError(f"initial_positions must be (chains, dim), got {x0.shape}")
@@ -275,73 +367,62 @@ def sample(
     estimands = estimands or (lambda d: d)
 
     kernel = build_kernel(logdensity_fn, None if blocks is None else idxs)
-    t0 = time.perf_counter()
-    states = jax.jit(jax.vmap(lambda x: init(x, logdensity_fn, interior0)))(x0)
-    bad = ~np.isfinite(np.asarray(states.logdensity))
-    if bad.any():
-        raise ValueError(
-            f"chains {np.flatnonzero(bad).tolist()} start at zero posterior density "
-            "(constraint violated or CG solve not converged at the initial position)"
-        )
     chunk = _build_chunk(kernel, chunk_draws, thinning)
     key_warm, key_samp = jax.random.split(rng_key)
-    timings = {}
-
-    # ---- warm-up: Robbins-Monro on each block's log-scale, diagonal scales from draws ----
-    n_warm = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
-    log_scales = np.zeros(len(idxs))
-    warm_acc = np.full(len(idxs), np.nan)
     n_samp = int(np.ceil(max_draws / chunk_draws))
-    bar = tqdm(total=n_warm + n_samp, disable=not progress, desc="warm-up", unit="chunk")
-    # windows: scales re-estimated from the draws of [n/4, n/2) and [n/2, 3n/4)
-    window_ends = {n_warm // 2, (3 * n_warm) // 4} - {0}
-    window: list[np.ndarray] = []
-    k_gain = 0
-    for k in range(n_warm):
-        states, out = chunk(jax.random.split(jax.random.fold_in(key_warm, k), n_chains), states,
-                            _scaled(sigmas, log_scales))
-        if k == 0:
-            timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
-        warm_acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
-        k_gain += 1
-        log_scales += 2.0 / np.sqrt(k_gain) * (warm_acc - target_acceptance)
-        if k >= n_warm // 4:
-            window.append(np.asarray(out[0]))  # (C, chunk, dim)
-        if k + 1 in window_ends and window:
-            pos = np.concatenate(window, axis=1)
-            window = []
-            new = list(sigmas)
-            for b, ix in enumerate(idxs):
-                sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
-                if not adapt[b] or not np.all(sd > 0):
-                    continue
-                if sigmas[b].ndim == 1:
-                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
-                else:  # keep the correlations of the factor, match its marginal scales
-                    implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
-                    new[b] = (2.38 / np.sqrt(len(ix)) * sd / implied)[:, None] * sigmas[b]
-                log_scales[b] = 0.0
-            sigmas = tuple(new)
-            k_gain = 0
-        bar.set_postfix(acc=np.array2string(warm_acc, precision=2),
-                        scale=np.array2string(np.exp(log_scales), precision=2))
-        bar.update(1)
-    timings["warmup_s"] = time.perf_counter() - t0
-    frozen = _scaled(sigmas, log_scales)
+    t0 = time.perf_counter()
+    if resume is None:
+        states = jax.jit(jax.vmap(lambda x: init(x, logdensity_fn, interior0)))(x0)
+        bad = ~np.isfinite(np.asarray(states.logdensity))
+        if bad.any():
+            raise ValueError(
+                f"chains {np.flatnonzero(bad).tolist()} start at zero posterior density "
+                "(constraint violated or CG solve not converged at the initial position)"
+            )
+        states, frozen, warm_acc, timings = _warmup(
+            chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps, chunk_draws,
+            thinning, target_acceptance, progress,
+        )
+        timings["warmup_s"] = time.perf_counter() - t0 + timings.get("warmup_s", 0.0)
+        history: list = []
+        parts: list[list[np.ndarray]] = [[] for _ in range(6)]
+        k = 0
+        if on_chunk is not None:
+            on_chunk(SamplerCheckpoint(jax.tree.map(np.asarray, states), frozen, warm_acc, 0, [],
+                                       dict(timings)), None)
+    else:
+        if resume_draws is None and resume.chunks_done:
+            raise ValueError("resume needs resume_draws (the draws of the finished chunks)")
+        states = jax.tree.map(jnp.asarray, resume.states)
+        frozen = tuple(np.asarray(f_) for f_ in resume.sigma)
+        warm_acc = np.asarray(resume.warmup_acceptance)
+        timings = dict(resume.timings)
+        history = [tuple(h) for h in resume.rhat_history]
+        k = int(resume.chunks_done)
+        parts = [[np.asarray(a)] for a in resume_draws] if k else [[] for _ in range(6)]
+        if k and parts[0][0].shape[1] != k * chunk_draws:
+            raise ValueError(f"resume_draws hold {parts[0][0].shape[1]} draws per chain, "
+                             f"the checkpoint {k} chunks of {chunk_draws}")
+    frozen = tuple(jnp.asarray(f_) for f_ in frozen)
 
     # ---- sampling ----
-    bar.set_description("sampling")
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=n_samp, initial=k, disable=not progress, desc="sampling", unit="chunk")
     t1 = time.perf_counter()
-    parts: list[list[np.ndarray]] = [[] for _ in range(6)]
-    history = []
-    n_draws = 0
-    rhat = np.inf
-    k = 0
-    while n_draws < max_draws:
+    spent = timings.get("sampling_s", 0.0)
+    rhat = history[-1][1] if history else np.inf
+    n_draws = k * chunk_draws
+
+    def done():
+        return n_draws >= max_draws or (n_draws >= min_draws and rhat < rhat_threshold)
+
+    while not done():
         states, out = chunk(jax.random.split(jax.random.fold_in(key_samp, k), n_chains), states, frozen)
+        out = tuple(np.asarray(o) for o in out)
         k += 1
         for lst, o in zip(parts, out):
-            lst.append(np.asarray(o))
+            lst.append(o)
         n_draws += chunk_draws
         draws = np.concatenate(parts[0], axis=1)
         if n_draws >= (4 if rhat_split else 2):  # split halves need 2 draws each
@@ -350,10 +431,12 @@ def sample(
         acc = np.concatenate(parts[3], axis=1).reshape(-1, len(idxs)).mean(axis=0)
         bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
         bar.update(1)
-        if n_draws >= min_draws and rhat < rhat_threshold:
-            break
+        timings["sampling_s"] = spent + time.perf_counter() - t1
+        if on_chunk is not None:
+            on_chunk(SamplerCheckpoint(jax.tree.map(np.asarray, states), tuple(np.asarray(f_) for f_ in frozen),
+                                       warm_acc, k, list(history), dict(timings)), out)
     bar.close()
-    timings["sampling_s"] = time.perf_counter() - t1
+    timings["sampling_s"] = spent + time.perf_counter() - t1
     pos, interior, lp, acc, cg, fail = (np.concatenate(p_, axis=1) for p_ in parts)
     return SamplerResult(
         positions=pos,

@@ -20,8 +20,9 @@ TINY = [
 
 OUTPUTS = [
     "posterior.nc", "summary.csv", "displacement_mean.nii.gz", "displacement_sd.nii.gz",
-    "mesh.vtu", "trace.png", "marginals.png", "run.json", "errors.json", "f.nii.gz",
-    "m.nii.gz", "labels.nii.gz",
+    "displacement_norm_sd.nii.gz", "displacement_norm_iqr.nii.gz", "displacement_init.nii.gz",
+    "displacement_true.nii.gz", "mesh.vtu", "trace.png", "marginals.png", "uncertainty.png",
+    "run.json", "errors.json", "f.nii.gz", "m.nii.gz", "labels.nii.gz",
 ]
 
 
@@ -57,7 +58,15 @@ def test_cli_tiny_run_writes_every_output(tmp_path, capsys):
     mean = nib.load(out / "displacement_mean.nii.gz")
     assert mean.shape[-1] == 3 and np.abs(mean.get_fdata()).max() > 0
     vtu = meshio.read(out / "mesh.vtu")
-    assert {"u_mean", "u_sd", "u_true"} <= set(vtu.point_data)
+    assert {"u_mean", "u_sd", "u_true", "u_init", "u_norm_iqr"} <= set(vtu.point_data)
+    iqr = nib.load(out / "displacement_norm_iqr.nii.gz").get_fdata()
+    assert iqr.shape == mean.shape[:3] and iqr.max() > 0 and iqr.min() >= 0
+    errors = json.loads((out / "errors.json").read_text())
+    cov = errors["coverage_boundary"]
+    assert set(cov) == {"0.5", "0.9", "0.95"} and cov["0.5"] <= cov["0.9"] <= cov["0.95"]
+    # the checkpoint keeps config, problem and starts; its draws are gone once outputs exist
+    assert (out / "checkpoint" / "problem.npz").is_file()
+    assert not (out / "checkpoint" / "draws").exists() and not (out / ".outputs-partial").exists()
 
     # the run directory is never overwritten silently
     assert main(args) == 2
@@ -74,21 +83,65 @@ def test_cli_bad_config_fails_with_message(tmp_path, capsys):
     assert not (tmp_path / "r").exists()
 
 
-def test_mismatched_nifti_images_fail_clearly(tmp_path, capsys):
+def test_nifti_images_in_different_world_frames_fail_clearly(tmp_path, capsys):
     import nibabel as nib
 
     data = np.zeros((10, 10, 10), np.float32)
     nib.save(nib.Nifti1Image(data, np.eye(4)), tmp_path / "f.nii.gz")
     aff = np.eye(4)
-    aff[0, 3] = 5.0
+    aff[0, 3] = 50.0  # a label grid with no overlap: not the same world frame
     nib.save(nib.Nifti1Image(data.astype(np.int16), aff), tmp_path / "labels.nii.gz")
     cfg = tmp_path / "c.yaml"
     cfg.write_text(
         "data:\n  source: nifti\n  fixed: f.nii.gz\n  labels: labels.nii.gz\n"
-        "  label_coding: {csf: 1, gm: 2, wm: 3}\n"
+        "  label_coding: {csf: 1, gm: 2, wm: 3}\ninit: {start: registration}\n"
     )
     assert main(["run", str(cfg), "--out", str(tmp_path / "r")]) == 2
-    assert "data.fixed and data.labels affines disagree" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "world frame" in err and "data.labels" in err
+
+
+def test_resume_needs_an_unfinished_run(tmp_path, capsys):
+    assert main(["run", "--resume", str(tmp_path)]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+    assert main(["run", "configs/quickstart.yaml", "--resume", str(tmp_path)]) == 2
+    assert "either CONFIG or --resume" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch):
+    """A run killed after its second chunk, resumed, gives the draws of the run never killed."""
+    import shutil
+
+    import arviz as az
+
+    from bayesreg.checkpoint import Checkpoint
+    from bayesreg.pipeline import run
+
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    original = Checkpoint.on_chunk
+
+    def snapshot(self, ckpt, out):  # copy the run directory as it stands after chunk 2
+        original(self, ckpt, out)
+        if ckpt.chunks_done == 2 and self.dir.parent == full:
+            shutil.copytree(full, killed)
+
+    monkeypatch.setattr(Checkpoint, "on_chunk", snapshot)
+    tiny = TINY + ["sampler.max_draws=40", "sampler.min_draws=40"]
+    a = run("configs/quickstart.yaml", out=full, overrides=tiny)
+    monkeypatch.setattr(Checkpoint, "on_chunk", original)
+    assert len(list((killed / "checkpoint" / "draws").iterdir())) == 2
+    assert not (killed / "run.json").exists()
+    # a plain run into the killed directory is refused and points at --resume
+    assert main(["run", "configs/quickstart.yaml", "--out", str(killed)]) == 2
+    assert main(["run", "--resume", str(killed), "--no-progress"]) == 0
+    pa = az.from_netcdf(full / "posterior.nc").posterior
+    pb = az.from_netcdf(killed / "posterior.nc").posterior
+    for v in ("u_b", "lam", "mu"):
+        np.testing.assert_array_equal(pa[v].values, pb[v].values)
+    info = json.loads((killed / "run.json").read_text())
+    assert info["sampler"]["draws_per_chain"] == a.info["sampler"]["draws_per_chain"] == 40
+    assert info["resumed"] is True
 
 
 @pytest.mark.slow
@@ -103,3 +156,39 @@ def test_quickstart_notebook_executes(tmp_path):
     assert not any(o.get("output_type") == "error" for o in outputs)
     text = "".join(o.get("text", "") for o in outputs)
     assert "lam/mu posterior" in text
+
+
+REPORT_FILES = [
+    "table1.csv", "table2.csv", "coverage.csv", "ratios.csv", "fig2_dataset.png",
+    "fig3_errors.png", "fig4_ratios.png", "fig5_boundary_node.png", "uncertainty.png",
+    "report.md", "report.json",
+]
+
+
+@pytest.mark.slow
+def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, capsys):
+    """`bayesreg reproduce` on tiny settings writes the report; notebook 02 redraws it."""
+    import nbformat
+    from nbclient import NotebookClient
+
+    paper = tmp_path / "paper"
+    overrides = sum((["--set", s] for s in TINY + ["init.start=registration"]), [])
+    assert main(["reproduce", "--out", str(paper), "--no-progress"] + overrides) == 0
+    assert "report in" in capsys.readouterr().out
+    for name in REPORT_FILES:
+        assert (paper / "report" / name).is_file(), name
+    md = (paper / "report" / "report.md").read_text()
+    assert "Table 1" in md and "Table 2" in md
+    assert "0.160" in md and "0.040" in md  # the paper's values beside ours
+
+    monkeypatch.setenv("BAYESREG_PAPER_RUNS", str(paper))
+    nb = nbformat.read("notebooks/02_paper_experiment.ipynb", as_version=4)
+    assert not any(c.get("outputs") for c in nb.cells if c.cell_type == "code")  # stored stripped
+    NotebookClient(nb, timeout=600, kernel_name="python3",
+                   resources={"metadata": {"path": "notebooks"}}).execute()
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    assert not any(o.get("output_type") == "error" for o in outputs)
+    text = "".join(o.get("text", "") for o in outputs)
+    assert "Table 1" in text and "Table 2" in text and "Brain MSE" in text
+    n_png = sum("image/png" in o.get("data", {}) for o in outputs)
+    assert n_png >= 7  # Fig. 2-5, uncertainty and the ArviZ plot per run

@@ -4,7 +4,18 @@ import numpy as np
 import pytest
 
 from bayesreg import labels as L
-from bayesreg.images import Image, check_same_space, interpolate_numpy, pad, resample_to_spacing
+from bayesreg.images import (
+    Image,
+    check_same_frame,
+    check_same_space,
+    interpolate_numpy,
+    load_nifti,
+    nifti_frame,
+    pad,
+    resample_to_spacing,
+    save_nifti,
+    to_reference_grid,
+)
 from bayesreg.synthetic import interpolation_matrix, locate, warp_image
 from conftest import box_mesh
 
@@ -108,3 +119,139 @@ def test_labels_from_probabilities_recipe():
     assert d[15, 15, 20] == L.CSF  # inside the brain, neither GM nor WM
     assert d[15, 15, 25] == L.BACKGROUND  # within the 4 mm shell
     assert d[0, 0, 0] == L.SKULL
+
+
+# --- users' images on different grids -----------------------------------------------------
+
+
+def _world_points(affine, shape):
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
+    return ijk @ np.asarray(affine)[:3, :3].T + np.asarray(affine)[:3, 3]
+
+
+def _rot(angles):
+    a, b, c = angles
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def test_to_reference_grid_same_grid_is_identity():
+    f = _smooth_image()
+    lab = Image(np.arange(40**3).reshape(40, 40, 40), f.affine + 1e-5)
+    assert to_reference_grid(lab, f, name="labels", reference_name="f", order=0) is lab
+
+
+def test_to_reference_grid_labels_nearest_neighbour():
+    f = _smooth_image(shape=(30, 30, 30), origin=0.0)  # 1 mm voxels, origin 0
+    coarse = np.diag([2.0, 2.0, 2.0, 1.0])
+    coarse[:3, 3] = [0.3, -0.7, 1.1]  # no fine voxel centre lies on a coarse voxel boundary
+    rng = np.random.default_rng(1)
+    data = rng.integers(0, 5, size=(15, 16, 14)).astype(np.int16)
+    out = to_reference_grid(Image(data, coarse), f, name="labels", reference_name="f", order=0)
+    assert out.data.shape == f.data.shape and out.data.dtype == np.int16
+    np.testing.assert_array_equal(out.affine, f.affine)
+    # nearest coarse voxel, by its extent (centre +- 1 mm); 0 outside the coarse grid
+    idx = np.rint((_world_points(f.affine, f.data.shape) - coarse[:3, 3]) / 2.0).astype(int)
+    ok = np.all((idx >= 0) & (idx < np.array(data.shape)), axis=-1)
+    assert 0.5 < ok.mean() < 1.0
+    want = np.zeros(f.data.shape, np.int16)
+    want[ok] = data[tuple(idx[ok].T)]
+    np.testing.assert_array_equal(out.data, want)
+
+
+def test_to_reference_grid_linear_intensity_oblique():
+    f = _smooth_image(shape=(24, 22, 20), origin=0.0)
+    g = np.array([0.3, -1.2, 0.7])
+    aff = np.eye(4)
+    aff[:3, :3] = _rot((0.2, -0.3, 0.5)) @ np.diag([1.7, 0.9, 1.3])
+    aff[:3, 3] = [12.0, -11.4, -21.5]  # f's grid partly outside the source grid
+    src_shape = (36, 40, 32)
+    src = Image(_world_points(aff, src_shape) @ g + 5.0, aff)
+    out = to_reference_grid(src, f, name="m", reference_name="f", order=1)
+    world = _world_points(f.affine, f.data.shape)
+    c = (world - aff[:3, 3]) @ np.linalg.inv(aff[:3, :3]).T
+    inside = np.all((c >= 0) & (c <= np.array(src_shape) - 1), axis=-1)
+    assert 0.5 < inside.mean() < 0.95
+    np.testing.assert_allclose(out.data[inside], world[inside] @ g + 5.0, atol=1e-6)
+    # a vector image: each world component resampled the same way
+    vec = Image(np.stack([src.data, 2 * src.data, -src.data], -1), aff)
+    vout = to_reference_grid(vec, f, name="u", reference_name="f", order=1)
+    assert vout.data.shape == f.data.shape + (3,)
+    np.testing.assert_allclose(vout.data[inside], (world[inside] @ g + 5.0)[:, None] * [1, 2, -1],
+                               atol=1e-6)
+
+
+def test_to_reference_grid_flipped_axis_same_world_content():
+    f = _smooth_image(shape=(20, 18, 16), origin=-3.0)
+    flipped_aff = f.affine.copy()
+    flipped_aff[:3, 1] = -f.affine[:3, 1]  # j runs the other way ...
+    flipped_aff[:3, 3] = f.affine[:3, :3] @ [0, f.data.shape[1] - 1, 0] + f.affine[:3, 3]
+    flipped = Image(f.data[:, ::-1, :].copy(), flipped_aff)  # ... over the same world points
+    out = to_reference_grid(flipped, f, name="m", reference_name="f", order=1)
+    np.testing.assert_allclose(out.data, f.data, atol=1e-10)
+    lab = Image((f.data > 0).astype(np.uint8)[:, ::-1, :].copy(), flipped_aff)
+    np.testing.assert_array_equal(
+        to_reference_grid(lab, f, name="labels", reference_name="f", order=0).data, f.data > 0)
+
+
+def test_to_reference_grid_refuses_disjoint_world_boxes():
+    f = _smooth_image()
+    far = f.affine.copy()
+    far[:3, 3] += [200.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="world frame") as err:
+        to_reference_grid(Image(f.data, far), f, name="data.labels", reference_name="data.fixed",
+                          order=0)
+    assert "data.labels" in str(err.value) and "data.fixed" in str(err.value)
+    # a partial overlap above min_overlap is accepted
+    near = f.affine.copy()
+    near[:3, 3] += [10.0, 0.0, 0.0]
+    to_reference_grid(Image(f.data, near), f, name="m", reference_name="f", order=1)
+
+
+def test_load_nifti_refuses_qform_sform_disagreement(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    data = np.zeros((4, 5, 6), np.float32)
+    aff = np.diag([2.0, 2.0, 2.0, 1.0])
+    shifted = aff.copy()
+    shifted[0, 3] = 5.0
+    bad = nib.Nifti1Image(data, aff)
+    bad.set_qform(shifted, code=1)
+    bad.set_sform(aff, code=1)
+    nib.save(bad, tmp_path / "bad.nii.gz")
+    with pytest.raises(ValueError, match="qform and sform disagree") as err:
+        load_nifti(tmp_path / "bad.nii.gz")
+    assert "bad.nii.gz" in str(err.value)
+    good = nib.Nifti1Image(data, aff)
+    good.set_qform(aff, code=1)
+    good.set_sform(aff, code=1)
+    nib.save(good, tmp_path / "good.nii")
+    np.testing.assert_allclose(load_nifti(tmp_path / "good.nii").affine, aff)
+    # a disagreeing qform with code 0 is ignored (nibabel uses the sform)
+    bad.set_qform(shifted, code=0)
+    nib.save(bad, tmp_path / "q0.nii")
+    np.testing.assert_allclose(load_nifti(tmp_path / "q0.nii").affine, aff)
+
+
+def test_frames_scanner_vs_mni_refused(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    data = np.zeros((4, 5, 6), np.float32)
+    paths = {}
+    for frame in ("scanner", "aligned", "mni", "unknown"):
+        img = nib.Nifti1Image(data, np.eye(4))
+        img.set_qform(np.eye(4), code=0)
+        img.set_sform(np.eye(4), code=frame)
+        paths[frame] = tmp_path / f"{frame}.nii"
+        nib.save(img, paths[frame])
+    assert nifti_frame(paths["mni"]) == "mni"
+    assert nifti_frame(paths["unknown"]) == "unknown"
+    save_nifti(Image(data, np.eye(4)), tmp_path / "ours.nii")
+    assert nifti_frame(tmp_path / "ours.nii") == "aligned"
+    check_same_frame(paths["scanner"], paths["aligned"], paths["unknown"], None,
+                     names=("data.fixed", "data.labels", "x", "data.moving"))
+    with pytest.raises(ValueError, match="different world frames") as err:
+        check_same_frame(paths["scanner"], paths["mni"], names=("data.fixed", "data.labels"))
+    assert "data.fixed: scanner" in str(err.value) and "data.labels: mni" in str(err.value)
+    with pytest.raises(ValueError, match="different world frames"):
+        check_same_frame(paths["scanner"], paths["aligned"], strict=True)

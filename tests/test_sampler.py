@@ -169,3 +169,32 @@ def test_split_rhat_monitor_waits_for_enough_draws():
     assert res.positions.shape[1] >= 4
     assert res.rhat_history[0][1] == np.inf  # 2 draws: no split R-hat yet
     assert np.isfinite(res.rhat_history[-1][1])
+
+
+def test_resume_from_a_checkpoint_equals_an_uninterrupted_run():
+    """Checkpoints after the warm-up and every chunk; continuing from any equals not stopping."""
+    from bayesreg.sampler import SamplerCheckpoint
+
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    d = len(mean)
+    chol = sla.cholesky(cov, lower=True)
+    x0 = mean + 2.0 * np.random.default_rng(3).normal(size=(3, d)) @ chol.T
+    blocks = (np.arange(d // 2), np.arange(d // 2, d))
+    sig = (np.full(d // 2, 0.1), np.full(d - d // 2, 0.1))
+    run = partial(sample, jax.random.key(5), logdensity, x0, jnp.zeros((n_i, 3)), sig,
+                  blocks=blocks, adapt_diagonal=(True, True), thinning=3, warmup_steps=120,
+                  max_draws=60, min_draws=60, chunk_draws=10, progress=False)
+    saved = []
+    full = run(on_chunk=lambda ckpt, out: saved.append((ckpt, out)))
+    assert len(saved) == 1 + 6 and saved[0][1] is None and saved[-1][0].chunks_done == 6
+    for cut in (0, 2, 5):  # killed right after the warm-up, after chunk 2, after chunk 5
+        ckpt = saved[cut][0]
+        assert isinstance(ckpt, SamplerCheckpoint) and ckpt.chunks_done == cut
+        draws = None
+        if cut:
+            draws = tuple(np.concatenate([o[j] for _, o in saved[1:cut + 1]], axis=1) for j in range(6))
+        resumed = run(resume=ckpt, resume_draws=draws)
+        np.testing.assert_array_equal(resumed.positions, full.positions)
+        np.testing.assert_array_equal(resumed.interior, full.interior)
+        np.testing.assert_array_equal(resumed.acceptance, full.acceptance)
+        assert resumed.rhat_history == full.rhat_history

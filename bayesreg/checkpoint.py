@@ -1,0 +1,128 @@
+"""Checkpoints of a run in progress: draws written chunk by chunk, the sampler state after each.
+
+Layout inside the run directory (every file written atomically: a temporary name, then
+``os.replace``)::
+
+    checkpoint/config.json      the resolved config of the run
+    checkpoint/problem.npz      images, mesh and truth (:func:`bayesreg.pipeline.save_problem`)
+    checkpoint/init.npz         chain starts and initial jumping kernels
+    checkpoint/state.npz        :class:`bayesreg.sampler.SamplerCheckpoint` after the last chunk
+    checkpoint/draws/chunk_00000.npz ...  the stored draws of each sampling chunk
+
+A chunk file is written before the state that counts it, so the state never refers to a
+missing chunk; a chunk beyond the state (killed in between) is ignored and rewritten.  When
+the run finishes, the draws and the state are removed (``posterior.nc`` holds the draws);
+the config, problem and starts stay, so a finished run can be rebuilt in a notebook.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from bayesreg.sampler import RWMHState, SamplerCheckpoint
+
+__all__ = ["Checkpoint"]
+
+_OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iterations", "solve_failures")
+
+
+def _savez(path: Path, **arrays):
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+class Checkpoint:
+    """The ``checkpoint/`` folder of a run directory ``run_dir``."""
+
+    def __init__(self, run_dir):
+        self.dir = Path(run_dir) / "checkpoint"
+        self.draws_dir = self.dir / "draws"
+
+    # ---- config, problem, starts ----
+    @property
+    def config_path(self) -> Path:
+        return self.dir / "config.json"
+
+    @property
+    def problem_path(self) -> Path:
+        return self.dir / "problem.npz"
+
+    def save_config(self, cfg) -> None:
+        self.dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.config_path.with_name("config.json.tmp")
+        tmp.write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
+        os.replace(tmp, self.config_path)
+
+    def load_config(self):
+        from bayesreg.config import Config
+
+        if not self.config_path.is_file():
+            raise FileNotFoundError(f"{self.config_path} not found: not a run directory written "
+                                    "with output.checkpoint, or not a run directory at all")
+        return Config.model_validate(json.loads(self.config_path.read_text()))
+
+    def save_init(self, init) -> None:
+        arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}
+        _savez(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
+               info=np.array(json.dumps(init.info, default=float)), **arrays)
+
+    def load_init(self):
+        from bayesreg.pipeline import Initialisation
+
+        path = self.dir / "init.npz"
+        if not path.is_file():
+            return None
+        z = np.load(path)
+        n = sum(1 for k in z.files if k.startswith("sigma_"))
+        return Initialisation(z["x0"], z["center"], tuple(z[f"sigma_{k}"] for k in range(n)),
+                              bool(z["blocked"]), json.loads(str(z["info"])))
+
+    # ---- sampler progress ----
+    def on_chunk(self, ckpt: SamplerCheckpoint, out) -> None:
+        """Callback for :func:`bayesreg.sampler.sample`: write the chunk, then the state."""
+        if out is not None:
+            self.draws_dir.mkdir(parents=True, exist_ok=True)
+            _savez(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
+                   **dict(zip(_OUT_NAMES, out)))
+        sig = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(ckpt.sigma)}
+        st = {f"state_{f}": np.asarray(v) for f, v in zip(RWMHState._fields, ckpt.states)}
+        meta = {"chunks_done": ckpt.chunks_done, "rhat_history": [list(h) for h in ckpt.rhat_history],
+                "timings": ckpt.timings}
+        _savez(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
+               meta=np.array(json.dumps(meta, default=float)), **sig, **st)
+
+    def load_state(self):
+        """``(SamplerCheckpoint, draws or None)``, or ``None`` if the warm-up never finished."""
+        path = self.dir / "state.npz"
+        if not path.is_file():
+            return None
+        z = np.load(path)
+        meta = json.loads(str(z["meta"]))
+        n_sig = sum(1 for k in z.files if k.startswith("sigma_"))
+        states = RWMHState(*(z[f"state_{f}"] for f in RWMHState._fields))
+        k = int(meta["chunks_done"])
+        ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
+                                 z["warmup_acceptance"], k,
+                                 [(int(a), float(b)) for a, b in meta["rhat_history"]], meta["timings"])
+        if k == 0:
+            return ckpt, None
+        chunks = []
+        for j in range(k):
+            p = self.draws_dir / f"chunk_{j:05d}.npz"
+            if not p.is_file():
+                raise FileNotFoundError(f"{p} is missing: the checkpoint is incomplete")
+            c = np.load(p)
+            chunks.append([c[n] for n in _OUT_NAMES])
+        draws = tuple(np.concatenate([c[j] for c in chunks], axis=1) for j in range(len(_OUT_NAMES)))
+        return ckpt, draws
+
+    def clear_progress(self) -> None:
+        """Remove the draws and the sampler state (after the outputs are written)."""
+        shutil.rmtree(self.draws_dir, ignore_errors=True)
+        (self.dir / "state.npz").unlink(missing_ok=True)

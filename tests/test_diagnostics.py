@@ -1,0 +1,84 @@
+"""Credible-interval coverage (bayesreg.diagnostics.coverage)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bayesreg.diagnostics import coverage
+
+LEVELS = (0.5, 0.9, 0.95)
+K, C, D = 2000, 4, 500  # components, chains, draws per chain
+
+
+def _tolerance(level, k=K, s=C * D):
+    """Monte Carlo tolerance on the coverage fraction.
+
+    With truths drawn from the posterior itself, the K indicators "truth k inside its
+    interval" are independent Bernoulli variables whose success probability is
+    ``F_k(q_hi) - F_k(q_lo)`` with ``q`` the empirical quantiles of S draws.  Marginally
+    each is Bernoulli(``level + O(1/S)``) (the CDF of an order statistic has mean
+    ``r / (S + 1)``), so the fraction has sd ``sqrt(l (1 - l) / K)``; 4 sd plus a bias
+    allowance of ``2/S`` fails a correct implementation with probability < 1e-4.
+    """
+    return 4.0 * np.sqrt(level * (1.0 - level) / k) + 2.0 / s
+
+
+def _gaussian(seed, shift_sd=0.0, scale=1.0):
+    rng = np.random.default_rng(seed)
+    mean = rng.normal(0.0, 5.0, K)
+    sd = rng.uniform(0.5, 2.0, K)
+    truth = mean + sd * rng.standard_normal(K)
+    post_mean = mean + shift_sd * sd
+    draws = post_mean + scale * sd * rng.standard_normal((C, D, K))
+    return draws, truth
+
+
+def test_calibrated_gaussian_covers_at_nominal_level():
+    draws, truth = _gaussian(0)
+    cov = coverage(draws, truth, LEVELS)
+    assert set(cov) == set(LEVELS)
+    for lev in LEVELS:
+        assert abs(cov[lev] - lev) < _tolerance(lev), (lev, cov[lev])
+
+
+def test_chain_axes_are_pooled():
+    draws, truth = _gaussian(1)
+    assert coverage(draws, truth) == coverage(draws.reshape(C * D, K), truth)
+
+
+def test_biased_posterior_under_covers():
+    # posterior mean 2 sd off: P(|Z - 2| < z_l) is 0.09, 0.36, 0.48 at 50, 90, 95 %
+    draws, truth = _gaussian(2, shift_sd=2.0)
+    cov = coverage(draws, truth, LEVELS)
+    for lev in LEVELS:
+        assert cov[lev] < lev - _tolerance(lev), (lev, cov[lev])
+
+
+def test_overdispersed_posterior_over_covers():
+    draws, truth = _gaussian(3, scale=3.0)
+    cov = coverage(draws, truth, LEVELS)
+    for lev in LEVELS:
+        assert cov[lev] > lev + _tolerance(lev), (lev, cov[lev])
+
+
+def test_exact_small_case():
+    draws = np.tile(np.arange(101.0)[:, None], (1, 4))  # quantile q of each column = 100 q
+    truth = np.array([50.0, 20.0, 25.0, 97.6])
+    cov = coverage(draws, truth, (0.5, 0.95))
+    assert cov[0.5] == 0.5  # [25, 75] holds 50 and 25
+    assert cov[0.95] == 0.75  # [2.5, 97.5] holds all but 97.6
+
+
+@pytest.mark.parametrize(
+    "draws, truth, levels",
+    [
+        (np.zeros((10, 3)), np.zeros(4), (0.5,)),
+        (np.zeros((1, 3)), np.zeros(3), (0.5,)),
+        (np.zeros((10, 3)), np.zeros(3), (1.0,)),
+        (np.full((10, 3), np.nan), np.zeros(3), (0.5,)),
+    ],
+)
+def test_invalid_input(draws, truth, levels):
+    with pytest.raises(ValueError):
+        coverage(draws, truth, levels)

@@ -1,0 +1,108 @@
+"""Optical-flow start: sign convention, accuracy on a known warp, field interpolation."""
+
+import numpy as np
+import pytest
+
+from bayesreg.images import Image
+from bayesreg.registration import displacement_at, optical_flow_displacement
+
+
+def _blobs(rng, n_blobs, low, high, sigma):
+    """A smooth random texture: sum of Gaussian blobs, a function of (..., 3) points."""
+    centres = rng.uniform(low, high, size=(n_blobs, 3))
+    sig = rng.uniform(*sigma, size=n_blobs)
+    amp = rng.uniform(-1.0, 1.0, size=n_blobs)
+
+    def g(x):
+        d2 = np.sum((x[..., None, :] - centres) ** 2, axis=-1)
+        return np.exp(-d2 / (2 * sig**2)) @ amp
+
+    return g
+
+
+def _world(affine, shape):
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
+    return ijk @ affine[:3, :3].T + affine[:3, 3]
+
+
+def test_sign_convention_translation_with_flipped_permuted_axes():
+    # 2 mm voxels; array axis 0 runs along world y, axis 1 along -x (flipped), axis 2 along z
+    n = 32
+    aff = np.array([[0.0, -2.0, 0.0, 40.0],
+                    [2.0, 0.0, 0.0, -30.0],
+                    [0.0, 0.0, 2.0, -35.0],
+                    [0.0, 0.0, 0.0, 1.0]])
+    x = _world(aff, (n, n, n))
+    lo, hi = x.reshape(-1, 3).min(0), x.reshape(-1, 3).max(0)
+    g = _blobs(np.random.default_rng(2), 200, lo - 6, hi + 6, (4.0, 7.0))
+    t = np.array([2.0, 0.0, 0.0])
+    f = Image(g(x), aff)
+    m = Image(g(x - t), aff)  # the content of f moved by +2 mm along world x: m(x + t) = f(x)
+    u = optical_flow_displacement(f, m)
+    assert u.data.shape == (n, n, n, 3)
+    np.testing.assert_array_equal(u.affine, aff)
+    inner = u.data[5:-5, 5:-5, 5:-5].reshape(-1, 3)
+    np.testing.assert_allclose(np.median(inner, axis=0), t, atol=0.1)
+    assert np.sqrt(np.mean(np.sum((inner - t) ** 2, axis=1))) < 0.4  # mm, a fifth of a voxel
+
+
+def test_recovers_a_smooth_displacement():
+    n = 40
+    aff = np.diag([1.0, 1.0, 1.0, 1.0])
+    aff[:3, 3] = [-20.0, -15.0, -25.0]
+    x = _world(aff, (n, n, n))
+    p = x - aff[:3, 3]  # position inside the box, 0..39 mm
+    u_true = 1.5 * np.stack([np.sin(p[..., 1] / 9.0), 0.8 * np.cos(p[..., 2] / 11.0),
+                             np.sin((p[..., 0] + p[..., 1]) / 13.0)], -1)
+    g = _blobs(np.random.default_rng(0), 250, aff[:3, 3] - 3, aff[:3, 3] + n + 2, (2.0, 3.5))
+    m = Image(g(x), aff)
+    f = Image(g(x + u_true), aff)  # m(x + u(x)) = f(x) exactly
+    sl = (slice(6, -6),) * 3
+    err0 = np.linalg.norm(u_true[sl], axis=-1)
+    for method, rms_tol, max_tol in (("tvl1", 0.3, 0.75), ("ilk", 0.5, 1.5)):
+        u = optical_flow_displacement(f, m, method=method)
+        err = np.linalg.norm(u.data[sl] - u_true[sl], axis=-1)
+        rms = np.sqrt(np.mean(err**2))
+        assert rms < rms_tol and err.max() < max_tol, (method, rms, err.max())
+        assert rms < 0.35 * np.sqrt(np.mean(err0**2))
+
+
+def test_mask_and_errors():
+    n = 20
+    rng = np.random.default_rng(1)
+    g = _blobs(rng, 60, -3, n + 2, (2.0, 3.0))
+    x = _world(np.eye(4), (n, n, n))
+    f = Image(g(x), np.eye(4))
+    m = Image(g(x - [1.0, 0.0, 0.0]), np.eye(4))
+    mask = np.zeros((n, n, n), bool)
+    mask[5:15, 5:15, 5:15] = True
+    u = optical_flow_displacement(f, m, mask=mask, num_warp=2)
+    assert np.all(u.data[~mask] == 0) and np.any(u.data[mask] != 0)
+    with pytest.raises(ValueError, match="affines disagree"):
+        optical_flow_displacement(f, Image(m.data, np.diag([2.0, 1.0, 1.0, 1.0])))
+    with pytest.raises(ValueError, match="different grids"):
+        optical_flow_displacement(f, Image(m.data[:-1], m.affine))
+    with pytest.raises(ValueError, match="unknown optical-flow method"):
+        optical_flow_displacement(f, m, method="demons")
+    with pytest.raises(ValueError, match="mask shape"):
+        optical_flow_displacement(f, m, mask=mask[:-1])
+
+
+def test_displacement_at_is_exact_on_a_linear_field():
+    aff = np.array([[0.0, -1.5, 0.2, 10.0],
+                    [1.2, 0.0, 0.0, -4.0],
+                    [0.0, 0.3, 2.0, 3.0],
+                    [0.0, 0.0, 0.0, 1.0]])
+    shape = (12, 10, 9)
+    a = np.array([[0.1, -0.2, 0.05], [0.0, 0.3, -0.1], [0.2, 0.1, 0.0]])
+    b = np.array([1.0, -2.0, 0.5])
+    field = Image(_world(aff, shape) @ a.T + b, aff)
+    rng = np.random.default_rng(4)
+    ijk = rng.uniform(0, np.array(shape) - 1, size=(200, 3))
+    pts = ijk @ aff[:3, :3].T + aff[:3, 3]
+    got = displacement_at(field, pts)
+    assert got.shape == (200, 3)
+    np.testing.assert_allclose(got, pts @ a.T + b, atol=1e-10)
+    assert displacement_at(field, pts.reshape(20, 10, 3)).shape == (20, 10, 3)
+    with pytest.raises(ValueError, match=r"\(I, J, K, 3\)"):
+        displacement_at(Image(field.data[..., 0], aff), pts)
