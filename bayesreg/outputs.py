@@ -4,21 +4,35 @@ Files of one run (all written atomically; an existing non-empty run directory is
 replaced unless ``overwrite`` is set; a run in progress keeps its draws in ``checkpoint/``,
 see :mod:`bayesreg.checkpoint`):
 
-==========================  ==========================================================
-``posterior.nc``            ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis) mm,
-                            ``lam``, ``mu``, ``ratio = lam/mu`` (chain, draw, group);
-                            sample stats ``acceptance_rate``, ``lp``, ``cg_iterations``,
-                            ``solve_failures``
-``summary.csv``             mean, sd, HDI, ESS, rank R-hat (ArviZ) and classic R-hat
-``displacement_mean.nii.gz``  posterior mean of ``u`` on the image grid, (I, J, K, 3) mm
-``displacement_sd.nii.gz``  posterior sd of ``u`` on the image grid, (I, J, K, 3) mm
-``mesh.vtu``                mesh with ``u_mean``, ``u_sd``, ``u_norm_sd``, ``u_norm_iqr``, ``u_true``, ``u_error``;
-                            cell data ``tissue``
+==============================  ======================================================
+``posterior.nc``                ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis)
+                                mm, ``lam``, ``mu``, ``ratio = lam/mu`` (chain, draw,
+                                group); sample stats ``acceptance_rate``, ``lp``,
+                                ``cg_iterations``, ``solve_failures``
+``summary.csv``                 mean, sd, 90% central credible interval (``eti90_lb``,
+                                ``eti90_ub``), ESS, rank R-hat (ArviZ), classic R-hat
+``displacement_mean.nii.gz``    posterior mean of ``u`` on the image grid, (I, J, K, 3) mm
+``displacement_sd.nii.gz``      posterior sd of each component of ``u``, (I, J, K, 3) mm
+``displacement_norm_sd.nii.gz``   posterior sd of ``|u|``, (I, J, K) mm
+``displacement_norm_iqr.nii.gz``  posterior inter-quartile range of ``|u|``, (I, J, K) mm
+``displacement_init.nii.gz``    the chains' central start, (I, J, K, 3) mm
+``displacement_true.nii.gz``    the synthetic truth (synthetic runs), (I, J, K, 3) mm
+``mesh_mask.nii.gz``            voxels inside the undeformed mesh (where the maps are defined)
+``mesh.vtu``                    mesh with point data ``u_mean``, ``u_sd``, ``u_norm_sd``,
+                                ``u_norm_iqr``, ``u_init``, ``u_true``, ``u_error``; cell
+                                data ``tissue``
 ``f.nii.gz``, ``m.nii.gz``, ``labels.nii.gz``  the (scaled) images and label map used
 ``trace.png``, ``marginals.png``  trace and marginal plots of the elastic parameters
-``errors.json``             error of the posterior mean against the truth (synthetic)
-``run.json``                resolved config, seed, versions, timings, acceptance, CG, R-hat
-==========================  ==========================================================
+``uncertainty.png``             IQR of ``|u|`` over ``f`` on three orthogonal slices
+``errors.json``                 error of the posterior mean and of the start against the
+                                truth, coverage of the credible intervals (synthetic)
+``run.json``                    resolved config, seed, versions, timings, acceptance, CG,
+                                R-hat, how the truth and the starts were made
+``checkpoint/``                 config, problem (images, mesh, truth), starts; while the
+                                run goes also the draws so far and the sampler state
+==============================  ======================================================
+
+Maps on the image grid are the FE interpolation of the nodal values (zero outside the mesh).
 """
 
 from __future__ import annotations
@@ -414,7 +428,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
                     cell_data={"tissue": [mesh.tissue.astype(np.int32)]}),
     )
     located = locate_grid(mesh, problem.f)
-    w, _ = interpolation_matrix(mesh, problem.f, located=located)
+    w, in_mesh = interpolation_matrix(mesh, problem.f, located=located)
     grid = problem.f.data.shape[:3]
     mean_img, sd_img = grid_moments(mesh, problem.f, draws, located=located)
     norm_sd, norm_iqr = _voxel_norm_spread(w, draws)
@@ -426,6 +440,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
         vol["displacement_true"] = (w @ problem.truth.u).reshape(*grid, 3)
     for name, arr in vol.items():
         save_nifti(Image(arr.astype(np.float32), aff), run_dir.file(f"{name}.nii.gz"))
+    save_nifti(Image(in_mesh.astype(np.uint8), aff), run_dir.file("mesh_mask.nii.gz"))
     _overlay(run_dir, problem.f, norm_iqr.reshape(grid), problem.labels)
     save_nifti(Image(problem.f.data.astype(np.float32), aff), run_dir.file("f.nii.gz"))
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))

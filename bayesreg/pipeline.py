@@ -365,7 +365,10 @@ def start_center(problem: Problem, cfg: Config) -> tuple[np.ndarray, dict]:
 
         t = time.perf_counter()
         brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
-        flow = optical_flow_displacement(problem.f, problem.m, method=cfg.init.registration,
+        f_reg = problem.f
+        if problem.truth is not None:  # a synthetic m holds the brain only: so must f
+            f_reg = Image(np.where(brain, problem.f.data, 0.0), problem.f.affine)
+        flow = optical_flow_displacement(f_reg, problem.m, method=cfg.init.registration,
                                          mask=ndi.binary_dilation(brain, iterations=3))
         base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
         info["registration_s"] = time.perf_counter() - t

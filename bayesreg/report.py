@@ -131,6 +131,8 @@ class RunData(NamedTuple):
     disp_mean, disp_true : (I, J, K, 3) ndarray  posterior mean and true field, mm
     disp_init, disp_sd : (I, J, K, 3) ndarray or None  initial field, posterior sd, mm
     disp_norm_iqr : (I, J, K) ndarray or None  posterior IQR of ``|u|``, mm
+    in_mesh : (I, J, K) bool ndarray or None  voxels inside the undeformed mesh
+        (``mesh_mask.nii.gz``), where the FE field is defined
     """
 
     path: Path
@@ -155,6 +157,7 @@ class RunData(NamedTuple):
     disp_init: np.ndarray | None
     disp_sd: np.ndarray | None
     disp_norm_iqr: np.ndarray | None
+    in_mesh: np.ndarray | None = None
 
     @property
     def elastic(self) -> str:
@@ -259,6 +262,7 @@ def load_run(path) -> RunData:
     disp_init, _ = _nifti(path / "displacement_init.nii.gz", required=False)
     disp_sd, _ = _nifti(path / "displacement_sd.nii.gz", required=False)
     iqr, _ = _nifti(path / "displacement_norm_iqr.nii.gz", required=False)
+    in_mesh, _ = _nifti(path / "mesh_mask.nii.gz", required=False)
 
     def flt(a):
         return None if a is None else np.asarray(a, np.float64)
@@ -270,7 +274,7 @@ def load_run(path) -> RunData:
         u_init=flt(u_init), affine=affine, f=flt(f), m=flt(m),
         labels=np.rint(np.asarray(labels)).astype(int), disp_mean=flt(disp_mean),
         disp_true=flt(disp_true), disp_init=flt(disp_init), disp_sd=flt(disp_sd),
-        disp_norm_iqr=flt(iqr),
+        disp_norm_iqr=flt(iqr), in_mesh=None if in_mesh is None else np.asarray(in_mesh) > 0,
     )
 
 
@@ -333,12 +337,13 @@ def table1(runs) -> pd.DataFrame:
     return pd.DataFrame.from_dict(rows, orient="index", columns=["median", "q95", "max"])
 
 
-def _mse(disp, truth, labels) -> dict:
+def _mse(disp, truth, labels, in_mesh=None) -> dict:
     sq = np.sum((disp - truth) ** 2, axis=-1)
-    brain = np.isin(labels, list(TISSUE_LABELS.values()))
+    where = np.ones(labels.shape, bool) if in_mesh is None else in_mesh
+    brain = np.isin(labels, list(TISSUE_LABELS.values())) & where
     out = {"brain": float(sq[brain].mean()) if brain.any() else math.nan}
     for t, lab in TISSUE_LABELS.items():
-        sel = labels == lab
+        sel = (labels == lab) & where
         out[t] = float(sq[sel].mean()) if sel.any() else math.nan
     return out
 
@@ -349,7 +354,8 @@ def table2(runs) -> pd.DataFrame:
     Mean over voxels of ``|u - u_true|^2`` with ``u`` the posterior mean
     (``displacement_mean.nii.gz``; ``displacement_init.nii.gz`` for the row ``initial``)
     and ``u_true`` from ``displacement_true.nii.gz``, over the brain (labels 1-3) and per
-    tissue (label 1 CSF, 2 GM, 3 WM).
+    tissue (label 1 CSF, 2 GM, 3 WM), restricted to the voxels inside the undeformed mesh
+    (``mesh_mask.nii.gz``, where the FE field is defined) when the run has that file.
 
     Parameters
     ----------
@@ -365,9 +371,9 @@ def table2(runs) -> pd.DataFrame:
     runs = _as_runs(runs)
     rows = {}
     for row, (r, d0) in _initial_rows(runs, lambda r: r.disp_init).items():
-        rows[row] = _mse(d0, r.disp_true, r.labels)
+        rows[row] = _mse(d0, r.disp_true, r.labels, r.in_mesh)
     for k, r in runs.items():
-        rows[k] = _mse(r.disp_mean, r.disp_true, r.labels)
+        rows[k] = _mse(r.disp_mean, r.disp_true, r.labels, r.in_mesh)
     return pd.DataFrame.from_dict(rows, orient="index", columns=["brain", *TISSUE_NAMES])
 
 
