@@ -140,6 +140,13 @@ class SamplerConfig(_Strict):
     blocked: bool = Field(
         True, description="update u_b and the elastic parameters in turn (Metropolis-within-"
         "Gibbs, each block with its own tuned scale); false: the paper's joint proposal")
+    condensed: bool = Field(
+        False, description="blocked only: moves of u_b take the interior from a cached dense "
+        "condensation u_i = H(lam, mu) u_b (one mat-vec instead of a CG solve), rebuilt after "
+        "each accepted elastic move; memory 72 n_i n_b bytes per chain (paper size ~12 MB)")
+    u_moves: int = Field(
+        1, ge=1, description="condensed only: updates of u_b per step (the cheap moves that "
+        "amortise one rebuild of the condensation)")
     proposal: Literal["laplace", "isotropic"] = "laplace"
     sigma_u: float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
     sigma_lam: float = Field(0.5, gt=0)
@@ -205,6 +212,11 @@ class Config(_Strict):
                 f"model.fixed.group '{self.model.fixed.group}' is not a group of elastic "
                 f"'{self.model.elastic}' (groups: {groups})"
             )
+        if self.sampler.condensed and not self.sampler.blocked:
+            raise ValueError("sampler.condensed needs sampler.blocked: true (the joint proposal "
+                             "changes lam, mu at every step)")
+        if self.sampler.u_moves > 1 and not self.sampler.condensed:
+            raise ValueError("sampler.u_moves > 1 needs sampler.condensed: true")
         for key in ("prior_lam", "prior_mu"):
             if isinstance(getattr(self.model, key), TissuePriors) and self.model.elastic != "tissue":
                 raise ValueError(f"model.{key}: per-tissue priors need elastic: tissue")

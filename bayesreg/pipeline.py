@@ -36,9 +36,10 @@ from bayesreg.images import (  # noqa: E402
 )
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
-    ParamLayout, Posterior, build_posterior, elastic_groups, log_density,
+    ParamLayout, Posterior, build_posterior, elastic_groups, log_density, log_density_condensed,
 )
-from bayesreg.sampler import SamplerResult, sample  # noqa: E402
+from bayesreg.posterior import condensation as condensation_map  # noqa: E402
+from bayesreg.sampler import Condensation, SamplerResult, sample  # noqa: E402
 from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
 from bayesreg.synthetic import Truth, brain_shift, constrained_shift, warp_image  # noqa: E402
 
@@ -627,6 +628,10 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
         return np.concatenate([draws, lam_g / mu_g], axis=-1)
 
     s = cfg.sampler
+    condensation = None
+    if init.blocked and s.condensed:
+        condensation = Condensation(partial(log_density_condensed, post),
+                                    partial(condensation_map, post), 0, s.u_moves)
     result = sample(
         jax.random.key(cfg.seed),
         make_logdensity(problem, cfg),
@@ -648,6 +653,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
         on_chunk=on_chunk,
         resume=resume,
         resume_draws=resume_draws,
+        condensation=condensation,
     )
     return result, init
 

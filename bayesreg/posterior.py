@@ -34,7 +34,7 @@ import numpyro.distributions as dist  # noqa: E402
 from bayesreg.fem import ElasticOperator, build_operator, element_strain_energy, shape_gradients  # noqa: E402
 from bayesreg.mesh import Mesh  # noqa: E402
 from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
-from bayesreg.solver import SolveInfo, solve_interior  # noqa: E402
+from bayesreg.solver import SolveInfo, interior_map, solve_interior  # noqa: E402
 
 __all__ = [
     "Posterior",
@@ -42,6 +42,8 @@ __all__ = [
     "ParamLayout",
     "build_posterior",
     "log_density",
+    "log_density_condensed",
+    "condensation",
     "split_position",
     "elastic_groups",
     "full_displacement",
@@ -320,6 +322,11 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
     u_i, info = solve_interior(
         post.op, lam_g[post.group], mu_g[post.group], u_b, u_i0, rtol=rtol, maxiter=maxiter
     )
+    return _finish(post, u_b, u_i, info, phi_solve, in_support, log_prior)
+
+
+def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
+    """Energies, hard constraints and ``log p`` from the boundary and interior displacements."""
     u = full_displacement(post, u_b, u_i)
     e_s, e_r = energies(post, u, phi_solve)
     x = (post.nodes + u)[post.tets]
@@ -336,6 +343,42 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
     )
     logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
+
+
+def condensation(post: Posterior, theta):
+    """Dense interior map ``H(phi)`` ``(3 n_i, 3 n_b)`` at the parameters of ``theta``
+    (:func:`bayesreg.solver.interior_map`); the cache of :func:`log_density_condensed`."""
+    _, phi = split_position(post, theta)
+    _, in_support = _log_prior(post, phi)
+    lam_g, mu_g = elastic_groups(post, jnp.where(in_support, phi, post.phi_ref))
+    return interior_map(post.op, lam_g[post.group], mu_g[post.group], post.n_boundary)
+
+
+def log_density_condensed(post: Posterior, theta, h):
+    """:func:`log_density` with the interior from a cached condensation ``u_i = H u_b``.
+
+    Exact (to the round-off of the Cholesky factorisation, far below the CG tolerance of
+    :func:`log_density`) as long as ``h = condensation(post, theta')`` with ``theta'`` at
+    the same elastic parameters as ``theta``: use it for moves of ``u_b`` alone.  A NaN map
+    (factorisation failed) gives ``-inf``.
+
+    Parameters
+    ----------
+    post : Posterior
+    theta : (dim,) array  ``[u_b.ravel() (mm), phi]``
+    h : (3 n_i, 3 n_b) array  interior map at ``theta``'s ``phi``
+
+    Returns
+    -------
+    logp, aux : as :func:`log_density` (``aux.solve`` reports 0 iterations)
+    """
+    u_b, phi = split_position(post, theta)
+    log_prior, in_support = _log_prior(post, phi)
+    phi_solve = jnp.where(in_support, phi, post.phi_ref)
+    u_i = (h @ u_b.reshape(-1)).reshape(-1, 3)
+    finite = jnp.all(jnp.isfinite(u_i))
+    info = SolveInfo(jnp.asarray(0), jnp.where(finite, 0.0, jnp.inf), finite)
+    return _finish(post, u_b, u_i, info, phi_solve, in_support, log_prior)
 
 
 def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000):

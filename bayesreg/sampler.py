@@ -32,7 +32,7 @@ from blackjax.mcmc.random_walk import normal as normal_jumping_kernel  # noqa: E
 from bayesreg.diagnostics import gelman_rubin  # noqa: E402
 
 __all__ = [
-    "RWMHState", "RWMHInfo", "init", "build_kernel", "SamplerResult", "SamplerCheckpoint", "sample",
+    "RWMHState", "RWMHInfo", "Condensation", "init", "build_kernel", "SamplerResult", "SamplerCheckpoint", "sample",
 ]
 
 
@@ -75,7 +75,30 @@ def init(position, logdensity_fn: Callable, interior0) -> RWMHState:
     return RWMHState(position, logp, aux.interior)
 
 
-def build_kernel(logdensity_fn: Callable, blocks=None) -> Callable:
+class Condensation(NamedTuple):
+    """A cache that makes moves of one coordinate block cheap (see :func:`build_kernel`).
+
+    Attributes
+    ----------
+    logdensity_fn : callable
+        ``(position, cache) -> (logp, aux)``, equal to the full log-density as long as the
+        cache was built at a position that differs from ``position`` only inside ``block``.
+    build : callable
+        ``position -> cache``.
+    block : int
+        Index of the block whose moves use the cache; a move of any other block that is
+        accepted rebuilds it.
+    moves : int
+        Updates of ``block`` per step (each a full Metropolis update).
+    """
+
+    logdensity_fn: Callable
+    build: Callable
+    block: int
+    moves: int = 1
+
+
+def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensation | None = None) -> Callable:
     """RW-MH kernel ``(rng_key, state, sigmas) -> (state, info)`` for a fixed log-density.
 
     Parameters
@@ -87,6 +110,13 @@ def build_kernel(logdensity_fn: Callable, blocks=None) -> Callable:
         jumping kernel (systematic-scan Metropolis-within-Gibbs; each update leaves the
         posterior invariant, so their composition does).  ``None``: one block with every
         coordinate, the paper's joint proposal (Eq. 14).
+    condensation : Condensation, optional
+        Moves of ``condensation.block`` evaluate ``condensation.logdensity_fn`` with the
+        cache instead of ``logdensity_fn`` (for the boundary block: the interior from a
+        cached ``u_i = H u_b``, no CG solve), ``condensation.moves`` times per step; after an
+        accepted move of another block the cache is rebuilt (``lax.cond``).  The kernel is
+        then ``(rng_key, state, sigmas, cache) -> (state, info, cache)``.  Both
+        log-densities are the same function of the position, so the target is unchanged.
 
     Notes
     -----
@@ -95,32 +125,51 @@ def build_kernel(logdensity_fn: Callable, blocks=None) -> Callable:
     :func:`blackjax.mcmc.random_walk.normal`.
     """
 
-    def update(rng_key, state: RWMHState, idx, sigma):
+    def update(rng_key, state: RWMHState, idx, sigma, density):
         key_prop, key_acc = jax.random.split(rng_key)
         sub = state.position[idx]
         move = normal_jumping_kernel(sigma)(key_prop, sub)
         proposal = state.position.at[idx].set(sub + move)
-        logp, aux = logdensity_fn(proposal, state.interior)
+        logp, aux = density(proposal, state)
         log_ratio = logp - state.logdensity
         log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
         new = RWMHState(proposal, logp, aux.interior)
         state, (accepted, p_accept, _) = static_binomial_sampling(key_acc, log_ratio, state, new)
         return state, (p_accept, accepted, aux.solve.iterations, ~aux.solve.converged)
 
-    def kernel(rng_key, state: RWMHState, sigmas):
+    def full(proposal, state):
+        return logdensity_fn(proposal, state.interior)
+
+    def kernel(rng_key, state: RWMHState, sigmas, cache=None):
         idxs = blocks if blocks is not None else [jnp.arange(state.position.shape[0])]
         keys = jax.random.split(rng_key, len(idxs))
         out = []
         for b, idx in enumerate(idxs):
-            state, o = update(keys[b], state, jnp.asarray(idx), sigmas[b])
-            out.append(o)
-        return state, RWMHInfo(
+            idx = jnp.asarray(idx)
+            if condensation is not None and b == condensation.block:
+                def cached(proposal, _state, cache=cache):
+                    return condensation.logdensity_fn(proposal, cache)
+
+                def one(st, key, idx=idx, b=b, cached=cached):
+                    st, o = update(key, st, idx, sigmas[b], cached)
+                    return st, o
+
+                state, os_ = jax.lax.scan(one, state, jax.random.split(keys[b], condensation.moves))
+                out.append((jnp.mean(os_[0]), jnp.any(os_[1]), jnp.sum(os_[2]), jnp.any(os_[3])))
+            else:
+                state, o = update(keys[b], state, idx, sigmas[b], full)
+                if condensation is not None:
+                    cache = jax.lax.cond(o[1], lambda: condensation.build(state.position), lambda: cache)
+                out.append(o)
+        info = RWMHInfo(
             jnp.stack([o[0] for o in out]),
             jnp.stack([o[1] for o in out]),
             sum(o[2] for o in out),
             sum(o[3].astype(jnp.int32) for o in out),
         )
+        return (state, info) if condensation is None else (state, info, cache)
 
+    kernel.condensation = condensation
     return kernel
 
 
@@ -181,14 +230,35 @@ class SamplerCheckpoint(NamedTuple):
     timings: dict
 
 
-def _build_chunk(kernel, n_draws: int, thin: int):
-    def one_chain(key, state, sigma):
-        def draw(state, key):
-            def step(state, key):
-                return kernel(key, state, sigma)
+def _chain_layout(n_chains: int, n_devices: int) -> tuple[int, int]:
+    """``(devices used, chains per device)``: fewest chains per device, then least padding."""
+    best = min(range(1, min(n_chains, n_devices) + 1),
+               key=lambda d: (-(-n_chains // d), d * -(-n_chains // d) - n_chains))
+    return best, -(-n_chains // best)
 
-            state, info = jax.lax.scan(step, state, jax.random.split(key, thin))
-            return state, (
+
+def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int):
+    """Jitted ``(keys (C,), states, sigmas) -> (states, out)`` running ``n_draws`` thinned draws.
+
+    Chains are sharded over the available devices (``jax.shard_map``; on CPU these are the
+    host devices of :mod:`bayesreg._xla`) and vmapped within a device; with ``C`` not a
+    multiple of the devices used, copies of chain 0 pad the batch and are dropped.  Each
+    chain's arithmetic does not depend on the others.
+    """
+
+    cond = getattr(kernel, "condensation", None)
+
+    def one_chain(key, state, sigma):
+        def draw(carry, key):
+            def step(carry, key):
+                if cond is None:
+                    return kernel(key, carry, sigma)
+                st, info, cache = kernel(key, carry[0], sigma, carry[1])
+                return (st, cache), info
+
+            carry, info = jax.lax.scan(step, carry, jax.random.split(key, thin))
+            state = carry if cond is None else carry[0]
+            return carry, (
                 state.position,
                 state.interior,
                 state.logdensity,
@@ -197,9 +267,39 @@ def _build_chunk(kernel, n_draws: int, thin: int):
                 jnp.sum(info.solve_failed),
             )
 
-        return jax.lax.scan(draw, state, jax.random.split(key, n_draws))
+        # the cache is rebuilt at every chunk start, so a resumed run repeats the same arithmetic
+        carry = state if cond is None else (state, cond.build(state.position))
+        carry, out = jax.lax.scan(draw, carry, jax.random.split(key, n_draws))
+        return (carry if cond is None else carry[0]), out
 
-    return jax.jit(jax.vmap(one_chain, in_axes=(0, 0, None)))
+    n_dev, per_dev = _chain_layout(n_chains, len(jax.devices()))
+    if per_dev == 1:  # no vmap: a lax.cond stays a branch (vmapped, both sides would run)
+        def batched(keys, states, sigma):
+            squeeze = jax.tree.map(lambda a: a[0], states)
+            return jax.tree.map(lambda a: a[None], one_chain(keys[0], squeeze, sigma))
+    else:
+        batched = jax.vmap(one_chain, in_axes=(0, 0, None))
+    if n_dev == 1:
+        return jax.jit(batched)
+    from jax.sharding import Mesh, PartitionSpec
+
+    mesh = Mesh(np.array(jax.devices()[:n_dev]), ("chain",))
+    sharded = jax.jit(jax.shard_map(
+        batched, mesh=mesh, in_specs=(PartitionSpec("chain"), PartitionSpec("chain"), PartitionSpec()),
+        out_specs=PartitionSpec("chain"), check_vma=False,  # custom_linear_solve lacks vma rules
+    ))
+    pad = n_dev * per_dev - n_chains
+
+    def padded(x):
+        return jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]) if pad else x
+
+    def chunk(keys, states, sigma):
+        states, out = sharded(padded(keys), jax.tree.map(padded, states), sigma)
+        if pad:
+            states, out = jax.tree.map(lambda a: a[:n_chains], (states, out))
+        return states, out
+
+    return chunk
 
 
 def _scaled(sigmas, log_scales):
@@ -280,6 +380,7 @@ def sample(
     on_chunk: Callable | None = None,
     resume: SamplerCheckpoint | None = None,
     resume_draws: tuple | None = None,
+    condensation: Condensation | None = None,
 ) -> SamplerResult:
     """Run parallel RW-MH chains with warm-up, thinning and R-hat stopping.
 
@@ -336,6 +437,8 @@ def sample(
     resume_draws : tuple of 6 arrays, optional
         The draws of the finished chunks (as ``out``, concatenated along axis 1); required
         with ``resume``.
+    condensation : Condensation, optional
+        Cached moves of one block (see :func:`build_kernel`); needs ``blocks``.
 
     Returns
     -------
@@ -366,8 +469,10 @@ def sample(
     adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * len(idxs)
     estimands = estimands or (lambda d: d)
 
-    kernel = build_kernel(logdensity_fn, None if blocks is None else idxs)
-    chunk = _build_chunk(kernel, chunk_draws, thinning)
+    if condensation is not None and blocks is None:
+        raise ValueError("condensation needs coordinate blocks")
+    kernel = build_kernel(logdensity_fn, None if blocks is None else idxs, condensation)
+    chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)
     n_samp = int(np.ceil(max_draws / chunk_draws))
     t0 = time.perf_counter()

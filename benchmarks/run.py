@@ -1,0 +1,866 @@
+"""Speed benchmark of bayesreg's posterior and Metropolis-Hastings sampler.
+
+Run from the repository root (not part of the test suite)::
+
+    python benchmarks/run.py                         # meshes 16, 10, 7 mm; 1, 3, 16, 64 chains
+    python benchmarks/run.py --quick --chains 1,3    # smoke test: one coarse mesh, short timings
+    python benchmarks/run.py --chains 64,256,1024    # on a GPU (JAX picks the device)
+    python benchmarks/run.py --quickstart            # also time the quickstart job to R-hat
+
+Problems are the paper's three-compartment configuration (``configs/paper_three_compartment.yaml``)
+with the mesh edge length of ``--meshes`` (``EDGE`` or ``EDGE@RESOLUTION``, mm); they are
+built once and cached in ``benchmarks/.cache/`` (meshing is not bit-reproducible: the cached
+mesh is the one measured, its node count is reported).
+
+Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
+
+1. **Log-density evaluations per second** of ``jit(vmap(logdensity))`` over ``C`` positions
+   (the chains' starts), *cold* (interior CG solve started from zeros) and *warm* (started
+   from the interior solution of a position one paper-kernel proposal away); with the CG
+   iterations per solve (mean and max over the ``C`` positions).  Under ``vmap`` a
+   ``while_loop`` runs until its slowest member has converged.
+2. **Time split** of one step, each piece jitted alone and timed after warm-up calls with
+   ``block_until_ready``: the interior solve (:func:`bayesreg.solver.solve_interior`, cold and
+   warm, including the assembly of ``K``'s blocks), the similarity
+   (:func:`bayesreg.similarity.ssd` of a full displacement), the whole log-density (warm), and
+   the proposal (a Normal draw times the jumping-kernel scale: the paper's vector ``sigma``,
+   the blocked kernel's dense Laplace factor), the latter averaged over 100 draws inside one
+   ``lax.scan`` so that dispatch overhead does not count.
+3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
+   ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
+   proposal=isotropic``) and ``blocked-laplace`` (the quickstart's kernel: ``u_b`` with the
+   Gauss-Newton Laplace factor, then the elastic parameters, two log-densities per step).
+   :func:`bayesreg.sampler.sample` runs with no warm-up, a fixed number of draws (``min_draws
+   = max_draws``), thinning 10, and ``chunk_draws`` sized from figure 1 so that a chunk lasts
+   about ``--chunk-seconds``; the first chunk (which compiles) is excluded by timing the
+   chunks after it (``on_chunk`` time stamps).  A step is one transition of every block.
+   ``sample`` needs two chains or more (R-hat): one chain runs the same kernel
+   (:func:`bayesreg.sampler.build_kernel`) in the same ``jit(vmap(scan))`` form here.
+   Also reported: acceptance and CG iterations per solve over the timed chunks, and the
+   ratio to the paper's 5 steps/s per chain.
+4. **NumPy/SciPy reference** (``benchmarks/reference.py``): the same log posterior with a
+   sparse direct solve (SuperLU, refactored whenever lam/mu change) and NumPy quadrature; its
+   log-density is compared with JAX's at a few positions (maximum relative difference at the
+   config's CG tolerance and at 1e-13), then a single chain runs the paper's joint kernel for
+   ``--reference-seconds``: steps/s and JAX (1 chain, same kernel) / reference.
+5. **Peak memory**: the process's maximum resident set size after each phase, and the device's
+   peak bytes in use where JAX reports it (GPU).
+
+``--quickstart`` runs ``configs/quickstart.yaml`` end to end and reports its wall time, draws,
+whether it converged, the bulk ESS of the slowest estimand per sampling second and when the
+classic R-hat of every estimand first fell below 1.2.
+
+Outputs: ``<out>/<UTC time>-<backend>-<host>.json`` and ``.md`` (also printed), with the
+machine described (CPU model, cores, memory, JAX backend, version and devices, XLA_FLAGS,
+git commit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import hashlib
+import json
+import math
+import os
+import platform
+import resource
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+from bayesreg import _xla
+
+_xla.configure()  # XLA flags must be set before JAX starts
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bayesreg import pipeline  # noqa: E402
+from bayesreg.config import load_config  # noqa: E402
+from bayesreg.posterior import elastic_groups, full_displacement, log_density, split_position  # noqa: E402
+from bayesreg.sampler import sample  # noqa: E402
+from bayesreg.similarity import ssd  # noqa: E402
+from bayesreg.solver import solve_interior  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from reference import ReferencePosterior, reference_mh  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+PAPER_CONFIG = REPO / "configs" / "paper_three_compartment.yaml"
+QUICKSTART_CONFIG = REPO / "configs" / "quickstart.yaml"
+PAPER_STEPS_PER_S = 5.0  # per chain (paper Sec. 4)
+THINNING = 10
+
+KERNELS = {
+    "paper-joint": ["sampler.blocked=false", "sampler.proposal=isotropic"],
+    "blocked-laplace": ["sampler.blocked=true", "sampler.proposal=laplace"],
+}
+
+#: settings of a full run and of ``--quick``
+PROFILES = {
+    "full": {"meshes": "16,10,7", "chunk_seconds": 2.0, "timed_chunks": 3, "time_target_s": 2.0,
+             "reference_seconds": 10.0},
+    "quick": {"meshes": "26@3", "chunk_seconds": 0.5, "timed_chunks": 2, "time_target_s": 0.5,
+              "reference_seconds": 3.0},
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def peak_rss_mib() -> float:
+    """Maximum resident set size of this process so far (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def device_memory() -> dict | None:
+    """Peak/in-use bytes of the first JAX device where it reports them (GPU), else None."""
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # noqa: BLE001 - backends without memory stats
+        return None
+    if not stats:
+        return None
+    keys = ("peak_bytes_in_use", "bytes_in_use", "bytes_limit")
+    return {k: int(stats[k]) for k in keys if k in stats}
+
+
+def memory_snapshot(phase: str) -> dict:
+    return {"phase": phase, "peak_rss_mib": round(peak_rss_mib(), 1), "device": device_memory()}
+
+
+def block(x):
+    return jax.block_until_ready(x)
+
+
+def time_call(fn, *args, target_s: float, min_reps: int = 3, warmup: int = 2) -> dict:
+    """Seconds per call of a jitted ``fn`` after ``warmup`` calls (the first compiles).
+
+    Calls are repeated until ``target_s`` has passed and at least ``min_reps`` were made;
+    returns the mean and the fastest call.
+    """
+    t = time.perf_counter()
+    for _ in range(warmup):
+        block(fn(*args))
+    first = time.perf_counter() - t
+    times = []
+    t_start = time.perf_counter()
+    while len(times) < min_reps or time.perf_counter() - t_start < target_s:
+        t = time.perf_counter()
+        block(fn(*args))
+        times.append(time.perf_counter() - t)
+    return {"mean_s": float(np.mean(times)), "min_s": float(np.min(times)), "reps": len(times),
+            "warmup_incl_compile_s": first}
+
+
+def machine_info() -> dict:
+    """CPU, cores, memory, JAX backend/devices, XLA flags, git commit."""
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem_gib = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem_gib = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+
+    def git(*a):
+        try:
+            return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True,
+                                  timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return None
+
+    import jaxlib
+
+    devices = jax.devices()
+    return {
+        "host": socket.gethostname(),
+        "cpu_model": cpu,
+        "cores_available": len(os.sched_getaffinity(0)),
+        "cores_total": os.cpu_count(),
+        "memory_gib": mem_gib,
+        "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "backend": jax.default_backend(),
+        "devices": [f"{d.platform}:{d.device_kind}" for d in devices],
+        "device_count": len(devices),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "x64": bool(jax.config.read("jax_enable_x64")),
+        "git_commit": git("rev-parse", "HEAD"),
+        "git_dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+    }
+
+
+def atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return None if not math.isfinite(float(x)) else float(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    return x
+
+
+# ---------------------------------------------------------------------------------------------
+# problems
+# ---------------------------------------------------------------------------------------------
+
+def parse_mesh(spec: str) -> tuple[float, float]:
+    """``"EDGE"`` or ``"EDGE@RESOLUTION"`` (mm) -> ``(edge, resolution)``; resolution 2 mm by default."""
+    edge, _, res = spec.partition("@")
+    return float(edge), float(res) if res else 2.0
+
+
+def mesh_overrides(edge: float, res: float, truth: str) -> list[str]:
+    return [f"mesh.edge_length_mm={edge:g}", f"data.resolution_mm={res:g}", f"synthetic.truth={truth}"]
+
+
+def build_problem(edge: float, res: float, args) -> tuple:
+    """The paper problem with this mesh, from ``benchmarks/.cache/`` or built (and cached).
+
+    Returns ``(problem, cfg, info)``; ``info`` holds the mesh size and how long it took.
+    """
+    overrides = mesh_overrides(edge, res, args.truth)
+    cfg = load_config(PAPER_CONFIG, overrides=overrides)
+    sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
+    tag = hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
+    path = args.cache / f"paper-e{edge:g}-r{res:g}-{args.truth}-{tag}.npz"
+    t = time.perf_counter()
+    cached = path.is_file() and not args.rebuild
+    if cached:
+        problem = pipeline.load_problem(path, cfg)
+    else:
+        log(f"building the problem (edge {edge:g} mm, {res:g} mm images, {args.truth} truth): "
+            "meshing and synthetic truth")
+        problem = pipeline.prepare(cfg)
+        args.cache.mkdir(parents=True, exist_ok=True)
+        pipeline.save_problem(problem, path)
+    mesh, post = problem.mesh, problem.posterior
+    info = {
+        "edge_length_mm": edge, "resolution_mm": res, "truth": args.truth, "cache": str(path.name),
+        "from_cache": cached, "load_or_build_s": time.perf_counter() - t,
+        "build_timings_s": problem.timings,
+        "nodes": len(mesh.nodes), "tets": len(mesh.tets), "boundary_nodes": len(mesh.boundary),
+        "interior_dofs": 3 * post.op.n_interior, "dim": post.dim,
+        "tets_per_tissue": np.bincount(mesh.tissue, minlength=3).tolist(),
+    }
+    return problem, cfg, info
+
+
+def laplace_bytes(problem) -> float:
+    """Rough peak bytes of :func:`bayesreg.pipeline.laplace_precision` (dense Jacobian, map)."""
+    post = problem.posterior
+    nb3, ni3, nq = 3 * post.n_boundary, 3 * post.op.n_interior, 4 * len(problem.mesh.tets)
+    return 8.0 * (3 * nq * nb3 + 2 * ni3 * nb3 + 4 * nb3 * nb3)
+
+
+def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int, args) -> dict:
+    """Config, starts and jumping-kernel scales of one kernel (via :func:`pipeline.initialise`).
+
+    ``blocked-laplace`` needs the dense Gauss-Newton precision; where that would exceed
+    ``--laplace-max-gb`` a *surrogate* dense factor ``diag(sigma_u)`` of the same shape is used
+    (the same arithmetic per step, not the same acceptance) and the result says so.
+    """
+    surrogate = kernel == "blocked-laplace" and laplace_bytes(problem) > args.laplace_max_gb * 2**30
+    kernel_overrides = ["sampler.blocked=true", "sampler.proposal=isotropic"] if surrogate else KERNELS[kernel]
+    cfg = load_config(PAPER_CONFIG, overrides=base_overrides + kernel_overrides
+                      + [f"sampler.chains={max(2, n_chains)}"])
+    t = time.perf_counter()
+    init = pipeline.initialise(problem, cfg)
+    sigma = tuple(np.asarray(s) for s in init.sigma)
+    if surrogate:
+        sigma = (np.diag(sigma[0]), sigma[1])
+    nb3 = 3 * problem.posterior.n_boundary
+    dim = problem.posterior.dim
+    blocks = (np.arange(nb3), np.arange(nb3, dim)) if init.blocked else None
+    return {"cfg": cfg, "x0": np.asarray(init.x0), "sigma": sigma, "blocks": blocks,
+            "n_blocks": 1 if blocks is None else len(blocks), "surrogate_factor": surrogate,
+            "initialise_s": time.perf_counter() - t}
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. log-density evaluations
+# ---------------------------------------------------------------------------------------------
+
+def bench_logdensity(problem, cfg, x0, sigma_joint, chains, args) -> list[dict]:
+    """Evaluations/s of ``jit(vmap(logdensity))`` over ``C`` positions, cold and warm."""
+    logdensity = pipeline.make_logdensity(problem, cfg)
+    n_i = problem.posterior.op.n_interior
+    f = jax.jit(jax.vmap(logdensity))
+    rng = np.random.default_rng(1)
+    rows = []
+    for c in chains:
+        row = {"chains": c}
+        try:
+            x = jnp.asarray(x0[np.arange(c) % len(x0)])
+            cold0 = jnp.zeros((c, n_i, 3))
+            lp, aux = block(f(x, cold0))
+            x2 = x + jnp.asarray(sigma_joint * rng.standard_normal(x.shape))
+            for name, pos, guess in (("cold", x, cold0), ("warm", x2, aux.interior)):
+                t = time_call(f, pos, guess, target_s=args.time_target_s)
+                lp2, aux2 = f(pos, guess)
+                it = np.asarray(aux2.solve.iterations)
+                row[name] = {"evals_per_s": c / t["mean_s"], "ms_per_call": 1e3 * t["mean_s"],
+                             "cg_iterations_mean": float(it.mean()), "cg_iterations_max": int(it.max()),
+                             "finite": int(np.isfinite(np.asarray(lp2)).sum()),
+                             "compile_s": t["warmup_incl_compile_s"]}
+        except Exception as exc:  # noqa: BLE001 - e.g. device memory at large C
+            row["error"] = f"{type(exc).__name__}: {exc}"
+            log(f"  log-density C={c}: {row['error']}")
+        rows.append(row)
+        if "error" not in row:
+            log(f"  log-density C={c}: cold {row['cold']['evals_per_s']:.0f}/s "
+                f"(CG {row['cold']['cg_iterations_mean']:.0f}), warm {row['warm']['evals_per_s']:.0f}/s "
+                f"(CG {row['warm']['cg_iterations_mean']:.0f})")
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. time split
+# ---------------------------------------------------------------------------------------------
+
+def _proposal_draws(sigmas: tuple, dim: int):
+    """Jitted ``keys -> sum of proposals``: one Normal jump per key (every block), in a scan."""
+
+    @jax.jit
+    def draws(keys):
+        def one(acc, key):
+            parts = []
+            for s_, k_ in zip(sigmas, jax.random.split(key, len(sigmas))):
+                z = jax.random.normal(k_, (s_.shape[0],))
+                parts.append(s_ @ z if s_.ndim == 2 else s_ * z)
+            return acc + jnp.concatenate(parts), None
+
+        return jax.lax.scan(one, jnp.zeros(dim), keys)[0]
+
+    return draws
+
+
+def bench_split(problem, cfg, x, setups, args) -> dict:
+    """Solve, similarity, whole log-density and proposal, each jitted and timed alone."""
+    post = problem.posterior
+    rtol, maxiter = cfg.solver.rtol, cfg.solver.maxiter
+    n_i = post.op.n_interior
+    joint_sigma = setups["paper-joint"]["sigma"][0]
+    rng = np.random.default_rng(2)
+    x = jnp.asarray(x)
+    x2 = x + jnp.asarray(joint_sigma * rng.standard_normal(x.shape))
+
+    @jax.jit
+    def solve(post_, theta, guess):
+        u_b, phi = split_position(post_, theta)
+        lam_g, mu_g = elastic_groups(post_, phi)
+        return solve_interior(post_.op, lam_g[post_.group], mu_g[post_.group], u_b, guess,
+                              rtol=rtol, maxiter=maxiter)
+
+    @jax.jit
+    def similarity(post_, u):
+        return ssd(post_.ssd, u[post_.tets])
+
+    @jax.jit
+    def logdensity(post_, theta, guess):
+        return log_density(post_, theta, guess, rtol=rtol, maxiter=maxiter)
+
+    zeros = jnp.zeros((n_i, 3))
+    u_i, _ = block(solve(post, x, zeros))
+    u = full_displacement(post, split_position(post, x)[0], u_i)
+    out = {}
+    for name, theta, guess in (("solve_cold", x, zeros), ("solve_warm", x2, u_i)):
+        t = time_call(solve, post, theta, guess, target_s=args.time_target_s)
+        out[name] = {"ms": 1e3 * t["mean_s"], "cg_iterations": int(solve(post, theta, guess)[1].iterations)}
+    out["similarity"] = {"ms": 1e3 * time_call(similarity, post, u, target_s=args.time_target_s)["mean_s"]}
+    out["logdensity_warm"] = {"ms": 1e3 * time_call(logdensity, post, x2, u_i,
+                                                    target_s=args.time_target_s)["mean_s"]}
+    n_draws = 100
+    keys = jax.random.split(jax.random.key(3), n_draws)
+    for kernel, setup in setups.items():
+        proposals = _proposal_draws(tuple(jnp.asarray(s) for s in setup["sigma"]), post.dim)
+        t = time_call(proposals, keys, target_s=args.time_target_s)
+        out[f"proposal_{kernel}"] = {"ms": 1e3 * t["mean_s"] / n_draws,
+                                     "factor_shape": [list(np.shape(s)) for s in setup["sigma"]]}
+    dispatch = jax.jit(lambda a: a + 1.0)
+    out["dispatch_overhead_ms"] = 1e3 * time_call(dispatch, jnp.zeros(()), target_s=0.1, min_reps=20)["min_s"]
+    log("  split: " + ", ".join(f"{k} {v['ms']:.3g} ms" for k, v in out.items() if isinstance(v, dict)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. MH steps
+# ---------------------------------------------------------------------------------------------
+
+def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key):
+    """The sampler's kernel (:func:`bayesreg.sampler.build_kernel`) in a plain jitted ``scan``.
+
+    Used for one chain (``sample`` needs two or more, for R-hat): the chain is not vmapped,
+    as ``sample`` runs one chain per device.  With ``C > 1`` the chains are vmapped on one
+    device (the layout ``sample`` replaces by sharding).
+    """
+    from bayesreg.sampler import build_kernel, init
+
+    kernel = build_kernel(logdensity, blocks)
+    sig = tuple(jnp.asarray(s) for s in sigma)
+    steps = chunk_draws * THINNING
+
+    def one_chain(key, state):
+        return jax.lax.scan(lambda st, k: kernel(k, st, sig), state, jax.random.split(key, steps))
+
+    n = len(x0)
+    if n == 1:
+        chunk = jax.jit(lambda keys, st: one_chain(keys[0], st))
+        state = jax.jit(lambda x: init(x, logdensity, interior0))(jnp.asarray(x0[0]))
+    else:
+        chunk = jax.jit(jax.vmap(one_chain))
+        state = jax.jit(jax.vmap(lambda x: init(x, logdensity, interior0)))(jnp.asarray(x0))
+    stamps, acc, cg, fail = [], [], [], []
+    for k in range(n_chunks):
+        state, info = chunk(jax.random.split(jax.random.fold_in(key, k), n), state)
+        block(state)
+        stamps.append(time.perf_counter())
+        if k:
+            a = np.asarray(info.acceptance_rate)
+            acc.append(a.reshape(-1, a.shape[-1]).mean(axis=0))
+            cg.append(float(np.asarray(info.cg_iterations).mean()))
+            fail.append(int(np.asarray(info.solve_failed).sum()))
+    how = "build_kernel in a jitted scan" + (" (vmapped chains)" if n > 1 else " (one chain)")
+    return stamps, np.mean(acc, axis=0), float(np.mean(cg)), int(np.sum(fail)), how
+
+
+def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key):
+    """``bayesreg.sampler.sample`` with a fixed number of draws; time stamps per chunk."""
+    stamps: list[float] = []
+
+    def on_chunk(_ckpt, out):
+        if out is not None:
+            stamps.append(time.perf_counter())
+
+    kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=0, max_draws=n_chunks * chunk_draws,
+              min_draws=n_chunks * chunk_draws, chunk_draws=chunk_draws, progress=False,
+              rhat_threshold=1.2)
+    try:
+        res = sample(key, logdensity, x0, interior0, sigma, on_chunk=on_chunk, **kw)
+        how = "sample(), on_chunk time stamps"
+    except TypeError:  # no on_chunk: difference of two runs' sampling_s (1 chunk vs n_chunks)
+        one = sample(key, logdensity, x0, interior0, sigma, **{**kw, "max_draws": chunk_draws,
+                                                                "min_draws": chunk_draws})
+        res = sample(key, logdensity, x0, interior0, sigma, **kw)
+        stamps = [0.0, res.timings["sampling_s"] - one.timings["sampling_s"]]
+        stamps = [stamps[0]] * (n_chunks - 1) + [stamps[1]]
+        how = "sample(), difference of sampling_s of a 1-chunk and an n-chunk run"
+    timed = slice(chunk_draws, None)
+    acc = np.asarray(res.acceptance)[:, timed].reshape(-1, np.shape(res.acceptance)[-1]).mean(axis=0)
+    cg = float(np.asarray(res.cg_iterations)[:, timed].mean())
+    fail = int(np.asarray(res.solve_failures)[:, timed].sum())
+    return stamps, acc, cg, fail, how
+
+
+def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
+    """MH steps/s per chain and in total for each chain count (one kernel)."""
+    logdensity = pipeline.make_logdensity(problem, setup["cfg"])
+    interior0 = jnp.zeros((problem.posterior.op.n_interior, 3))
+    rows = []
+    for c in chains:
+        row = {"kernel": kernel, "chains": c}
+        try:
+            ev = next((e for e in evals if e["chains"] == c and "warm" in e), None)
+            rate = ev["warm"]["evals_per_s"] / c / setup["n_blocks"] if ev else 10.0
+            n_chunks = 1 + args.timed_chunks
+            # sample() keeps every draw's position and interior on the host: at most ~2 GB
+            per_draw = 8 * c * n_chunks * (3 * problem.posterior.op.n_interior + problem.posterior.dim)
+            cap = max(1, int(2 * 2**30 // per_draw))
+            chunk_draws = int(np.clip(round(args.chunk_seconds * rate / THINNING), 1, min(1000, cap)))
+            x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
+            key = jax.random.key(4)
+            runner = _sample_run if c >= 2 else _plain_run
+            t0 = time.perf_counter()
+            stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"],
+                                                setup["blocks"], chunk_draws, n_chunks, key)
+            wall = time.perf_counter() - t0
+            seconds = stamps[-1] - stamps[0]
+            steps = args.timed_chunks * chunk_draws * THINNING
+            per_chain = steps / seconds
+            row.update({
+                "steps_per_s_per_chain": per_chain, "steps_per_s_total": per_chain * c,
+                "vs_paper_5_per_s": per_chain / PAPER_STEPS_PER_S,
+                "timed_seconds": seconds, "timed_steps_per_chain": steps, "chunk_draws": chunk_draws,
+                "first_chunk_incl_compile_s": wall - seconds, "acceptance": acc.tolist(),
+                "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["n_blocks"],
+                "solve_failures": fail, "how": how, "surrogate_factor": setup["surrogate_factor"],
+            })
+            log(f"  {kernel} C={c}: {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
+                f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['n_blocks']:.0f} "
+                f"({seconds:.1f} s timed)")
+        except Exception as exc:  # noqa: BLE001 - keep the other figures
+            row["error"] = f"{type(exc).__name__}: {exc}"
+            log(f"  {kernel} C={c}: {row['error']}")
+            traceback.print_exc()
+        rows.append(row)
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. NumPy/SciPy reference
+# ---------------------------------------------------------------------------------------------
+
+def bench_reference(problem, cfg, setup, args) -> dict:
+    """Log-density agreement with JAX, then the reference's joint-kernel MH steps/s."""
+    t = time.perf_counter()
+    ref = ReferencePosterior(problem, cfg)
+    setup_s = time.perf_counter() - t
+    post = problem.posterior
+    zeros = jnp.zeros((post.op.n_interior, 3))
+    loose = jax.jit(lambda th: log_density(post, th, zeros, rtol=cfg.solver.rtol,
+                                           maxiter=cfg.solver.maxiter)[0])
+    tight = jax.jit(lambda th: log_density(post, th, zeros, rtol=1e-13, maxiter=50 * cfg.solver.maxiter)[0])
+    sigma = setup["sigma"][0]
+    rng = np.random.default_rng(5)
+    checks = []
+    for x in setup["x0"][:3]:
+        for theta in (x, x + sigma * rng.standard_normal(x.shape)):
+            r = ref(theta)
+            a, b = float(loose(jnp.asarray(theta))), float(tight(jnp.asarray(theta)))
+            checks.append({"reference": r, "jax": a, "jax_tight": b,
+                           "rel_diff": abs(a - r) / abs(r) if np.isfinite(r) else None,
+                           "rel_diff_tight": abs(b - r) / abs(r) if np.isfinite(r) else None})
+    finite = [c for c in checks if c["rel_diff"] is not None]
+    out = {
+        "setup_s": setup_s, "positions": len(checks), "finite_positions": len(finite),
+        "max_rel_diff": max((c["rel_diff"] for c in finite), default=None),
+        "max_rel_diff_tight": max((c["rel_diff_tight"] for c in finite), default=None),
+        "both_infinite_agree": all(np.isfinite(c["reference"]) == np.isfinite(c["jax"]) for c in checks),
+        "checks": checks,
+    }
+    out["agrees"] = bool(out["both_infinite_agree"] and out["max_rel_diff_tight"] is not None
+                         and out["max_rel_diff_tight"] < 1e-8)
+    log(f"  reference vs JAX log-density: max rel diff {out['max_rel_diff']:.2e} (CG rtol "
+        f"{cfg.solver.rtol:g}), {out['max_rel_diff_tight']:.2e} (rtol 1e-13)"
+        + ("" if out["agrees"] else "   <-- DISCREPANCY"))
+    out["mh"] = reference_mh(ref, setup["x0"][0], sigma, 10**6, max_seconds=args.reference_seconds)
+    out["mh"]["permc_spec"] = ref.permc_spec
+    log(f"  reference MH (paper-joint, 1 chain): {out['mh']['steps_per_s']:.1f} steps/s "
+        f"(factor {out['mh']['factor_ms_per_step']:.2f} ms, solve {out['mh']['solve_ms_per_step']:.2f} ms, "
+        f"SSD {out['mh']['ssd_ms_per_step']:.2f} ms per step)")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# quickstart
+# ---------------------------------------------------------------------------------------------
+
+def bench_quickstart(overrides: list[str]) -> dict:
+    """Run the quickstart job; wall time, ESS/s of the slowest estimand, time to R-hat < 1.2."""
+    import bayesreg
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        res = bayesreg.run(str(QUICKSTART_CONFIG), out=Path(tmp) / "qs", progress=False,
+                           overrides=overrides or None)
+        wall = time.perf_counter() - t
+        info = res.info
+    s, tm = info["sampler"], info["timings_s"]
+    thr = s["rhat_threshold"]
+    draws = s["draws_per_chain"]
+    first = next((d for d, r in s["rhat_history"] if r < thr), None)
+    sampling = tm.get("sampling_s", float("nan"))
+    before = tm.get("total_before_outputs_s", wall)
+    out = {
+        "overrides": overrides, "wall_s": wall, "timings_s": tm, "chains": s["chains"],
+        "draws_per_chain": draws, "steps_per_chain": s["steps_per_chain"],
+        "steps_per_s_per_chain": s["steps_per_s_per_chain"], "converged": s["converged"],
+        "ess_bulk_min": s["ess_bulk_min"], "ess_bulk_min_per_sampling_s": s["ess_bulk_min"] / sampling,
+        "rhat_classic_max": s["rhat_classic_max"], "rhat_threshold": thr,
+        "rhat_below_threshold_at_draws": first,
+        # sampling runs at a steady rate: interpolate the wall time at that draw
+        "rhat_below_threshold_wall_s": (before - sampling * (1 - first / draws)) if first else None,
+        "acceptance": s["acceptance"], "mesh_nodes": info["mesh"].get("n_nodes"),
+    }
+    log(f"quickstart: {wall:.0f} s wall, {draws} draws x {s['chains']} chains, converged "
+        f"{s['converged']}, min bulk ESS {s['ess_bulk_min']:.1f} ({out['ess_bulk_min_per_sampling_s']:.3f}/s), "
+        f"R-hat < {thr} at draws {first}")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# report
+# ---------------------------------------------------------------------------------------------
+
+def _f(x, fmt="{:.3g}"):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return fmt.format(x)
+
+
+def markdown(res: dict) -> str:
+    m = res["machine"]
+    lines = [f"# bayesreg speed benchmark ({res['profile']})", "",
+             f"{res['started_utc']}, `{' '.join(res['command'])}`, {res['total_s']:.0f} s", "",
+             "| machine | |", "|---|---|"]
+    for k in ("cpu_model", "cores_available", "memory_gib", "load_average_at_start", "backend",
+              "devices", "jax", "jaxlib", "xla_flags", "git_commit", "git_dirty"):
+        lines.append(f"| {k} | {m.get(k)} |")
+    meshes = res["meshes"]
+    lines += ["", "## Meshes", "",
+              "| edge mm | image mm | nodes | tets | boundary nodes | interior DOFs | dim | meshing s | from cache |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for r in meshes:
+        p = r["problem"]
+        lines.append(f"| {p['edge_length_mm']:g} | {p['resolution_mm']:g} | {p['nodes']} | {p['tets']} | "
+                     f"{p['boundary_nodes']} | {p['interior_dofs']} | {p['dim']} | "
+                     f"{_f(p['build_timings_s'].get('mesh_s'), '{:.1f}')} | {p['from_cache']} |")
+
+    lines += ["", "## Log-density evaluations (`jit(vmap(logdensity))` over C positions)", "",
+              "| nodes | C | cold evals/s | warm evals/s | CG cold mean / max | CG warm mean / max |",
+              "|---|---|---|---|---|---|"]
+    for r in meshes:
+        for e in r.get("logdensity", []):
+            if "error" in e:
+                lines.append(f"| {r['problem']['nodes']} | {e['chains']} | {e['error']} | | | |")
+                continue
+            c, w = e["cold"], e["warm"]
+            lines.append(f"| {r['problem']['nodes']} | {e['chains']} | {c['evals_per_s']:.1f} | {w['evals_per_s']:.1f} | "
+                         f"{c['cg_iterations_mean']:.0f} / {c['cg_iterations_max']} | "
+                         f"{w['cg_iterations_mean']:.0f} / {w['cg_iterations_max']} |")
+
+    lines += ["", "## Time split of one step (single position, ms)", "",
+              "| nodes | solve cold (CG it) | solve warm (CG it) | similarity | log-density warm | "
+              "proposal paper-joint | proposal blocked-laplace | paper-joint MH step (1 chain) | "
+              "solve / SSD / proposal / rest of the step |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for r in meshes:
+        s = r.get("split")
+        if not s:
+            continue
+        step = next((x for x in r.get("sampler", []) if x["kernel"] == "paper-joint"
+                     and x["chains"] == 1 and "error" not in x), None)
+        step_ms = 1e3 / step["steps_per_s_per_chain"] if step else None
+        shares = "-"
+        if step_ms:
+            parts = [s["solve_warm"]["ms"], s["similarity"]["ms"], s["proposal_paper-joint"]["ms"]]
+            parts.append(step_ms - sum(parts))
+            shares = " / ".join(f"{100 * p / step_ms:.0f}%" for p in parts)
+        lap = s.get("proposal_blocked-laplace", {}).get("ms")
+        lines.append(f"| {r['problem']['nodes']} | {s['solve_cold']['ms']:.3g} ({s['solve_cold']['cg_iterations']}) | "
+                     f"{s['solve_warm']['ms']:.3g} ({s['solve_warm']['cg_iterations']}) | {s['similarity']['ms']:.3g} | "
+                     f"{s['logdensity_warm']['ms']:.3g} | {s['proposal_paper-joint']['ms']:.3g} | {_f(lap)} | "
+                     f"{_f(step_ms)} | {shares} |")
+
+    lines += ["", "## MH steps per second (`bayesreg.sampler.sample`, thinning 10, compile excluded)", "",
+              "| nodes | kernel | C | steps/s per chain | steps/s total | x paper (5/s per chain) | "
+              "acceptance | CG per solve | timed s |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for r in meshes:
+        for x in r.get("sampler", []):
+            name = x["kernel"] + (" (surrogate factor)" if x.get("surrogate_factor") else "")
+            if "error" in x:
+                lines.append(f"| {r['problem']['nodes']} | {name} | {x['chains']} | {x['error']} | | | | | |")
+                continue
+            lines.append(f"| {r['problem']['nodes']} | {name} | {x['chains']} | {x['steps_per_s_per_chain']:.1f} | "
+                         f"{x['steps_per_s_total']:.1f} | {x['vs_paper_5_per_s']:.1f} | "
+                         f"{' / '.join(f'{a:.2f}' for a in x['acceptance'])} | "
+                         f"{x['cg_iterations_per_solve']:.0f} | {x['timed_seconds']:.1f} |")
+
+    if any(r.get("reference") for r in meshes):
+        lines += ["", "## NumPy/SciPy reference (paper-joint kernel, 1 chain)", "",
+                  "| nodes | max rel. diff of log p (CG rtol cfg / 1e-13) | ref steps/s | ref factor / solve / SSD ms per step | "
+                  "JAX steps/s (1 chain) | JAX / reference |",
+                  "|---|---|---|---|---|---|"]
+        for r in meshes:
+            ref = r.get("reference")
+            if not ref:
+                continue
+            if "error" in ref:
+                lines.append(f"| {r['problem']['nodes']} | {ref['error']} | | | | |")
+                continue
+            mh = ref["mh"]
+            jx = next((x for x in r.get("sampler", []) if x["kernel"] == "paper-joint" and "error" not in x), None)
+            jx_rate = jx["steps_per_s_per_chain"] if jx else None
+            c_note = f" (C={jx['chains']})" if jx and jx["chains"] != 1 else ""
+            lines.append(f"| {r['problem']['nodes']} | {_f(ref['max_rel_diff'], '{:.1e}')} / "
+                         f"{_f(ref['max_rel_diff_tight'], '{:.1e}')}{'' if ref['agrees'] else ' DISCREPANCY'} | "
+                         f"{mh['steps_per_s']:.1f} | {mh['factor_ms_per_step']:.2f} / {mh['solve_ms_per_step']:.2f} / "
+                         f"{mh['ssd_ms_per_step']:.2f} | {_f(jx_rate, '{:.1f}')}{c_note} | "
+                         f"{_f(jx_rate / mh['steps_per_s'] if jx_rate else None, '{:.2f}')} |")
+
+    q = res.get("quickstart")
+    if q:
+        lines += ["", "## Quickstart (`configs/quickstart.yaml`)", "", "| | |", "|---|---|"]
+        if "error" in q:
+            lines.append(f"| error | {q['error']} |")
+        else:
+            rows = [("wall s", f"{q['wall_s']:.0f}"), ("chains x draws (thinning 10)", f"{q['chains']} x {q['draws_per_chain']}"),
+                    ("steps/s per chain", f"{q['steps_per_s_per_chain']:.1f}"),
+                    ("warm-up s / sampling s", f"{_f(q['timings_s'].get('warmup_s'), '{:.0f}')} / "
+                                               f"{_f(q['timings_s'].get('sampling_s'), '{:.0f}')}"),
+                    ("converged (classic R-hat < threshold)", str(q["converged"])),
+                    ("max classic R-hat", f"{q['rhat_classic_max']:.3f}"),
+                    ("min bulk ESS", f"{q['ess_bulk_min']:.1f}"),
+                    ("min bulk ESS per sampling second", f"{q['ess_bulk_min_per_sampling_s']:.4f}"),
+                    ("R-hat < 1.2 first at draws / wall s", f"{_f(q['rhat_below_threshold_at_draws'], '{}')} / "
+                                                            f"{_f(q['rhat_below_threshold_wall_s'], '{:.0f}')}")]
+            if q["overrides"]:
+                rows.insert(0, ("overrides", " ".join(q["overrides"])))
+            lines += [f"| {a} | {b} |" for a, b in rows]
+
+    lines += ["", "## Peak memory", "", "| after | peak RSS MiB | device peak MiB |", "|---|---|---|"]
+    for snap in res["memory"]:
+        dev = snap.get("device") or {}
+        peak = dev.get("peak_bytes_in_use")
+        lines.append(f"| {snap['phase']} | {snap['peak_rss_mib']:.0f} | {_f(peak / 2**20 if peak else None, '{:.0f}')} |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# main
+# ---------------------------------------------------------------------------------------------
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="one coarse mesh (26 mm, 3 mm images), short timings")
+    p.add_argument("--meshes", help="comma-separated EDGE[@RESOLUTION] in mm (default 16,10,7; quick 26@3)")
+    p.add_argument("--chains", default="1,3,16,64", help="comma-separated chain counts (default 1,3,16,64)")
+    p.add_argument("--kernels", default=",".join(KERNELS), help=f"subset of {','.join(KERNELS)}")
+    p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
+    p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache")
+    p.add_argument("--rebuild", action="store_true", help="re-mesh even if a cached problem exists")
+    p.add_argument("--truth", choices=("constrained", "smooth"), default="constrained",
+                   help="synthetic truth of the problems (constrained: the paper's; slow to build "
+                        "for 10k nodes, cached afterwards)")
+    p.add_argument("--no-reference", action="store_true", help="skip the NumPy/SciPy reference")
+    p.add_argument("--reference-max-nodes", type=int, default=10**9,
+                   help="skip the reference on meshes with more nodes")
+    p.add_argument("--laplace-max-gb", type=float, default=6.0,
+                   help="above this estimated host memory for the Laplace precision, blocked-laplace "
+                        "uses a surrogate dense factor of the same shape")
+    p.add_argument("--quickstart", action="store_true", help="also run configs/quickstart.yaml end to end")
+    p.add_argument("--quickstart-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override for the quickstart job (repeatable), e.g. sampler.max_draws=200")
+    for name, help_ in (("chunk-seconds", "target duration of one sampler chunk"),
+                        ("timed-chunks", "chunks timed after the compiling one"),
+                        ("time-target-s", "time spent per timed function in figures 1-2"),
+                        ("reference-seconds", "duration of the reference MH run")):
+        p.add_argument(f"--{name}", type=float if name != "timed-chunks" else int, default=None, help=help_)
+    args = p.parse_args(argv)
+    prof = PROFILES["quick" if args.quick else "full"]
+    for k, v in prof.items():
+        if getattr(args, k, None) is None:
+            setattr(args, k, v)
+    args.mesh_specs = [parse_mesh(s) for s in args.meshes.split(",") if s.strip()]
+    args.chain_counts = sorted({int(c) for c in args.chains.split(",") if c.strip()})
+    args.kernel_names = [k for k in args.kernels.split(",") if k]
+    unknown = set(args.kernel_names) - set(KERNELS)
+    if unknown:
+        p.error(f"unknown kernels {sorted(unknown)}; choose from {list(KERNELS)}")
+    if "paper-joint" not in args.kernel_names:
+        args.kernel_names.insert(0, "paper-joint")  # its sigma drives the warm starts and the reference
+    return args
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    t_start = time.perf_counter()
+    started = _dt.datetime.now(_dt.timezone.utc)
+    machine = machine_info()
+    log(f"{machine['cpu_model']}, {machine['cores_available']} cores, JAX {machine['jax']} "
+        f"{machine['backend']} {machine['devices']}")
+    res = {"profile": "quick" if args.quick else "full", "command": [Path(sys.argv[0]).name, *sys.argv[1:]],
+           "started_utc": started.isoformat(timespec="seconds"), "machine": machine,
+           "settings": {k: getattr(args, k) for k in ("chain_counts", "kernel_names", "chunk_seconds",
+                                                        "timed_chunks", "time_target_s", "reference_seconds",
+                                                        "truth", "laplace_max_gb")},
+           "meshes": [], "memory": [memory_snapshot("start")]}
+    # starts from initialise() for at most 16 chains, tiled to larger chain counts (its validity
+    # check vmaps the log-density over every start: 1024 at once would not fit a GPU at 10k nodes)
+    n_setup = max(2, min(max(args.chain_counts), 16))
+    for edge, resolution in args.mesh_specs:
+        log(f"mesh {edge:g} mm on {resolution:g} mm images")
+        entry: dict = {}
+        res["meshes"].append(entry)
+        problem, cfg, entry["problem"] = build_problem(edge, resolution, args)
+        p = entry["problem"]
+        log(f"  {p['nodes']} nodes, {p['tets']} tets, {p['boundary_nodes']} boundary nodes "
+            f"({'cache' if p['from_cache'] else 'built'} in {p['load_or_build_s']:.1f} s)")
+        res["memory"].append(memory_snapshot(f"problem {p['nodes']} nodes"))
+        base = mesh_overrides(edge, resolution, args.truth)
+        setups = {}
+        for k in args.kernel_names:
+            try:
+                setups[k] = kernel_setup(problem, base, k, n_setup, args)
+            except Exception as exc:  # noqa: BLE001
+                entry.setdefault("errors", []).append(f"setup {k}: {type(exc).__name__}: {exc}")
+                log(f"  setup {k}: {exc}")
+        entry["kernels"] = {k: {"initialise_s": s["initialise_s"], "surrogate_factor": s["surrogate_factor"],
+                                "blocks": s["n_blocks"]} for k, s in setups.items()}
+        res["memory"].append(memory_snapshot(f"initialise {p['nodes']} nodes"))
+        joint = setups["paper-joint"]
+        entry["logdensity"] = bench_logdensity(problem, cfg, joint["x0"], joint["sigma"][0],
+                                               args.chain_counts, args)
+        res["memory"].append(memory_snapshot(f"log-density {p['nodes']} nodes"))
+        entry["split"] = bench_split(problem, cfg, joint["x0"][0], setups, args)
+        entry["sampler"] = []
+        for k, s in setups.items():
+            entry["sampler"] += bench_sampler(problem, s, args.chain_counts, entry["logdensity"], args, k)
+            res["memory"].append(memory_snapshot(f"sampler {k} {p['nodes']} nodes"))
+        if not args.no_reference and p["nodes"] <= args.reference_max_nodes:
+            try:
+                entry["reference"] = bench_reference(problem, cfg, joint, args)
+            except Exception as exc:  # noqa: BLE001
+                entry["reference"] = {"error": f"{type(exc).__name__}: {exc}"}
+                traceback.print_exc()
+            res["memory"].append(memory_snapshot(f"reference {p['nodes']} nodes"))
+        del problem, setups
+    if args.quickstart:
+        try:
+            res["quickstart"] = bench_quickstart(args.quickstart_set)
+        except Exception as exc:  # noqa: BLE001
+            res["quickstart"] = {"error": f"{type(exc).__name__}: {exc}"}
+            traceback.print_exc()
+        res["memory"].append(memory_snapshot("quickstart"))
+    res["total_s"] = time.perf_counter() - t_start
+
+    host = "".join(ch for ch in machine["host"].split(".")[0] if ch.isalnum() or ch == "-")[:16] or "host"
+    stem = f"{started.strftime('%Y%m%dT%H%M%SZ')}-{machine['backend']}-{host}" + ("-quick" if args.quick else "")
+    md = markdown(res)
+    atomic_write(args.out / f"{stem}.json", json.dumps(_jsonable(res), indent=1))
+    atomic_write(args.out / f"{stem}.md", md)
+    print()
+    print(md)
+    log(f"wrote {args.out / stem}.json and .md ({res['total_s']:.0f} s)")
+    return res
+
+
+if __name__ == "__main__":
+    main()
