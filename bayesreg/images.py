@@ -455,26 +455,24 @@ def interpolate(volume, inv_affine, points, cval=0.0):
     (...,) array
     """
     c = points @ inv_affine[:3, :3].T + inv_affine[:3, 3]
-    shape = jnp.array(volume.shape)
+    shp = volume.shape
     c0 = jnp.floor(c)
     t = c - c0
     c0 = c0.astype(jnp.int32)
-    out = 0.0
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                idx = c0 + jnp.array([dx, dy, dz], dtype=jnp.int32)
-                inside = jnp.all((idx >= 0) & (idx < shape), axis=-1)
-                idc = jnp.clip(idx, 0, shape - 1)
-                v = volume[idc[..., 0], idc[..., 1], idc[..., 2]]
-                v = jnp.where(inside, v, cval)
-                w = (
-                    (t[..., 0] if dx else 1 - t[..., 0])
-                    * (t[..., 1] if dy else 1 - t[..., 1])
-                    * (t[..., 2] if dz else 1 - t[..., 2])
-                )
-                out = out + w * v
-    return out
+    # the 8 corners gathered at once from the flattened volume: one gather of (..., 8)
+    # instead of eight 3-D advanced-indexing gathers (2x faster on XLA:CPU at paper size)
+    offs = jnp.array(_CORNERS, jnp.int32)  # (8, 3)
+    idx = c0[..., None, :] + offs
+    inside = jnp.all((idx >= 0) & (idx < jnp.array(shp)), axis=-1)
+    idc = jnp.clip(idx, 0, jnp.array(shp) - 1)
+    flat = (idc[..., 0] * shp[1] + idc[..., 1]) * shp[2] + idc[..., 2]
+    v = jnp.where(inside, jnp.take(volume.reshape(-1), flat, mode="clip"), cval)
+    tt = t[..., None, :]
+    w = jnp.prod(jnp.where(offs == 1, tt, 1.0 - tt), axis=-1)
+    return jnp.sum(w * v, axis=-1)
+
+
+_CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
 
 
 def interpolate_numpy(img: Image, points, *, order=1, cval=0.0):
