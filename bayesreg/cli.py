@@ -105,6 +105,7 @@ def main(argv=None) -> int:
             print(f"wall time before outputs {t.get('total_before_outputs_s', float('nan')):.1f} s; "
                   f"outputs in {res.dir}")
         elif args.command == "reproduce":
+            from bayesreg.outputs import format_report
             from bayesreg.report import write_report
 
             cdir = _configs_dir(args.configs)
@@ -113,6 +114,7 @@ def main(argv=None) -> int:
             for label, fname in PAPER_CONFIGS.items():
                 print(f"== {label}: {cdir / fname}")
                 res = _run_or_resume(cdir / fname, out / label, args.set, progress)
+                print(format_report(res.info.get("errors"), res.info))
                 runs[label] = res.dir
             path = write_report(runs, out / "report", overwrite=True)
             print(f"report in {path / 'report.md'}")

@@ -19,13 +19,13 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    from the interior solution of a position one paper-kernel proposal away); with the CG
    iterations per solve (mean and max over the ``C`` positions).  Under ``vmap`` a
    ``while_loop`` runs until its slowest member has converged.
-2. **Time split** of one step, each piece jitted alone and timed after warm-up calls with
-   ``block_until_ready``: the interior solve (:func:`bayesreg.solver.solve_interior`, cold and
-   warm, including the assembly of ``K``'s blocks), the similarity
-   (:func:`bayesreg.similarity.ssd` of a full displacement), the whole log-density (warm), and
-   the proposal (a Normal draw times the jumping-kernel scale: the paper's vector ``sigma``,
-   the blocked kernel's dense Laplace factor), the latter averaged over 100 draws inside one
-   ``lax.scan`` so that dispatch overhead does not count.
+2. **Time split** of one step, each piece jitted alone and run 20 times inside one
+   ``lax.scan`` (as in the sampler: no dispatch per call) on slightly jittered inputs, timed
+   after warm-up calls with ``block_until_ready``: the interior solve
+   (:func:`bayesreg.solver.solve_interior`, cold and warm, including the assembly of ``K``'s
+   blocks), the similarity (:func:`bayesreg.similarity.ssd` of a full displacement), the whole
+   log-density (warm), and the proposal (a Normal draw times the jumping-kernel scale: the
+   paper's vector ``sigma``, the blocked kernel's dense Laplace factor).
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the quickstart's kernel: ``u_b`` with the
@@ -245,16 +245,24 @@ def parse_mesh(spec: str) -> tuple[float, float]:
     return float(edge), float(res) if res else 2.0
 
 
-def mesh_overrides(edge: float, res: float, truth: str) -> list[str]:
-    return [f"mesh.edge_length_mm={edge:g}", f"data.resolution_mm={res:g}", f"synthetic.truth={truth}"]
+def mesh_overrides(edge: float, res: float, args) -> list[str]:
+    """Config overrides of one benchmark problem (mesh, image resolution, synthetic truth)."""
+    out = [f"mesh.edge_length_mm={edge:g}", f"data.resolution_mm={res:g}", f"synthetic.truth={args.truth}"]
+    if args.shift_mm is not None:
+        out.append(f"synthetic.shift_mm={args.shift_mm:g}")
+    return out
 
 
 def build_problem(edge: float, res: float, args) -> tuple:
     """The paper problem with this mesh, from ``benchmarks/.cache/`` or built (and cached).
 
+    A synthetic truth that inverts an element or moves a node into the skull (the smooth
+    truth on fine meshes can) is retried on a new mesh with half the shift, twice at most;
+    the shift used is in ``info["truth_info"]``.  The truth does not change the cost of a step.
+
     Returns ``(problem, cfg, info)``; ``info`` holds the mesh size and how long it took.
     """
-    overrides = mesh_overrides(edge, res, args.truth)
+    overrides = mesh_overrides(edge, res, args)
     cfg = load_config(PAPER_CONFIG, overrides=overrides)
     sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
     tag = hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
@@ -264,15 +272,27 @@ def build_problem(edge: float, res: float, args) -> tuple:
     if cached:
         problem = pipeline.load_problem(path, cfg)
     else:
-        log(f"building the problem (edge {edge:g} mm, {res:g} mm images, {args.truth} truth): "
-            "meshing and synthetic truth")
-        problem = pipeline.prepare(cfg)
+        shift = cfg.synthetic.shift_mm
+        for attempt in range(3):
+            log(f"building the problem (edge {edge:g} mm, {res:g} mm images, {args.truth} truth, "
+                f"shift {shift:g} mm): meshing and synthetic truth")
+            try:
+                trial = load_config(PAPER_CONFIG, overrides=overrides + [f"synthetic.shift_mm={shift:g}"])
+                problem = pipeline.prepare(trial)
+                break
+            except ValueError as exc:
+                if attempt == 2 or not any(w in str(exc) for w in ("inverted", "skull")):
+                    raise
+                log(f"  {exc}: again with half the shift")
+                shift /= 2
         args.cache.mkdir(parents=True, exist_ok=True)
-        pipeline.save_problem(problem, path)
+        pipeline.save_problem(problem, path)  # the posterior does not depend on the shift
     mesh, post = problem.mesh, problem.posterior
+    truth_info = {k: v for k, v in (problem.truth_info or {}).items()
+                  if not isinstance(v, (list, dict))}
     info = {
-        "edge_length_mm": edge, "resolution_mm": res, "truth": args.truth, "cache": str(path.name),
-        "from_cache": cached, "load_or_build_s": time.perf_counter() - t,
+        "edge_length_mm": edge, "resolution_mm": res, "truth": args.truth, "truth_info": truth_info,
+        "cache": str(path.name), "from_cache": cached, "load_or_build_s": time.perf_counter() - t,
         "build_timings_s": problem.timings,
         "nodes": len(mesh.nodes), "tets": len(mesh.tets), "boundary_nodes": len(mesh.boundary),
         "interior_dofs": 3 * post.op.n_interior, "dim": post.dim,
@@ -353,68 +373,70 @@ def bench_logdensity(problem, cfg, x0, sigma_joint, chains, args) -> list[dict]:
 # 2. time split
 # ---------------------------------------------------------------------------------------------
 
-def _proposal_draws(sigmas: tuple, dim: int):
-    """Jitted ``keys -> sum of proposals``: one Normal jump per key (every block), in a scan."""
+def _in_scan(fn):
+    """Jitted ``xs -> sum_k fn(xs[k])`` as one ``lax.scan``: the per-item cost inside a loop,
+    as in the sampler (no dispatch per item; each item's input differs, so nothing is hoisted)."""
 
     @jax.jit
-    def draws(keys):
-        def one(acc, key):
-            parts = []
-            for s_, k_ in zip(sigmas, jax.random.split(key, len(sigmas))):
-                z = jax.random.normal(k_, (s_.shape[0],))
-                parts.append(s_ @ z if s_.ndim == 2 else s_ * z)
-            return acc + jnp.concatenate(parts), None
+    def run(xs):
+        return jax.lax.scan(lambda acc, x: (acc + fn(x), None), jnp.zeros(()), xs)[0]
 
-        return jax.lax.scan(one, jnp.zeros(dim), keys)[0]
-
-    return draws
+    return run
 
 
-def bench_split(problem, cfg, x, setups, args) -> dict:
-    """Solve, similarity, whole log-density and proposal, each jitted and timed alone."""
+def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
+    """Solve, similarity, whole log-density and proposal, each jitted and timed alone.
+
+    Each piece runs ``n_items`` times inside one ``lax.scan`` on inputs that differ by a
+    tiny jitter (``1e-9`` of the kernel's scale), and the time per item is reported.
+    """
     post = problem.posterior
     rtol, maxiter = cfg.solver.rtol, cfg.solver.maxiter
-    n_i = post.op.n_interior
+    zeros = jnp.zeros((post.op.n_interior, 3))
     joint_sigma = setups["paper-joint"]["sigma"][0]
     rng = np.random.default_rng(2)
-    x = jnp.asarray(x)
-    x2 = x + jnp.asarray(joint_sigma * rng.standard_normal(x.shape))
+    x = np.asarray(x)
+    x2 = x + joint_sigma * rng.standard_normal(x.shape)  # one paper-kernel move away
 
-    @jax.jit
-    def solve(post_, theta, guess):
-        u_b, phi = split_position(post_, theta)
-        lam_g, mu_g = elastic_groups(post_, phi)
-        return solve_interior(post_.op, lam_g[post_.group], mu_g[post_.group], u_b, guess,
+    def jitter(a, scale):
+        return jnp.asarray(a[None] + 1e-9 * scale * rng.standard_normal((n_items,) + a.shape))
+
+    def solve(theta, guess):
+        u_b, phi = split_position(post, theta)
+        lam_g, mu_g = elastic_groups(post, phi)
+        return solve_interior(post.op, lam_g[post.group], mu_g[post.group], u_b, guess,
                               rtol=rtol, maxiter=maxiter)
 
-    @jax.jit
-    def similarity(post_, u):
-        return ssd(post_.ssd, u[post_.tets])
-
-    @jax.jit
-    def logdensity(post_, theta, guess):
-        return log_density(post_, theta, guess, rtol=rtol, maxiter=maxiter)
-
-    zeros = jnp.zeros((n_i, 3))
-    u_i, _ = block(solve(post, x, zeros))
-    u = full_displacement(post, split_position(post, x)[0], u_i)
+    u_i, _ = block(jax.jit(solve)(jnp.asarray(x), zeros))
+    u = np.asarray(full_displacement(post, split_position(post, jnp.asarray(x))[0], u_i))
+    pieces = {
+        "solve_cold": (lambda th: jnp.sum(solve(th, zeros)[0]), jitter(x, joint_sigma)),
+        "solve_warm": (lambda th: jnp.sum(solve(th, u_i)[0]), jitter(x2, joint_sigma)),
+        "similarity": (lambda uu: ssd(post.ssd, uu[post.tets]), jitter(u, 1.0)),
+        "logdensity_warm": (lambda th: log_density(post, th, u_i, rtol=rtol, maxiter=maxiter)[0],
+                            jitter(x2, joint_sigma)),
+    }
     out = {}
+    for name, (fn, xs) in pieces.items():
+        t = time_call(_in_scan(fn), xs, target_s=args.time_target_s)
+        out[name] = {"ms": 1e3 * t["mean_s"] / n_items}
     for name, theta, guess in (("solve_cold", x, zeros), ("solve_warm", x2, u_i)):
-        t = time_call(solve, post, theta, guess, target_s=args.time_target_s)
-        out[name] = {"ms": 1e3 * t["mean_s"], "cg_iterations": int(solve(post, theta, guess)[1].iterations)}
-    out["similarity"] = {"ms": 1e3 * time_call(similarity, post, u, target_s=args.time_target_s)["mean_s"]}
-    out["logdensity_warm"] = {"ms": 1e3 * time_call(logdensity, post, x2, u_i,
-                                                    target_s=args.time_target_s)["mean_s"]}
-    n_draws = 100
-    keys = jax.random.split(jax.random.key(3), n_draws)
+        out[name]["cg_iterations"] = int(jax.jit(solve)(jnp.asarray(theta), guess)[1].iterations)
+    keys = jax.random.split(jax.random.key(3), 5 * n_items)
     for kernel, setup in setups.items():
-        proposals = _proposal_draws(tuple(jnp.asarray(s) for s in setup["sigma"]), post.dim)
-        t = time_call(proposals, keys, target_s=args.time_target_s)
-        out[f"proposal_{kernel}"] = {"ms": 1e3 * t["mean_s"] / n_draws,
+        sig = tuple(jnp.asarray(s) for s in setup["sigma"])
+
+        def draw(key, sig=sig):
+            parts = []
+            for s_, k_ in zip(sig, jax.random.split(key, len(sig))):
+                z = jax.random.normal(k_, (s_.shape[0],))
+                parts.append(s_ @ z if s_.ndim == 2 else s_ * z)
+            return jnp.sum(jnp.concatenate(parts))
+
+        t = time_call(_in_scan(draw), keys, target_s=args.time_target_s)
+        out[f"proposal_{kernel}"] = {"ms": 1e3 * t["mean_s"] / len(keys),
                                      "factor_shape": [list(np.shape(s)) for s in setup["sigma"]]}
-    dispatch = jax.jit(lambda a: a + 1.0)
-    out["dispatch_overhead_ms"] = 1e3 * time_call(dispatch, jnp.zeros(()), target_s=0.1, min_reps=20)["min_s"]
-    log("  split: " + ", ".join(f"{k} {v['ms']:.3g} ms" for k, v in out.items() if isinstance(v, dict)))
+    log("  split: " + ", ".join(f"{k} {v['ms']:.3g} ms" for k, v in out.items()))
     return out
 
 
@@ -488,26 +510,32 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
 
 
 def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
-    """MH steps/s per chain and in total for each chain count (one kernel)."""
+    """MH steps/s per chain and in total for each chain count (one kernel).
+
+    ``sample`` for two chains or more, :func:`_plain_run` for one; with ``--compare-vmap`` also
+    :func:`_plain_run` (every chain vmapped on one device) for two or more, as extra rows.
+    """
     logdensity = pipeline.make_logdensity(problem, setup["cfg"])
     interior0 = jnp.zeros((problem.posterior.op.n_interior, 3))
+    post = problem.posterior
     rows = []
-    for c in chains:
-        row = {"kernel": kernel, "chains": c}
+    runs = [(c, _sample_run if c >= 2 else _plain_run) for c in chains]
+    if args.compare_vmap:
+        runs += [(c, _plain_run) for c in chains if c >= 2]
+    for c, runner in runs:
+        row = {"kernel": kernel, "chains": c, "runner": "sample" if runner is _sample_run else "plain"}
         try:
             ev = next((e for e in evals if e["chains"] == c and "warm" in e), None)
             rate = ev["warm"]["evals_per_s"] / c / setup["n_blocks"] if ev else 10.0
             n_chunks = 1 + args.timed_chunks
-            # sample() keeps every draw's position and interior on the host: at most ~2 GB
-            per_draw = 8 * c * n_chunks * (3 * problem.posterior.op.n_interior + problem.posterior.dim)
+            # the draws' positions and interiors are kept on the host: at most ~2 GB of them
+            per_draw = 8 * c * n_chunks * (3 * post.op.n_interior + post.dim)
             cap = max(1, int(2 * 2**30 // per_draw))
             chunk_draws = int(np.clip(round(args.chunk_seconds * rate / THINNING), 1, min(1000, cap)))
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
-            key = jax.random.key(4)
-            runner = _sample_run if c >= 2 else _plain_run
             t0 = time.perf_counter()
-            stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"],
-                                                setup["blocks"], chunk_draws, n_chunks, key)
+            stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
+                                                chunk_draws, n_chunks, jax.random.key(4))
             wall = time.perf_counter() - t0
             seconds = stamps[-1] - stamps[0]
             steps = args.timed_chunks * chunk_draws * THINNING
@@ -520,9 +548,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
                 "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["n_blocks"],
                 "solve_failures": fail, "how": how, "surrogate_factor": setup["surrogate_factor"],
             })
-            log(f"  {kernel} C={c}: {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
-                f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['n_blocks']:.0f} "
-                f"({seconds:.1f} s timed)")
+            log(f"  {kernel} C={c} ({how}): {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
+                f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['n_blocks']:.0f} ({seconds:.1f} s timed)")
         except Exception as exc:  # noqa: BLE001 - keep the other figures
             row["error"] = f"{type(exc).__name__}: {exc}"
             log(f"  {kernel} C={c}: {row['error']}")
@@ -684,6 +711,8 @@ def markdown(res: dict) -> str:
     for r in meshes:
         for x in r.get("sampler", []):
             name = x["kernel"] + (" (surrogate factor)" if x.get("surrogate_factor") else "")
+            if x.get("runner") == "plain" and x["chains"] > 1:
+                name += " (plain vmap, not sample)"
             if "error" in x:
                 lines.append(f"| {r['problem']['nodes']} | {name} | {x['chains']} | {x['error']} | | | | | |")
                 continue
@@ -756,15 +785,21 @@ def parse_args(argv=None):
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache")
     p.add_argument("--rebuild", action="store_true", help="re-mesh even if a cached problem exists")
-    p.add_argument("--truth", choices=("constrained", "smooth"), default="constrained",
-                   help="synthetic truth of the problems (constrained: the paper's; slow to build "
-                        "for 10k nodes, cached afterwards)")
+    p.add_argument("--truth", choices=("constrained", "smooth"), default="smooth",
+                   help="synthetic truth of the problems: smooth (default, seconds to build) or "
+                        "constrained (the paper's Sec. 4.1; dense in the boundary nodes, did not "
+                        "finish in 30 CPU-minutes at 10k nodes)")
+    p.add_argument("--shift-mm", type=float, default=None,
+                   help="synthetic shift (default 7.5 mm with the smooth truth, the config's 15 mm "
+                        "with the constrained one: 15 mm smooth inverts elements of fine meshes)")
     p.add_argument("--no-reference", action="store_true", help="skip the NumPy/SciPy reference")
     p.add_argument("--reference-max-nodes", type=int, default=10**9,
                    help="skip the reference on meshes with more nodes")
     p.add_argument("--laplace-max-gb", type=float, default=6.0,
                    help="above this estimated host memory for the Laplace precision, blocked-laplace "
                         "uses a surrogate dense factor of the same shape")
+    p.add_argument("--compare-vmap", action="store_true",
+                   help="also time every chain count >= 2 vmapped on one device (not through sample)")
     p.add_argument("--quickstart", action="store_true", help="also run configs/quickstart.yaml end to end")
     p.add_argument("--quickstart-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override for the quickstart job (repeatable), e.g. sampler.max_draws=200")
@@ -778,6 +813,8 @@ def parse_args(argv=None):
     for k, v in prof.items():
         if getattr(args, k, None) is None:
             setattr(args, k, v)
+    if args.shift_mm is None and args.truth == "smooth":
+        args.shift_mm = 7.5
     args.mesh_specs = [parse_mesh(s) for s in args.meshes.split(",") if s.strip()]
     args.chain_counts = sorted({int(c) for c in args.chains.split(",") if c.strip()})
     args.kernel_names = [k for k in args.kernels.split(",") if k]
@@ -800,7 +837,7 @@ def main(argv=None) -> dict:
            "started_utc": started.isoformat(timespec="seconds"), "machine": machine,
            "settings": {k: getattr(args, k) for k in ("chain_counts", "kernel_names", "chunk_seconds",
                                                         "timed_chunks", "time_target_s", "reference_seconds",
-                                                        "truth", "laplace_max_gb")},
+                                                        "truth", "shift_mm", "laplace_max_gb")},
            "meshes": [], "memory": [memory_snapshot("start")]}
     # starts from initialise() for at most 16 chains, tiled to larger chain counts (its validity
     # check vmaps the log-density over every start: 1024 at once would not fit a GPU at 10k nodes)
@@ -814,7 +851,7 @@ def main(argv=None) -> dict:
         log(f"  {p['nodes']} nodes, {p['tets']} tets, {p['boundary_nodes']} boundary nodes "
             f"({'cache' if p['from_cache'] else 'built'} in {p['load_or_build_s']:.1f} s)")
         res["memory"].append(memory_snapshot(f"problem {p['nodes']} nodes"))
-        base = mesh_overrides(edge, resolution, args.truth)
+        base = mesh_overrides(edge, resolution, args)
         setups = {}
         for k in args.kernel_names:
             try:
