@@ -354,7 +354,7 @@ def _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps
                         scale=np.array2string(np.exp(log_scales), precision=2))
         bar.update(1)
     bar.close()
-    frozen = tuple(np.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
+    frozen = tuple(np.asarray(s_) for s_ in _scaled(sigmas, log_scales))
     return states, frozen, warm_acc, timings
 
 
