@@ -8,9 +8,11 @@ Run from the repository root (not part of the test suite)::
     python benchmarks/run.py --quickstart            # also time the quickstart job to R-hat
 
 Problems are the paper's three-compartment configuration (``configs/paper_three_compartment.yaml``)
-with the mesh edge length of ``--meshes`` (``EDGE`` or ``EDGE@RESOLUTION``, mm); they are
-built once and cached in ``benchmarks/.cache/`` (meshing is not bit-reproducible: the cached
-mesh is the one measured, its node count is reported).
+with the mesh edge length of ``--meshes`` (``EDGE`` or ``EDGE@RESOLUTION``, mm; 16, 10 and 7 mm
+give about 900, 3300 and 9800 nodes) and, by default, a smooth synthetic truth of 7.5 mm (the
+paper's constrained truth does not scale to 10k nodes; the cost of a step does not depend on
+it); they are built once and cached in ``benchmarks/.cache/`` (meshing is not
+bit-reproducible: the cached mesh is the one measured, its node count is reported).
 
 Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
 
@@ -35,7 +37,8 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    about ``--chunk-seconds``; the first chunk (which compiles) is excluded by timing the
    chunks after it (``on_chunk`` time stamps).  A step is one transition of every block.
    ``sample`` needs two chains or more (R-hat): one chain runs the same kernel
-   (:func:`bayesreg.sampler.build_kernel`) in the same ``jit(vmap(scan))`` form here.
+   (:func:`bayesreg.sampler.build_kernel`) in a jitted ``scan`` here (``--compare-vmap``: the
+   same for every chain count, the chains vmapped on one device).
    Also reported: acceptance and CG iterations per solve over the timed chunks, and the
    ratio to the paper's 5 steps/s per chain.
 4. **NumPy/SciPy reference** (``benchmarks/reference.py``): the same log posterior with a
@@ -99,7 +102,11 @@ THINNING = 10
 KERNELS = {
     "paper-joint": ["sampler.blocked=false", "sampler.proposal=isotropic"],
     "blocked-laplace": ["sampler.blocked=true", "sampler.proposal=laplace"],
+    # opt-in (--kernels): u_b moves from a cached dense condensation u_i = H(lam, mu) u_b
+    "blocked-laplace-condensed": ["sampler.blocked=true", "sampler.proposal=laplace",
+                                  "sampler.condensed=true"],
 }
+DEFAULT_KERNELS = ("paper-joint", "blocked-laplace")
 
 #: settings of a full run and of ``--quick``
 PROFILES = {
@@ -315,8 +322,10 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     ``--laplace-max-gb`` a *surrogate* dense factor ``diag(sigma_u)`` of the same shape is used
     (the same arithmetic per step, not the same acceptance) and the result says so.
     """
-    surrogate = kernel == "blocked-laplace" and laplace_bytes(problem) > args.laplace_max_gb * 2**30
-    kernel_overrides = ["sampler.blocked=true", "sampler.proposal=isotropic"] if surrogate else KERNELS[kernel]
+    surrogate = kernel.startswith("blocked-laplace") and laplace_bytes(problem) > args.laplace_max_gb * 2**30
+    kernel_overrides = KERNELS[kernel]
+    if surrogate:
+        kernel_overrides = [o.replace("proposal=laplace", "proposal=isotropic") for o in kernel_overrides]
     cfg = load_config(PAPER_CONFIG, overrides=base_overrides + kernel_overrides
                       + [f"sampler.chains={max(2, n_chains)}"])
     t = time.perf_counter()
@@ -327,8 +336,22 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     nb3 = 3 * problem.posterior.n_boundary
     dim = problem.posterior.dim
     blocks = (np.arange(nb3), np.arange(nb3, dim)) if init.blocked else None
+    condensation = None
+    if init.blocked and cfg.sampler.condensed:  # as bayesreg.pipeline.sample_problem builds it
+        from functools import partial
+
+        from bayesreg.posterior import condensation as condensation_map
+        from bayesreg.posterior import log_density_condensed
+        from bayesreg.sampler import Condensation
+
+        post = problem.posterior
+        condensation = Condensation(partial(log_density_condensed, post), partial(condensation_map, post),
+                                    0, cfg.sampler.u_moves)
     return {"cfg": cfg, "x0": np.asarray(init.x0), "sigma": sigma, "blocks": blocks,
+            "condensation": condensation,
             "n_blocks": 1 if blocks is None else len(blocks), "surrogate_factor": surrogate,
+            # CG solves per step: one per block, but condensed u_b moves take no CG solve
+            "cg_solves": (1 if blocks is None else len(blocks)) - (condensation is not None),
             "initialise_s": time.perf_counter() - t}
 
 
@@ -444,7 +467,7 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
 # 3. MH steps
 # ---------------------------------------------------------------------------------------------
 
-def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key):
+def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None):
     """The sampler's kernel (:func:`bayesreg.sampler.build_kernel`) in a plain jitted ``scan``.
 
     Used for one chain (``sample`` needs two or more, for R-hat): the chain is not vmapped,
@@ -453,12 +476,24 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
     """
     from bayesreg.sampler import build_kernel, init
 
-    kernel = build_kernel(logdensity, blocks)
     sig = tuple(jnp.asarray(s) for s in sigma)
     steps = chunk_draws * THINNING
+    if condensation is None:
+        kernel = build_kernel(logdensity, blocks)
 
-    def one_chain(key, state):
-        return jax.lax.scan(lambda st, k: kernel(k, st, sig), state, jax.random.split(key, steps))
+        def one_chain(key, state):
+            return jax.lax.scan(lambda st, k: kernel(k, st, sig), state, jax.random.split(key, steps))
+    else:  # the kernel carries the cache: (key, state, sigmas, cache) -> (state, info, cache)
+        kernel = build_kernel(logdensity, blocks, condensation)
+
+        def one_chain(key, state):
+            def step(carry, k):
+                st, info, cache = kernel(k, carry[0], sig, carry[1])
+                return (st, cache), info
+
+            carry, info = jax.lax.scan(step, (state, condensation.build(state.position)),
+                                       jax.random.split(key, steps))
+            return carry[0], info
 
     n = len(x0)
     if n == 1:
@@ -481,7 +516,7 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
     return stamps, np.mean(acc, axis=0), float(np.mean(cg)), int(np.sum(fail)), how
 
 
-def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key):
+def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None):
     """``bayesreg.sampler.sample`` with a fixed number of draws; time stamps per chunk."""
     stamps: list[float] = []
 
@@ -492,6 +527,8 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
     kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=0, max_draws=n_chunks * chunk_draws,
               min_draws=n_chunks * chunk_draws, chunk_draws=chunk_draws, progress=False,
               rhat_threshold=1.2)
+    if condensation is not None:
+        kw["condensation"] = condensation
     try:
         res = sample(key, logdensity, x0, interior0, sigma, on_chunk=on_chunk, **kw)
         how = "sample(), on_chunk time stamps"
@@ -535,7 +572,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
             t0 = time.perf_counter()
             stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
-                                                chunk_draws, n_chunks, jax.random.key(4))
+                                                chunk_draws, n_chunks, jax.random.key(4),
+                                                condensation=setup["condensation"])
             wall = time.perf_counter() - t0
             seconds = stamps[-1] - stamps[0]
             steps = args.timed_chunks * chunk_draws * THINNING
@@ -545,11 +583,11 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
                 "vs_paper_5_per_s": per_chain / PAPER_STEPS_PER_S,
                 "timed_seconds": seconds, "timed_steps_per_chain": steps, "chunk_draws": chunk_draws,
                 "first_chunk_incl_compile_s": wall - seconds, "acceptance": acc.tolist(),
-                "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["n_blocks"],
+                "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["cg_solves"],
                 "solve_failures": fail, "how": how, "surrogate_factor": setup["surrogate_factor"],
             })
             log(f"  {kernel} C={c} ({how}): {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
-                f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['n_blocks']:.0f} ({seconds:.1f} s timed)")
+                f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['cg_solves']:.0f} ({seconds:.1f} s timed)")
         except Exception as exc:  # noqa: BLE001 - keep the other figures
             row["error"] = f"{type(exc).__name__}: {exc}"
             log(f"  {kernel} C={c}: {row['error']}")
@@ -781,7 +819,8 @@ def parse_args(argv=None):
     p.add_argument("--quick", action="store_true", help="one coarse mesh (26 mm, 3 mm images), short timings")
     p.add_argument("--meshes", help="comma-separated EDGE[@RESOLUTION] in mm (default 16,10,7; quick 26@3)")
     p.add_argument("--chains", default="1,3,16,64", help="comma-separated chain counts (default 1,3,16,64)")
-    p.add_argument("--kernels", default=",".join(KERNELS), help=f"subset of {','.join(KERNELS)}")
+    p.add_argument("--kernels", default=",".join(DEFAULT_KERNELS),
+                   help=f"comma-separated, of {', '.join(KERNELS)} (default {','.join(DEFAULT_KERNELS)})")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache")
     p.add_argument("--rebuild", action="store_true", help="re-mesh even if a cached problem exists")
