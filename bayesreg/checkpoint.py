@@ -26,14 +26,15 @@ import numpy as np
 
 from bayesreg.sampler import RWMHState, SamplerCheckpoint
 
-__all__ = ["Checkpoint"]
+__all__ = ["Checkpoint", "savez_atomic"]
 
 _OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iterations", "solve_failures")
 
 
-def _savez(path: Path, **arrays):
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
+def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
+    """``np.savez`` (or ``savez_compressed``) to a temporary name, then ``os.replace``."""
+    tmp = Path(path).with_name(Path(path).name + ".tmp.npz")
+    (np.savez_compressed if compressed else np.savez)(tmp, **arrays)
     os.replace(tmp, path)
 
 
@@ -69,8 +70,8 @@ class Checkpoint:
 
     def save_init(self, init) -> None:
         arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}
-        _savez(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
-               info=np.array(json.dumps(init.info, default=float)), **arrays)
+        savez_atomic(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
+                     info=np.array(json.dumps(init.info, default=float)), **arrays)
 
     def load_init(self):
         from bayesreg.pipeline import Initialisation
@@ -88,14 +89,14 @@ class Checkpoint:
         """Callback for :func:`bayesreg.sampler.sample`: write the chunk, then the state."""
         if out is not None:
             self.draws_dir.mkdir(parents=True, exist_ok=True)
-            _savez(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
-                   **dict(zip(_OUT_NAMES, out)))
+            savez_atomic(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
+                         **dict(zip(_OUT_NAMES, out)))
         sig = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(ckpt.sigma)}
         st = {f"state_{f}": np.asarray(v) for f, v in zip(RWMHState._fields, ckpt.states)}
         meta = {"chunks_done": ckpt.chunks_done, "rhat_history": [list(h) for h in ckpt.rhat_history],
                 "timings": ckpt.timings}
-        _savez(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
-               meta=np.array(json.dumps(meta, default=float)), **sig, **st)
+        savez_atomic(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
+                     meta=np.array(json.dumps(meta, default=float)), **sig, **st)
 
     def load_state(self):
         """``(SamplerCheckpoint, draws or None)``, or ``None`` if the warm-up never finished."""

@@ -178,13 +178,14 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
         truth = brain_shift(mesh, lam_t, mu_t, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
                             falloff_mm=s.falloff_mm)
         info = {"truth": "smooth", "shift_mm": s.shift_mm, "pushed": truth.pushed.tolist()}
-    moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
-    if np.any(moved == L.SKULL):
-        raise ValueError(
-            f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
-            "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
-        )
-    info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
+        # the constrained minimiser checks both itself; the smooth push is not constrained
+        moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
+        if np.any(moved == L.SKULL):
+            raise ValueError(
+                f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
+                "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
+            )
+        info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
     info["lam"] = s.lam.model_dump()
     info["mu"] = s.mu.model_dump()
     return truth, info
@@ -294,8 +295,9 @@ def save_problem(problem: Problem, path) -> None:
     with fTetWild is not bit-reproducible, so a resumed run must reuse the mesh).
     """
     import json
-    import os
     from pathlib import Path
+
+    from bayesreg.checkpoint import savez_atomic
 
     path = Path(path)
     arrays = {
@@ -312,9 +314,7 @@ def save_problem(problem: Problem, path) -> None:
     if problem.truth is not None:
         t = problem.truth
         arrays.update(truth_u=t.u, truth_lam_e=t.lam_e, truth_mu_e=t.mu_e, truth_pushed=t.pushed)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    savez_atomic(path, compressed=True, **arrays)
 
 
 def load_problem(path, cfg: Config) -> Problem:
