@@ -24,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bayesreg.sampler import RWMHState, SamplerCheckpoint
+from bayesreg.sampler import SamplerCheckpoint
 
 __all__ = ["Checkpoint", "savez_atomic"]
 
-_OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iterations", "solve_failures")
+_OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iterations", "solve_failures",
+              "grad_evals", "divergences")
 
 
 def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
@@ -92,7 +93,10 @@ class Checkpoint:
             savez_atomic(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
                          **dict(zip(_OUT_NAMES, out)))
         sig = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(ckpt.sigma)}
-        st = {f"state_{f}": np.asarray(v) for f, v in zip(RWMHState._fields, ckpt.states)}
+        import jax
+
+        leaves = ckpt.states if isinstance(ckpt.states, list) else jax.tree.leaves(ckpt.states)
+        st = {f"state_{j}": np.asarray(v) for j, v in enumerate(leaves)}
         meta = {"chunks_done": ckpt.chunks_done, "rhat_history": [list(h) for h in ckpt.rhat_history],
                 "timings": ckpt.timings}
         savez_atomic(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
@@ -106,7 +110,8 @@ class Checkpoint:
         z = np.load(path)
         meta = json.loads(str(z["meta"]))
         n_sig = sum(1 for k in z.files if k.startswith("sigma_"))
-        states = RWMHState(*(z[f"state_{f}"] for f in RWMHState._fields))
+        n_st = sum(1 for k in z.files if k.startswith("state_"))
+        states = [z[f"state_{j}"] for j in range(n_st)]  # the sampler rebuilds the pytree
         k = int(meta["chunks_done"])
         ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
                                  z["warmup_acceptance"], k,

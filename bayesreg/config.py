@@ -115,6 +115,12 @@ class ModelConfig(_Strict):
     prior_lam: BetaPrior | TissuePriors = BetaPrior(r2=100.0)
     prior_mu: BetaPrior | TissuePriors = BetaPrior(r2=10.0)
     fixed: FixedParam | None = FixedParam()
+    prior_normaliser: Literal["paper", "exact"] = Field(
+        "exact", description="exact: the elastic prior on u_b carries its normaliser "
+        "(1/2) log pdet S(lam, mu) (S the Schur complement on the boundary DOFs; one dense "
+        "Cholesky factorisation per change of lam, mu), which removes the paper's drift of the "
+        "parameters toward zero and lets every parameter be free; paper: Eq. 12 as published, "
+        "without it (then fix one parameter, Sec. 3.3)")
     initial_lam: TissueValues = TissueValues(csf=1.0, gm=5.0, wm=5.0)
     initial_mu: TissueValues = TissueValues(csf=1.0, gm=1.0, wm=1.0)
 
@@ -125,14 +131,19 @@ class SolverConfig(_Strict):
 
 
 class SamplerConfig(_Strict):
-    kind: Literal["rwmh"] = "rwmh"
+    kind: Literal["rwmh", "mala", "hmc", "nuts"] = Field(
+        "rwmh", description="kernel of u_b: rwmh (the paper's random walk; blocked or joint), or a "
+        "gradient kernel in Gibbs with a random walk of the elastic parameters in their "
+        "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up)")
     chains: int = Field(3, ge=2)
     thinning: int = Field(10, ge=1)
     warmup_steps: int = Field(2000, ge=0)
     max_draws: int = Field(2000, ge=1)
     min_draws: int = Field(100, ge=2)
     chunk_draws: int = Field(50, ge=2)
-    target_acceptance: float = Field(0.25, gt=0, lt=1)
+    target_acceptance: float | None = Field(
+        None, gt=0, lt=1, description="warm-up target of the u_b kernel's acceptance; default 0.25 "
+        "(rwmh), 0.57 (mala), 0.8 (hmc, nuts)")
     rhat_threshold: float = Field(1.2, gt=1)
     rhat_split: bool = Field(
         False, description="monitor the split-chain Gelman-Rubin R-hat (catches a common drift) "
@@ -140,10 +151,11 @@ class SamplerConfig(_Strict):
     blocked: bool = Field(
         True, description="update u_b and the elastic parameters in turn (Metropolis-within-"
         "Gibbs, each block with its own tuned scale); false: the paper's joint proposal")
-    condensed: bool = Field(
-        False, description="blocked only: moves of u_b take the interior from a cached dense "
-        "condensation u_i = H(lam, mu) u_b (one mat-vec instead of a CG solve), rebuilt after "
-        "each accepted elastic move; memory 72 n_i n_b bytes per chain (paper size ~12 MB)")
+    condensed: bool | None = Field(
+        None, description="moves of u_b take the interior from a cached dense condensation "
+        "u_i = H(lam, mu) u_b (one mat-vec instead of a CG solve), rebuilt after each accepted "
+        "elastic move; memory 72 n_i n_b bytes per chain (paper size ~12 MB); rwmh: blocked "
+        "only, default false; gradient kernels: default true")
     u_moves: int = Field(
         1, ge=1, description="condensed only: updates of u_b per step (the cheap moves that "
         "amortise one rebuild of the condensation)")
@@ -151,6 +163,22 @@ class SamplerConfig(_Strict):
     sigma_u: float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
     sigma_lam: float = Field(0.5, gt=0)
     sigma_mu: float = Field(0.05, gt=0)
+    step_size: float = Field(0.1, gt=0, description="gradient kernels: initial leapfrog step in the "
+                             "preconditioned coordinates (adapted in the warm-up)")
+    hmc_steps: int = Field(16, ge=1, description="hmc: leapfrog steps per transition")
+    max_tree_depth: int = Field(8, ge=1, le=15, description="nuts: maximum trajectory doublings")
+    dense_mass: bool = Field(False, description="gradient kernels: adapt a dense inverse mass "
+                             "matrix instead of a diagonal one")
+    sigma_eta: float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
+                             "random walk in the unconstrained (logit) space (adapted)")
+
+    @property
+    def gradient(self) -> bool:
+        return self.kind != "rwmh"
+
+    @property
+    def use_condensed(self) -> bool:
+        return self.gradient if self.condensed is None else self.condensed
 
 
 class InitConfig(_Strict):
@@ -212,11 +240,11 @@ class Config(_Strict):
                 f"model.fixed.group '{self.model.fixed.group}' is not a group of elastic "
                 f"'{self.model.elastic}' (groups: {groups})"
             )
-        if self.sampler.condensed and not self.sampler.blocked:
+        if self.sampler.condensed and not self.sampler.blocked and not self.sampler.gradient:
             raise ValueError("sampler.condensed needs sampler.blocked: true (the joint proposal "
                              "changes lam, mu at every step)")
-        if self.sampler.u_moves > 1 and not self.sampler.condensed:
-            raise ValueError("sampler.u_moves > 1 needs sampler.condensed: true")
+        if self.sampler.u_moves > 1 and (not self.sampler.condensed or self.sampler.gradient):
+            raise ValueError("sampler.u_moves > 1 needs sampler.condensed: true and kind: rwmh")
         for key in ("prior_lam", "prior_mu"):
             if isinstance(getattr(self.model, key), TissuePriors) and self.model.elastic != "tissue":
                 raise ValueError(f"model.{key}: per-tissue priors need elastic: tissue")

@@ -233,6 +233,19 @@ def _full_draws(problem, result):
     return full[:, np.asarray(post.perm)]
 
 
+def _adapted(cfg, result) -> dict:
+    """The tuned values frozen after the warm-up (saved with the run)."""
+    if cfg.sampler.gradient:
+        step, inv_mass, eta_scale = (np.asarray(a) for a in result.sigma)
+        return {"step_size_per_chain": step.tolist(),
+                "inverse_mass_diag_quantiles_0_50_100": np.quantile(
+                    inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
+                    [0, 0.5, 1]).tolist(),
+                "elastic_scale_per_chain": eta_scale.tolist()}
+    return {"proposal_scale_rms_per_block": [float(np.sqrt(np.mean(np.asarray(s_) ** 2)))
+                                             for s_ in result.sigma]}
+
+
 def format_report(errors: dict | None, info: dict) -> str:
     """The short table the run prints (error vs truth, ratio posteriors, sampler figures)."""
     lines = []
@@ -249,8 +262,11 @@ def format_report(errors: dict | None, info: dict) -> str:
     )
     lines.append(
         f"CG iterations/solve mean {s['cg_iterations_per_solve_mean']:.1f}  failed solves "
-        f"{s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.0f}"
+        f"{s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.1f}"
     )
+    if s.get("kind", "rwmh") != "rwmh":
+        lines.append(f"{s['kind']}: gradients/step {s['gradient_evaluations_per_step_mean']:.1f}  "
+                     f"divergences {s['divergences']}  prior normaliser {s['prior_normaliser']}")
     if errors and "boundary_posterior_mean_mm" in errors:
         lines.append("error vs truth (mm)           median    95th     max")
         for key, label in (("boundary_initial_mm", "boundary, initial"),
@@ -376,7 +392,10 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, pos[..., 3 * nb:]))
     names = list(layout.group_names)
-    block_names = ["u_b", "elastic"] if result.acceptance.shape[-1] == 2 else ["joint"]
+    if result.acceptance.shape[-1] == 2:
+        block_names = ["u_b", "elastic"]
+    else:
+        block_names = ["u_b"] if cfg.sampler.gradient else ["joint"]
     tree = to_datatree(
         {"u_b": ub, "lam": lam_g, "mu": mu_g, "ratio": lam_g / mu_g},
         sample_stats={
@@ -384,6 +403,8 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
             "lp": result.logdensity,
             "cg_iterations": result.cg_iterations,
             "solve_failures": result.solve_failures,
+            "n_grad": result.grad_evals,
+            "diverging": result.divergences,
         },
         dims={"u_b": ["node", "axis"], "lam": ["group"], "mu": ["group"], "ratio": ["group"],
               "acceptance_rate": ["block"]},
@@ -465,6 +486,11 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
                        "fixed": [f"{p}_{names[g]}={v}" for p, g, v in layout.fixed]},
         "sampler": {
             "kind": cfg.sampler.kind,
+            "prior_normaliser": cfg.model.prior_normaliser,
+            "condensed": cfg.sampler.use_condensed,
+            "gradient_evaluations_per_step_mean": float(result.grad_evals.mean()),
+            "divergences": int(result.divergences.sum()),
+            "adapted": _adapted(cfg, result),
             "proposal": cfg.sampler.proposal,
             "chains": int(c),
             "draws_per_chain": int(d),

@@ -37,9 +37,11 @@ from bayesreg.images import (  # noqa: E402
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
     ParamLayout, Posterior, build_posterior, elastic_groups, log_density, log_density_condensed,
+    log_normaliser, split_position,
 )
 from bayesreg.posterior import condensation as condensation_map  # noqa: E402
-from bayesreg.sampler import Condensation, SamplerResult, sample  # noqa: E402
+from bayesreg.kernels import make_target  # noqa: E402
+from bayesreg.sampler import Condensation, SamplerResult, sample, sample_gradient  # noqa: E402
 from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
 from bayesreg.synthetic import Truth, brain_shift, constrained_shift, warp_image  # noqa: E402
 
@@ -338,8 +340,38 @@ def load_problem(path, cfg: Config) -> Problem:
 
 
 def make_logdensity(problem: Problem, cfg: Config):
-    """``(theta, interior_guess) -> (logp, aux)`` closed over the problem (for the sampler)."""
-    return partial(log_density, problem.posterior, rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
+    """``(theta, interior_guess) -> (logp, aux)`` closed over the problem (for the sampler).
+
+    With ``model.prior_normaliser: exact`` the normaliser ``(1/2) log pdet S(lam, mu)``
+    (:func:`bayesreg.posterior.log_normaliser`, one dense factorisation) is added.
+    """
+    post = problem.posterior
+    base = partial(log_density, post, rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
+    if cfg.model.prior_normaliser == "paper":
+        return base
+
+    def exact(theta, interior):
+        lp, aux = base(theta, interior)
+        ln = log_normaliser(post, split_position(post, theta)[1])
+        return jnp.where(jnp.isfinite(lp) & jnp.isfinite(ln), lp + ln, -jnp.inf), aux
+
+    return exact
+
+
+def _condensed_rw(problem: Problem, cfg: Config):
+    """The random walk's :class:`~bayesreg.sampler.Condensation` (cache ``(H, log_norm)``)."""
+    post = problem.posterior
+    exact = cfg.model.prior_normaliser == "exact"
+
+    def build(theta):
+        ln = log_normaliser(post, split_position(post, theta)[1]) if exact else jnp.zeros(())
+        return condensation_map(post, theta), ln
+
+    def logdensity(theta, cache):
+        lp, aux = log_density_condensed(post, theta, cache[0])
+        return jnp.where(jnp.isfinite(lp) & jnp.isfinite(cache[1]), lp + cache[1], -jnp.inf), aux
+
+    return Condensation(logdensity, build, 0, cfg.sampler.u_moves)
 
 
 def start_center(problem: Problem, cfg: Config) -> tuple[np.ndarray, dict]:
@@ -412,7 +444,11 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     nb3 = 3 * post.n_boundary
     theta0 = np.asarray(theta0, dtype=np.float64)
     zeros = jnp.zeros((post.op.n_interior, 3))
-    logdensity = make_logdensity(problem, cfg)
+    # the exact normaliser depends on lam, mu only: u_b (and the parameters) are first
+    # optimised without it (its gradient costs about eight dense factorisations), then the
+    # parameters alone with it (below)
+    logdensity = make_logdensity(problem, cfg.model_copy(
+        update={"model": cfg.model.model_copy(update={"prior_normaliser": "paper"})}))
     joint = cfg.init.optimize_parameters
     free = slice(0, post.dim if joint else nb3)
     rest = jnp.asarray(theta0[free.stop:])
@@ -442,8 +478,27 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
                    options={"maxiter": cfg.init.optimizer_iterations})
     theta = theta0.copy()
     theta[free] = res.x
-    return theta, {"logp_start": start, "logp_mode": -float(res.fun), "iterations": int(res.nit),
-                   "message": str(res.message), "parameters_optimized": bool(joint)}
+    info = {"logp_start": start, "logp_mode": -float(res.fun), "iterations": int(res.nit),
+            "message": str(res.message), "parameters_optimized": bool(joint)}
+    if joint and cfg.model.prior_normaliser == "exact" and post.n_free:
+        exact = make_logdensity(problem, cfg)
+        u_fixed = jnp.asarray(theta[:nb3])
+
+        @jax.jit
+        def neg_phi(p):
+            return -exact(jnp.concatenate([u_fixed, p]), zeros)[0]
+
+        vg_phi = jax.jit(jax.value_and_grad(neg_phi))
+
+        def fun_phi(p):
+            v, g = vg_phi(jnp.asarray(p))
+            return (float(v), np.asarray(g)) if np.isfinite(float(v)) else (1e300, np.zeros_like(p))
+
+        res_p = minimize(fun_phi, theta[nb3:], jac=True, method="L-BFGS-B", bounds=bounds[nb3:],
+                         options={"maxiter": 100})
+        theta[nb3:] = res_p.x
+        info.update(logp_mode=-float(res_p.fun), parameter_iterations_exact=int(res_p.nit))
+    return theta, info
 
 
 def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None) -> np.ndarray:
@@ -585,10 +640,19 @@ def initialise(problem: Problem, cfg: Config) -> Initialisation:
     if cfg.init.method == "mode" or cfg.sampler.proposal == "laplace":
         prec = laplace_precision(problem, center)
     x0 = initial_positions(problem, cfg, center, rng, prec)
-    sigma_u, sigma_p = proposal_scale(problem, cfg, prec)
-    info["init_s"] = time.perf_counter() - t
     post = problem.posterior
     nb3 = 3 * post.n_boundary
+    if cfg.sampler.gradient:
+        # u_b = c + F w: F = R^-T with prec = R R^T (laplace), or 1 mm (isotropic)
+        if cfg.sampler.proposal == "laplace":
+            chol = sla.cholesky(prec, lower=True)
+            factor = sla.solve_triangular(chol, np.eye(nb3), lower=True, trans="T")
+        else:
+            factor = np.ones(nb3)
+        info["init_s"] = time.perf_counter() - t
+        return Initialisation(x0, center, (factor, np.full(post.n_free, cfg.sampler.sigma_eta)), True, info)
+    sigma_u, sigma_p = proposal_scale(problem, cfg, prec)
+    info["init_s"] = time.perf_counter() - t
     if cfg.sampler.blocked:
         sigma = (sigma_u, sigma_p)
     elif sigma_u.ndim == 1:  # the paper's joint proposal (Eq. 14)
@@ -628,10 +692,21 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
         return np.concatenate([draws, lam_g / mu_g], axis=-1)
 
     s = cfg.sampler
-    condensation = None
-    if init.blocked and s.condensed:
-        condensation = Condensation(partial(log_density_condensed, post),
-                                    partial(condensation_map, post), 0, s.u_moves)
+    if s.gradient:
+        target = make_target(post, center_u=init.center[:nb3], factor=init.sigma[0],
+                             exact=cfg.model.prior_normaliser == "exact", condensed=s.use_condensed,
+                             rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
+        result = sample_gradient(
+            jax.random.key(cfg.seed), target, init.x0, jnp.zeros((post.op.n_interior, 3)),
+            kind=s.kind, step_size=s.step_size, eta_scale=init.sigma[1], dense_mass=s.dense_mass,
+            num_integration_steps=s.hmc_steps, max_tree_depth=s.max_tree_depth,
+            thinning=s.thinning, warmup_steps=s.warmup_steps, max_draws=s.max_draws,
+            min_draws=s.min_draws, chunk_draws=s.chunk_draws, target_acceptance=s.target_acceptance,
+            rhat_threshold=s.rhat_threshold, rhat_split=s.rhat_split, estimands=estimands,
+            progress=cfg.output.progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
+        )
+        return result, init
+    condensation = _condensed_rw(problem, cfg) if init.blocked and s.use_condensed else None
     result = sample(
         jax.random.key(cfg.seed),
         make_logdensity(problem, cfg),
@@ -645,7 +720,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
         max_draws=s.max_draws,
         min_draws=s.min_draws,
         chunk_draws=s.chunk_draws,
-        target_acceptance=s.target_acceptance,
+        target_acceptance=s.target_acceptance or 0.25,
         rhat_threshold=s.rhat_threshold,
         rhat_split=s.rhat_split,
         estimands=estimands,

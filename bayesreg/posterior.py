@@ -15,7 +15,16 @@ inverted element in the deformed mesh.  A CG solve that does not converge also g
 counts and reports it: it is never silently accepted.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
-node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.
+node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.  Gradient kernels
+move ``eta`` instead of ``phi``, the logit of ``phi`` on its prior support ``(r1, r2)``
+(:func:`from_unconstrained`, with the log-Jacobian).
+
+The exact normaliser (``prior_normaliser: exact``, :func:`log_normaliser`): with the interior
+nodes at the FE solution, ``E_r = u_b^T S u_b / 2`` with ``S = K_bb - K_bi K_ii^-1 K_ib`` the
+Schur complement of ``K`` on the boundary DOFs, so the prior ``exp(-E_r / T_r)`` of Eq. 12 is
+a Gaussian on ``u_b`` (on the complement of the six rigid-body modes, the null space of
+``S``) whose normaliser is ``(1/2) log pdet S(lam, mu) + const``.  The paper drops it (its
+Sec. 3.3), which biases the elastic parameters toward zero.
 """
 
 from __future__ import annotations
@@ -48,6 +57,9 @@ __all__ = [
     "elastic_groups",
     "full_displacement",
     "energies",
+    "from_unconstrained",
+    "to_unconstrained",
+    "log_normaliser",
 ]
 
 
@@ -103,6 +115,13 @@ class Posterior(NamedTuple):
     forbidden_inv_affine : (4, 4)
     inv_t_s, inv_t_r : ()
         ``1 / T_s`` and ``1 / T_r``.
+    dense_index : (M * 144,) int
+        Flat position in the dense ``(3N, 3N)`` stiffness, DOFs ordered interior nodes first
+        (in ``op``'s row order) then boundary nodes, of each entry of the element matrices
+        ``op.klam`` / ``op.kmu`` (for :func:`log_normaliser`).
+    rigid_b : (3 n_b, 6)
+        Orthonormal basis of the rigid-body modes restricted to the boundary DOFs (the null
+        space of the Schur complement ``S``).
     """
 
     op: ElasticOperator
@@ -125,6 +144,8 @@ class Posterior(NamedTuple):
     forbidden_inv_affine: jax.Array
     inv_t_s: jax.Array
     inv_t_r: jax.Array
+    dense_index: jax.Array
+    rigid_b: jax.Array
 
     @property
     def n_boundary(self) -> int:
@@ -212,10 +233,23 @@ def build_posterior(
     if np.any(phi_ref <= np.maximum(r1, 0)) or np.any(phi_ref >= r2):
         raise ValueError(f"reference parameters {phi_ref} lie outside the prior support")
     op, interior = build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    n_b, n_i = len(mesh.boundary), len(interior)
     perm = np.empty(len(mesh.nodes), np.int64)
-    perm[mesh.boundary] = np.arange(len(mesh.boundary))
-    perm[interior] = len(mesh.boundary) + np.arange(len(interior))
+    perm[mesh.boundary] = np.arange(n_b)
+    perm[interior] = n_b + np.arange(n_i)
     grads, vol = shape_gradients(mesh.nodes, mesh.tets)
+    # dense layout for the exact normaliser: interior DOFs first, then boundary DOFs
+    dense_pos = np.where(perm >= n_b, perm - n_b, perm + n_i)
+    dof = (3 * dense_pos[np.asarray(mesh.tets)][:, :, None] + np.arange(3)).reshape(-1, 12)
+    n_dof = 3 * len(mesh.nodes)
+    dense_index = (dof[:, :, None] * n_dof + dof[:, None, :]).reshape(-1)
+    xb = np.asarray(mesh.nodes, np.float64)[np.asarray(mesh.boundary)]
+    xb = xb - xb.mean(axis=0)
+    rigid = np.zeros((n_b, 3, 6))
+    for k in range(3):
+        rigid[:, k, k] = 1.0
+        rigid[:, :, 3 + k] = np.cross(np.eye(3)[k], xb)
+    rigid_b = np.linalg.qr(rigid.reshape(-1, 6))[0]
     return Posterior(
         op=op,
         nodes=jnp.asarray(mesh.nodes),
@@ -237,6 +271,8 @@ def build_posterior(
         forbidden_inv_affine=jnp.asarray(np.linalg.inv(forbidden.affine)),
         inv_t_s=jnp.asarray(1.0 / t_s),
         inv_t_r=jnp.asarray(1.0 / t_r),
+        dense_index=jnp.asarray(dense_index, dtype=jnp.int32 if n_dof**2 < 2**31 else jnp.int64),
+        rigid_b=jnp.asarray(rigid_b),
     )
 
 
@@ -391,3 +427,89 @@ def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000
         post.op, lam_g[post.group], mu_g[post.group], u_b, u_i0, rtol=rtol, maxiter=maxiter
     )
     return full_displacement(post, u_b, u_i), info
+
+
+def _support(post: Posterior):
+    lo = jnp.maximum(post.prior_r1, 0.0)
+    return lo, post.prior_r2 - lo
+
+
+def from_unconstrained(post: Posterior, eta):
+    """Free parameters from their unconstrained values, with the log-Jacobian.
+
+    ``phi = r1 + (r2 - r1) sigmoid(eta)`` maps the real line onto the prior support
+    ``(r1, r2)`` of each parameter (``r1 >= 0``), so every ``eta`` is a valid parameter.
+
+    Parameters
+    ----------
+    post : Posterior
+    eta : (..., n_free) array
+
+    Returns
+    -------
+    phi : (..., n_free) array
+    log_jac : (...) array
+        ``sum log |d phi / d eta|``: add it to a density over ``phi`` to get the density
+        over ``eta``.
+    """
+    lo, width = _support(post)
+    phi = lo + width * jax.nn.sigmoid(eta)
+    log_jac = jnp.sum(jnp.log(width) + jax.nn.log_sigmoid(eta) + jax.nn.log_sigmoid(-eta), axis=-1)
+    return phi, log_jac
+
+
+def to_unconstrained(post: Posterior, phi):
+    """Inverse of :func:`from_unconstrained` (``phi`` strictly inside the prior support)."""
+    lo, width = _support(post)
+    x = (jnp.asarray(phi) - lo) / width
+    return jnp.log(x) - jnp.log1p(-x)
+
+
+def dense_stiffness(post: Posterior, phi):
+    """Dense stiffness ``K`` ``(3N, 3N)``, interior DOFs first (see ``Posterior.dense_index``).
+
+    Memory ``72 N^2`` bytes: meant for meshes up to a few thousand nodes.
+    """
+    lam_g, mu_g = elastic_groups(post, phi)
+    lam_e, mu_e = lam_g[post.group], mu_g[post.group]
+    m = lam_e.shape[0]
+    ke = (lam_e[:, None, None, None, None] * post.op.klam + mu_e[:, None, None, None, None] * post.op.kmu)
+    ke = ke.transpose(0, 1, 3, 2, 4).reshape(m, 144)  # (a, i, b, j) -> rows 3a+i, cols 3b+j
+    n_dof = 3 * post.nodes.shape[0]
+    return jax.ops.segment_sum(ke.reshape(-1), post.dense_index, num_segments=n_dof * n_dof).reshape(n_dof, n_dof)
+
+
+def log_normaliser(post: Posterior, phi):
+    """``(1/2) log pdet S(lam, mu)``: the exact normaliser of the elastic prior on ``u_b``.
+
+    With the interior at the FE solution, ``exp(-E_r / T_r)`` (Eq. 12) is a Gaussian on the
+    boundary displacements with precision ``S / T_r`` (``S`` the Schur complement of ``K`` on
+    the boundary DOFs, singular on the six rigid-body modes), whose log-normaliser is
+    ``(1/2) log pdet S - ((3 n_b - 6) / 2) log (2 pi T_r)``; the second term is constant.
+
+    Computed from one dense float64 Cholesky factorisation of the stiffness with the
+    rigid-body modes of the boundary block lifted, interior DOFs first: ``K_aug = K + c P``,
+    ``P = R_b R_b^T`` on the boundary block (``R_b`` orthonormal rigid modes, ``c`` the mean
+    of ``diag K_bb``).  Its trailing block of the factor is the Cholesky factor of the Schur
+    complement ``S + c P``, and ``det(S + c P) = c^6 pdet S`` because ``P`` projects onto the
+    null space of ``S``.  Cost ``(3N)^3 / 3`` flops (about 20 ms at 350 nodes, 0.2-0.3 s at
+    900 on a 2-core CPU), differentiable by JAX (the gradient costs about 8x the value).
+
+    Parameters
+    ----------
+    post : Posterior
+    phi : (n_free,) array  positive free parameters
+
+    Returns
+    -------
+    () array
+        ``NaN`` when the factorisation fails (``K`` not positive definite on the complement
+        of the rigid modes: non-positive parameters).
+    """
+    k = dense_stiffness(post, phi)
+    nb3 = post.rigid_b.shape[0]
+    k_bb = k[-nb3:, -nb3:]
+    c = jax.lax.stop_gradient(jnp.mean(jnp.diag(k_bb)))  # any c > 0: the result does not depend on it
+    k = k.at[-nb3:, -nb3:].add(c * post.rigid_b @ post.rigid_b.T)
+    chol = jnp.linalg.cholesky(0.5 * (k + k.T))
+    return jnp.sum(jnp.log(jnp.diag(chol)[-nb3:])) - 3.0 * jnp.log(c)

@@ -32,7 +32,8 @@ from blackjax.mcmc.random_walk import normal as normal_jumping_kernel  # noqa: E
 from bayesreg.diagnostics import gelman_rubin  # noqa: E402
 
 __all__ = [
-    "RWMHState", "RWMHInfo", "Condensation", "init", "build_kernel", "SamplerResult", "SamplerCheckpoint", "sample",
+    "RWMHState", "RWMHInfo", "Condensation", "init", "build_kernel", "SamplerResult", "SamplerCheckpoint",
+    "sample", "sample_gradient",
 ]
 
 
@@ -184,8 +185,11 @@ class SamplerResult(NamedTuple):
     acceptance : (C, D, B)   mean acceptance probability per block over each thinning interval
     cg_iterations : (C, D)   mean CG iterations per step over each interval
     solve_failures : (C, D)   non-converged (rejected) solves per interval
+    grad_evals : (C, D)   mean gradient evaluations per step over each interval (0: RW-MH)
+    divergences : (C, D)   divergent transitions per interval (gradient kernels)
     rhat_history : list of (draws per chain, max monitored R-hat)
-    sigma : tuple  the frozen proposal scale of each block
+    sigma : tuple  the frozen tuned values: the proposal scale of each block (RW-MH), or
+        ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free))`` (gradient kernels)
     warmup_acceptance : (B,) ndarray  acceptance per block in the last warm-up chunk
     timings : dict  seconds for compile, warm-up, sampling
     converged : bool   max R-hat < threshold at the end
@@ -198,6 +202,8 @@ class SamplerResult(NamedTuple):
     acceptance: np.ndarray
     cg_iterations: np.ndarray
     solve_failures: np.ndarray
+    grad_evals: np.ndarray
+    divergences: np.ndarray
     rhat_history: list
     sigma: tuple
     warmup_acceptance: np.ndarray
@@ -214,8 +220,9 @@ class SamplerCheckpoint(NamedTuple):
 
     Attributes
     ----------
-    states : RWMHState  leaves ``(C, ...)``: the chains after the last finished chunk
-    sigma : tuple  the frozen proposal scale of each block (after warm-up)
+    states : state pytree (leaves ``(C, ...)``), or the list of its leaves (from a file)
+        the chains after the last finished chunk
+    sigma : tuple of arrays  the frozen tuned values (see ``SamplerResult.sigma``)
     warmup_acceptance : (B,) ndarray
     chunks_done : int  sampling chunks finished (0 right after the warm-up)
     rhat_history : list of (draws per chain, max monitored R-hat)
@@ -230,34 +237,65 @@ class SamplerCheckpoint(NamedTuple):
     timings: dict
 
 
-def _chain_layout(n_chains: int, n_devices: int) -> tuple[int, int]:
-    """``(devices used, chains per device)``: fewest chains per device, then least padding."""
-    best = min(range(1, min(n_chains, n_devices) + 1),
-               key=lambda d: (-(-n_chains // d), d * -(-n_chains // d) - n_chains))
-    return best, -(-n_chains // best)
+def _over_chains(one_chain, n_chains: int, params_per_chain: bool):
+    """Map ``one_chain(key, state, params)`` over the chains' leading axis.
+
+    On CPU the chains run one after the other (``lax.map``): each chain's CG solve and NUTS
+    trajectory is a ``while_loop``, and vmapped loops make every chain wait for the slowest
+    (at paper size 3 vmapped chains ran 24 steps/s each against 46 one after the other, the
+    speed of a single chain); XLA's thread pool already uses the cores inside one chain.  On
+    an accelerator the chains are vmapped, which is what it is built for.  Each chain's
+    arithmetic does not depend on the others, so the choice does not change the draws
+    beyond round-off.
+    """
+    in_axes = (0, 0, 0 if params_per_chain else None)
+    if jax.default_backend() != "cpu":
+        return jax.vmap(one_chain, in_axes=in_axes)
+
+    def mapped(keys, states, params):
+        if params_per_chain:
+            return jax.lax.map(lambda a: one_chain(*a), (keys, states, params))
+        return jax.lax.map(lambda a: one_chain(a[0], a[1], params), (keys, states))
+
+    return mapped
+
+
+def _info_extras(info):
+    """``(gradient evaluations, divergent)`` of a transition (zero for random walks)."""
+    grads = getattr(info, "grad_evals", jnp.zeros((), jnp.int32))
+    div = getattr(info, "divergent", jnp.zeros((), bool))
+    return grads, div
 
 
 def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int):
-    """Jitted ``(keys (C,), states, sigmas) -> (states, out)`` running ``n_draws`` thinned draws.
+    """Jitted ``(keys (C,), states, params) -> (states, out)`` running ``n_draws`` thinned draws.
 
-    Chains are sharded over the available devices (``jax.shard_map``; on CPU these are the
-    host devices of :mod:`bayesreg._xla`) and vmapped within a device; with ``C`` not a
-    multiple of the devices used, copies of chain 0 pad the batch and are dropped.  Each
-    chain's arithmetic does not depend on the others.
+    ``kernel`` is ``(key, state, params) -> (state, info)``, or with a cache
+    ``(key, state, params, cache) -> (state, info, cache)`` when it carries
+    ``kernel.condensation`` (random walk) or ``kernel.init_cache`` (gradient kernels); the
+    cache is rebuilt from the state at every chunk start, so a resumed run repeats the
+    same arithmetic.  ``kernel.per_chain_params``: ``params`` has a leading chain axis.
+    ``out`` is ``(positions, interior, logdensity, acceptance (B,), CG iterations per step,
+    failed solves, gradient evaluations per step, divergences)`` per draw.
     """
-
     cond = getattr(kernel, "condensation", None)
+    init_cache = getattr(kernel, "init_cache", None)
+    if cond is not None:
+        def init_cache(state):
+            return cond.build(state.position)
+    per_chain = getattr(kernel, "per_chain_params", False)
 
-    def one_chain(key, state, sigma):
+    def one_chain(key, state, params):
         def draw(carry, key):
             def step(carry, key):
-                if cond is None:
-                    return kernel(key, carry, sigma)
-                st, info, cache = kernel(key, carry[0], sigma, carry[1])
+                if init_cache is None:
+                    return kernel(key, carry, params)
+                st, info, cache = kernel(key, carry[0], params, carry[1])
                 return (st, cache), info
 
             carry, info = jax.lax.scan(step, carry, jax.random.split(key, thin))
-            state = carry if cond is None else carry[0]
+            state = carry if init_cache is None else carry[0]
+            grads, div = _info_extras(info)
             return carry, (
                 state.position,
                 state.interior,
@@ -265,41 +303,15 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int):
                 jnp.mean(info.acceptance_rate, axis=0),
                 jnp.mean(info.cg_iterations.astype(jnp.float64)),
                 jnp.sum(info.solve_failed),
+                jnp.mean(grads.astype(jnp.float64)),
+                jnp.sum(div.astype(jnp.int32)),
             )
 
-        # the cache is rebuilt at every chunk start, so a resumed run repeats the same arithmetic
-        carry = state if cond is None else (state, cond.build(state.position))
+        carry = state if init_cache is None else (state, init_cache(state))
         carry, out = jax.lax.scan(draw, carry, jax.random.split(key, n_draws))
-        return (carry if cond is None else carry[0]), out
+        return (carry if init_cache is None else carry[0]), out
 
-    n_dev, per_dev = _chain_layout(n_chains, len(jax.devices()))
-    if per_dev == 1:  # no vmap: a lax.cond stays a branch (vmapped, both sides would run)
-        def batched(keys, states, sigma):
-            squeeze = jax.tree.map(lambda a: a[0], states)
-            return jax.tree.map(lambda a: a[None], one_chain(keys[0], squeeze, sigma))
-    else:
-        batched = jax.vmap(one_chain, in_axes=(0, 0, None))
-    if n_dev == 1:
-        return jax.jit(batched)
-    from jax.sharding import Mesh, PartitionSpec
-
-    mesh = Mesh(np.array(jax.devices()[:n_dev]), ("chain",))
-    sharded = jax.jit(jax.shard_map(
-        batched, mesh=mesh, in_specs=(PartitionSpec("chain"), PartitionSpec("chain"), PartitionSpec()),
-        out_specs=PartitionSpec("chain"), check_vma=False,  # custom_linear_solve lacks vma rules
-    ))
-    pad = n_dev * per_dev - n_chains
-
-    def padded(x):
-        return jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]) if pad else x
-
-    def chunk(keys, states, sigma):
-        states, out = sharded(padded(keys), jax.tree.map(padded, states), sigma)
-        if pad:
-            states, out = jax.tree.map(lambda a: a[:n_chains], (states, out))
-        return states, out
-
-    return chunk
+    return jax.jit(_over_chains(one_chain, n_chains, per_chain))
 
 
 def _scaled(sigmas, log_scales):
@@ -428,13 +440,14 @@ def sample(
         ``on_chunk(checkpoint, out)`` after the warm-up (``out=None``) and after every
         sampling chunk; ``out`` is the chunk's ``(positions (C, n, dim), interior
         (C, n, n_i, 3), logdensity (C, n), acceptance (C, n, B), cg_iterations (C, n),
-        solve_failures (C, n))`` with ``n = chunk_draws``.  Persisting both lets a killed
+        solve_failures (C, n), grad_evals (C, n), divergences (C, n))`` with
+        ``n = chunk_draws``.  Persisting both lets a killed
         run continue (``resume``).
     resume : SamplerCheckpoint, optional
         Continue from a checkpoint (warm-up skipped).  Chunk ``k`` always uses the key
         ``fold_in(split(rng_key)[1], k)``, so a resumed run gives the same draws as an
         uninterrupted one with the same ``rng_key``.
-    resume_draws : tuple of 6 arrays, optional
+    resume_draws : tuple of 8 arrays, optional
         The draws of the finished chunks (as ``out``, concatenated along axis 1); required
         with ``resume``.
     condensation : Condensation, optional
@@ -449,16 +462,8 @@ def sample(
     ValueError
         On bad arguments or if any chain starts at a point of zero posterior density.
     """
-    x0 = jnp.asarray(initial_positions, dtype=jnp.float64)
-    if x0.ndim != 2:
-        raise ValueError(f"initial_positions must be (chains, dim), got {x0.shape}")
-    n_chains, dim = x0.shape
-    if n_chains < 2:
-        raise ValueError("at least 2 chains are needed for R-hat")
-    if thinning < 1 or chunk_draws < 1 or max_draws < 1:
-        raise ValueError("thinning, chunk_draws and max_draws must be >= 1")
-    if not 0 < target_acceptance < 1:
-        raise ValueError(f"target_acceptance must lie in (0, 1), got {target_acceptance}")
+    x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance)
+    dim = x0.shape[1]
     idxs = [np.arange(dim)] if blocks is None else [np.asarray(b) for b in blocks]
     sigmas = tuple(np.asarray(s_, np.float64) for s_ in (sigma if isinstance(sigma, tuple) else (sigma,)))
     if len(sigmas) != len(idxs):
@@ -467,50 +472,93 @@ def sample(
         if s_.shape not in ((len(ix),), (len(ix), len(ix))):
             raise ValueError(f"sigma of block {k} has shape {s_.shape}, block size {len(ix)}")
     adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * len(idxs)
-    estimands = estimands or (lambda d: d)
-
     if condensation is not None and blocks is None:
         raise ValueError("condensation needs coordinate blocks")
     kernel = build_kernel(logdensity_fn, None if blocks is None else idxs, condensation)
     chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)
+
+    def init_states():
+        return jax.vmap(lambda x: init(x, logdensity_fn, interior0))(x0)
+
+    def warm_up():
+        states = jax.jit(init_states)()
+        _check_finite(states)
+        return _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps,
+                       chunk_draws, thinning, target_acceptance, progress)
+
+    return _drive(chunk, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=len(idxs),
+                  max_draws=max_draws, min_draws=min_draws, chunk_draws=chunk_draws,
+                  rhat_threshold=rhat_threshold, rhat_split=rhat_split, estimands=estimands,
+                  progress=progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
+                  params_type=lambda *a: tuple(a))
+
+
+def _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance):
+    x0 = jnp.asarray(initial_positions, dtype=jnp.float64)
+    if x0.ndim != 2:
+        raise ValueError(f"initial_positions must be (chains, dim), got {x0.shape}")
+    if x0.shape[0] < 2:
+        raise ValueError("at least 2 chains are needed for R-hat")
+    if thinning < 1 or chunk_draws < 1 or max_draws < 1:
+        raise ValueError("thinning, chunk_draws and max_draws must be >= 1")
+    if not 0 < target_acceptance < 1:
+        raise ValueError(f"target_acceptance must lie in (0, 1), got {target_acceptance}")
+    return x0, x0.shape[0]
+
+
+def _check_finite(states):
+    bad = ~np.isfinite(np.asarray(states.logdensity))
+    if bad.any():
+        raise ValueError(
+            f"chains {np.flatnonzero(bad).tolist()} start at zero posterior density "
+            "(constraint violated or CG solve not converged at the initial position)"
+        )
+
+
+N_OUT = 8  # positions, interior, logdensity, acceptance, CG, failed solves, gradients, divergences
+
+
+def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_draws, min_draws,
+           chunk_draws, rhat_threshold, rhat_split, estimands, progress, on_chunk, resume,
+           resume_draws, params_type) -> SamplerResult:
+    """The sampling loop shared by every kernel: chunks, R-hat stopping, checkpoints, resume.
+
+    ``warm_up() -> (states, frozen params, warm-up acceptance per block, timings)``;
+    ``init_states()`` gives the structure of the states (to rebuild a checkpoint's leaves);
+    ``params_type`` rebuilds the frozen parameters from their tuple of arrays.
+    """
+    estimands = estimands or (lambda d: d)
     n_samp = int(np.ceil(max_draws / chunk_draws))
     t0 = time.perf_counter()
     if resume is None:
-        states = jax.jit(jax.vmap(lambda x: init(x, logdensity_fn, interior0)))(x0)
-        bad = ~np.isfinite(np.asarray(states.logdensity))
-        if bad.any():
-            raise ValueError(
-                f"chains {np.flatnonzero(bad).tolist()} start at zero posterior density "
-                "(constraint violated or CG solve not converged at the initial position)"
-            )
-        states, frozen, warm_acc, timings = _warmup(
-            chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps, chunk_draws,
-            thinning, target_acceptance, progress,
-        )
+        states, frozen, warm_acc, timings = warm_up()
         timings["warmup_s"] = time.perf_counter() - t0 + timings.get("warmup_s", 0.0)
         history: list = []
-        parts: list[list[np.ndarray]] = [[] for _ in range(6)]
+        parts: list[list[np.ndarray]] = [[] for _ in range(N_OUT)]
         k = 0
         if on_chunk is not None:
-            on_chunk(SamplerCheckpoint(jax.tree.map(np.asarray, states), frozen, warm_acc, 0, [],
-                                       dict(timings)), None)
+            on_chunk(SamplerCheckpoint(jax.tree.map(np.asarray, states), _as_arrays(frozen), warm_acc,
+                                       0, [], dict(timings)), None)
     else:
         if resume_draws is None and resume.chunks_done:
             raise ValueError("resume needs resume_draws (the draws of the finished chunks)")
-        states = jax.tree.map(jnp.asarray, resume.states)
-        frozen = tuple(np.asarray(f_) for f_ in resume.sigma)
+        treedef = jax.tree.structure(jax.eval_shape(init_states))
+        leaves = resume.states if isinstance(resume.states, list) else jax.tree.leaves(resume.states)
+        states = jax.tree.unflatten(treedef, [jnp.asarray(a) for a in leaves])
+        frozen = params_type(*(np.asarray(f_) for f_ in resume.sigma))
         warm_acc = np.asarray(resume.warmup_acceptance)
         timings = dict(resume.timings)
         history = [tuple(h) for h in resume.rhat_history]
         k = int(resume.chunks_done)
-        parts = [[np.asarray(a)] for a in resume_draws] if k else [[] for _ in range(6)]
+        parts = [[np.asarray(a)] for a in resume_draws] if k else [[] for _ in range(N_OUT)]
         if k and parts[0][0].shape[1] != k * chunk_draws:
             raise ValueError(f"resume_draws hold {parts[0][0].shape[1]} draws per chain, "
                              f"the checkpoint {k} chunks of {chunk_draws}")
-    frozen = tuple(jnp.asarray(f_) for f_ in frozen)
+        if len(parts) != N_OUT:
+            raise ValueError(f"resume_draws must hold {N_OUT} arrays, got {len(parts)}")
+    frozen = params_type(*(jnp.asarray(f_) for f_ in frozen))
 
-    # ---- sampling ----
     from tqdm.auto import tqdm
 
     bar = tqdm(total=n_samp, initial=k, disable=not progress, desc="sampling", unit="chunk")
@@ -533,16 +581,16 @@ def sample(
         if n_draws >= (4 if rhat_split else 2):  # split halves need 2 draws each
             rhat = float(np.nanmax(gelman_rubin(estimands(draws), split=rhat_split)))
         history.append((n_draws, rhat))
-        acc = np.concatenate(parts[3], axis=1).reshape(-1, len(idxs)).mean(axis=0)
+        acc = np.concatenate(parts[3], axis=1).reshape(-1, n_blocks).mean(axis=0)
         bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
         bar.update(1)
         timings["sampling_s"] = spent + time.perf_counter() - t1
         if on_chunk is not None:
-            on_chunk(SamplerCheckpoint(jax.tree.map(np.asarray, states), tuple(np.asarray(f_) for f_ in frozen),
-                                       warm_acc, k, list(history), dict(timings)), out)
+            on_chunk(SamplerCheckpoint(jax.tree.map(np.asarray, states), _as_arrays(frozen), warm_acc, k,
+                                       list(history), dict(timings)), out)
     bar.close()
     timings["sampling_s"] = spent + time.perf_counter() - t1
-    pos, interior, lp, acc, cg, fail = (np.concatenate(p_, axis=1) for p_ in parts)
+    pos, interior, lp, acc, cg, fail, grads, div = (np.concatenate(p_, axis=1) for p_ in parts)
     return SamplerResult(
         positions=pos,
         interior=interior,
@@ -550,10 +598,149 @@ def sample(
         acceptance=acc,
         cg_iterations=cg,
         solve_failures=fail,
+        grad_evals=grads,
+        divergences=div,
         rhat_history=history,
-        sigma=tuple(np.asarray(f_) for f_ in frozen),
+        sigma=_as_arrays(frozen),
         warmup_acceptance=warm_acc,
         timings=timings,
         converged=bool(rhat < rhat_threshold),
         final_states=states,
     )
+
+
+def _as_arrays(frozen) -> tuple:
+    return tuple(np.asarray(f_) for f_ in frozen)
+
+
+def sample_gradient(
+    rng_key,
+    target,
+    initial_positions,
+    interior0,
+    *,
+    kind: str = "nuts",
+    step_size: float = 0.2,
+    eta_scale=0.1,
+    dense_mass: bool = False,
+    num_integration_steps: int = 16,
+    max_tree_depth: int = 10,
+    thinning: int = 1,
+    warmup_steps: int = 1000,
+    max_draws: int = 1000,
+    min_draws: int = 100,
+    chunk_draws: int = 50,
+    target_acceptance: float | None = None,
+    rhat_threshold: float = 1.2,
+    rhat_split: bool = False,
+    estimands: Callable | None = None,
+    progress: bool = True,
+    on_chunk: Callable | None = None,
+    resume: SamplerCheckpoint | None = None,
+    resume_draws: tuple | None = None,
+) -> SamplerResult:
+    """Parallel chains of a gradient kernel (:mod:`bayesreg.kernels`) with windowed warm-up.
+
+    Same chains, thinning, R-hat stopping, checkpoints and result as :func:`sample`; the
+    warm-up is Stan's windowed adaptation (step size by dual averaging toward
+    ``target_acceptance``, a diagonal or dense inverse mass matrix from the slow windows) on
+    each chain, plus the scale of the elastic random walk; the tuned values are frozen
+    after it and returned in ``SamplerResult.sigma`` as ``(step_size (C,), inverse_mass
+    (C, ...), eta_scale (C, n_free))``.
+
+    Parameters
+    ----------
+    rng_key : PRNGKey
+    target : bayesreg.kernels.Target
+    initial_positions : (C, dim) array  natural positions ``[u_b.ravel(), phi]``
+    interior0 : (n_i, 3) array  warm start of the first solve
+    kind : {"mala", "hmc", "nuts"}
+    step_size : float  initial leapfrog step (in the preconditioned coordinates ``w``)
+    eta_scale : float or (n_free,) array  initial scale of the elastic random walk
+    dense_mass : bool  adapt a dense inverse mass matrix instead of a diagonal one
+    num_integration_steps : int  HMC's leapfrog steps
+    max_tree_depth : int  NUTS' maximum number of trajectory doublings
+    thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
+    estimands, progress, on_chunk, resume, resume_draws
+        As :func:`sample` (``warmup_steps`` rounded up to whole chunks).
+    target_acceptance : float, optional
+        Default :func:`bayesreg.kernels.default_target_acceptance` of ``kind``.
+
+    Returns
+    -------
+    SamplerResult
+
+    Raises
+    ------
+    ValueError
+        On bad arguments or if any chain starts at a point of zero posterior density.
+    """
+    from bayesreg import kernels as gk
+
+    target_acceptance = target_acceptance or gk.default_target_acceptance(kind)
+    x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance)
+    kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
+                             max_num_doublings=max_tree_depth)
+    chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
+    key_warm, key_samp = jax.random.split(rng_key)
+    n_blocks = 1 + (target.n_free > 0)
+    eta0 = np.broadcast_to(np.asarray(eta_scale, np.float64), (target.n_free,))
+
+    def init_states():
+        return jax.vmap(lambda x: gk.init(target, x, interior0)[0])(x0)
+
+    def warm_up():
+        t0 = time.perf_counter()
+        states = jax.jit(init_states)()
+        _check_finite(states)
+        ws_init, ws_step, ws_final = gk.build_warmup_step(
+            kernel, target_acceptance=target_acceptance, dense_mass=dense_mass)
+        dim_u = states.u.position.shape[1]
+        ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
+        per_chunk = chunk_draws * thinning
+        n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
+        stages = gk.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
+
+        def one_chain(key, state, ws, stage):
+            def step(carry, xs):
+                st, w_, cache = carry
+                st, w_, cache, info = ws_step(xs[0], st, w_, cache, xs[1])
+                return (st, w_, cache), (info.acceptance_rate, info.divergent, info.grad_evals)
+
+            carry = (state, ws, kernel.init_cache(state))
+            (state, ws, _), (acc, div, grads) = jax.lax.scan(
+                step, carry, (jax.random.split(key, stage.shape[0]), stage))
+            return state, ws, (jnp.mean(acc, axis=0), jnp.sum(div), jnp.mean(grads.astype(jnp.float64)))
+
+        mapped = _over_chains(lambda k_, s_, p_: one_chain(k_, s_, p_[0], p_[1]), n_chains, True)
+
+        @jax.jit
+        def warm_chunk(keys, states, ws, stage):
+            stage_c = jnp.broadcast_to(stage, (n_chains,) + stage.shape)
+            return mapped(keys, states, (ws, stage_c))
+
+        from tqdm.auto import tqdm
+
+        timings = {}
+        warm_acc = np.full(n_blocks, np.nan)
+        bar = tqdm(total=n_warm, disable=not progress or n_warm == 0, desc="warm-up", unit="chunk")
+        for k in range(n_warm):
+            keys = jax.random.split(jax.random.fold_in(key_warm, k), n_chains)
+            states, ws, (acc, div, grads) = warm_chunk(
+                keys, states, ws, jnp.asarray(stages[k * per_chunk:(k + 1) * per_chunk]))
+            if k == 0:
+                timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
+            warm_acc = np.asarray(acc).mean(axis=0)
+            bar.set_postfix(acc=np.array2string(warm_acc, precision=2),
+                            step=np.array2string(np.asarray(ws.step_size), precision=3),
+                            grads=f"{float(np.mean(grads)):.0f}", div=int(np.sum(div)))
+            bar.update(1)
+        bar.close()
+        frozen = jax.vmap(ws_final)(ws)
+        return states, tuple(np.asarray(f_) for f_ in frozen), warm_acc, timings
+
+    return _drive(chunk, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=n_blocks,
+                  max_draws=max_draws, min_draws=min_draws, chunk_draws=chunk_draws,
+                  rhat_threshold=rhat_threshold, rhat_split=rhat_split, estimands=estimands,
+                  progress=progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
+                  params_type=lambda *a: gk.GibbsParams(*a))

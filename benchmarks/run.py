@@ -337,16 +337,8 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     dim = problem.posterior.dim
     blocks = (np.arange(nb3), np.arange(nb3, dim)) if init.blocked else None
     condensation = None
-    if init.blocked and cfg.sampler.condensed:  # as bayesreg.pipeline.sample_problem builds it
-        from functools import partial
-
-        from bayesreg.posterior import condensation as condensation_map
-        from bayesreg.posterior import log_density_condensed
-        from bayesreg.sampler import Condensation
-
-        post = problem.posterior
-        condensation = Condensation(partial(log_density_condensed, post), partial(condensation_map, post),
-                                    0, cfg.sampler.u_moves)
+    if init.blocked and cfg.sampler.use_condensed:  # as bayesreg.pipeline.sample_problem builds it
+        condensation = pipeline._condensed_rw(problem, cfg)
     return {"cfg": cfg, "x0": np.asarray(init.x0), "sigma": sigma, "blocks": blocks,
             "condensation": condensation,
             "n_blocks": 1 if blocks is None else len(blocks), "surrogate_factor": surrogate,

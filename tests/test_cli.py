@@ -195,3 +195,28 @@ def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, c
     assert "Table 1" in text and "Table 2" in text and "Brain MSE" in text
     n_png = sum("image/png" in o.get("data", {}) for o in outputs)
     assert n_png >= 7  # Fig. 2-5, uncertainty and the ArviZ plot per run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["nuts", "mala"])
+def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_path, capsys, kind):
+    """A gradient kernel end to end: exact normaliser, no fixed parameter, sample stats and
+    adapted values written."""
+    out = tmp_path / "run"
+    tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps"))]
+    sets = tiny + [f"sampler.kind={kind}", "sampler.thinning=1", "sampler.warmup_steps=40",
+                   "sampler.max_tree_depth=4", "model.prior_normaliser=exact", "model.fixed=null"]
+    args = ["run", "configs/quickstart.yaml", "--out", str(out)] + sum((["--set", s] for s in sets), [])
+    assert main(args) == 0
+    assert f"{kind}: gradients/step" in capsys.readouterr().out
+    info = json.loads((out / "run.json").read_text())
+    s = info["sampler"]
+    assert s["kind"] == kind and s["prior_normaliser"] == "exact" and s["blocks"] == ["u_b", "elastic"]
+    assert info["parameters"]["fixed"] == [] and len(info["parameters"]["free"]) == 6
+    assert len(s["adapted"]["step_size_per_chain"]) == 3 and all(x > 0 for x in s["adapted"]["step_size_per_chain"])
+    assert s["gradient_evaluations_per_step_mean"] >= 1
+    import arviz as az
+
+    tree = az.from_netcdf(out / "posterior.nc")
+    assert {"n_grad", "diverging", "acceptance_rate"} <= set(tree.sample_stats.data_vars)
+    assert np.all(np.isfinite(tree.posterior["lam"].values)) and np.all(tree.posterior["mu"].values > 0)

@@ -192,7 +192,7 @@ def test_resume_from_a_checkpoint_equals_an_uninterrupted_run():
         assert isinstance(ckpt, SamplerCheckpoint) and ckpt.chunks_done == cut
         draws = None
         if cut:
-            draws = tuple(np.concatenate([o[j] for _, o in saved[1:cut + 1]], axis=1) for j in range(6))
+            draws = tuple(np.concatenate([o[j] for _, o in saved[1:cut + 1]], axis=1) for j in range(len(saved[1][1])))
         resumed = run(resume=ckpt, resume_draws=draws)
         np.testing.assert_array_equal(resumed.positions, full.positions)
         np.testing.assert_array_equal(resumed.interior, full.interior)

@@ -1,0 +1,421 @@
+"""Gradient kernels (MALA, HMC, NUTS) for the boundary displacements, in Gibbs with the
+elastic parameters.
+
+One transition (Metropolis-within-Gibbs, each part leaving the posterior invariant):
+
+1. ``u_b | lam, mu``: one step of a BlackJAX gradient kernel on the boundary displacements,
+   in preconditioned coordinates ``u_b = c + F w`` (``c`` the start's centre, ``F`` a fixed
+   factor, by default ``R^-T`` of the Gauss-Newton precision ``R R^T`` at the start:
+   a constant affine map, so the target is unchanged).  NUTS (:func:`blackjax.nuts`,
+   multinomial, iterative), HMC (:func:`blackjax.hmc`, a fixed number of leapfrog steps) or
+   MALA (HMC with one leapfrog step, which is MALA preconditioned by the inverse mass matrix).
+   With ``condensed`` the interior comes from a cached dense map ``u_i = H(lam, mu) u_b``
+   (no CG solve in the gradient), else from the CG solve with implicit differentiation.
+2. ``lam, mu | u_b``: a random-walk Metropolis step on ``eta``, the logit of the free
+   parameters on their prior support, with the log-Jacobian (:func:`bayesreg.posterior.
+   from_unconstrained`) and, for ``prior_normaliser: exact``, the normaliser
+   ``(1/2) log pdet S(lam, mu)`` (:func:`bayesreg.posterior.log_normaliser`).  An accepted
+   move rebuilds the cache (``H`` and the normaliser) and the gradient state of part 1.
+
+The elastic parameters move by a random walk rather than inside the gradient kernel because
+they are few (1-6) and because the exact normaliser's gradient costs about eight dense
+factorisations; the boundary displacements, about a thousand strongly correlated
+coordinates, are where the gradient pays.
+
+Warm-up (:func:`build_warmup_step`): Stan's windowed adaptation with BlackJAX's pieces
+(:func:`blackjax.adaptation.step_size.dual_averaging_adaptation` for the step size,
+:func:`blackjax.adaptation.mass_matrix.mass_matrix_adaptation` for a diagonal or dense inverse
+mass matrix, :func:`blackjax.adaptation.window_adaptation.build_schedule` for the windows),
+per-parameter scales of the elastic random walk from the same windows' variances of ``eta``
+(``2.38 / sqrt(n_free)`` standard deviations), and Robbins-Monro on the log of a common
+multiplier toward acceptance 0.3.
+Each chain adapts its own values; they are frozen after the warm-up.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from bayesreg import _xla
+
+_xla.configure()
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+from blackjax.adaptation.mass_matrix import mass_matrix_adaptation  # noqa: E402
+from blackjax.adaptation.step_size import dual_averaging_adaptation  # noqa: E402
+from blackjax.mcmc import hmc as bj_hmc  # noqa: E402
+from blackjax.mcmc import nuts as bj_nuts  # noqa: E402
+from blackjax.mcmc.proposal import static_binomial_sampling  # noqa: E402
+
+__all__ = [
+    "KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "Cache", "Target", "make_target",
+    "init", "build_kernel", "WarmupState", "build_warmup_step", "schedule", "default_target_acceptance",
+]
+
+KINDS = ("mala", "hmc", "nuts")
+ELASTIC_TARGET_ACCEPTANCE = 0.3
+
+
+def default_target_acceptance(kind: str) -> float:
+    """Warm-up target of the u_b kernel's acceptance: 0.8 (HMC, NUTS), 0.57 (MALA), 0.25 (RW)."""
+    return {"nuts": 0.8, "hmc": 0.8, "mala": 0.57, "rwmh": 0.25}[kind]
+
+
+class Cache(NamedTuple):
+    """What depends on the elastic parameters only, rebuilt when they move.
+
+    Attributes
+    ----------
+    h : (3 n_i, 3 n_b) or (0,)
+        Dense interior map (condensed targets), else an empty placeholder.
+    log_norm : ()
+        ``(1/2) log pdet S`` (exact normaliser) or 0 (the paper's prior).
+    """
+
+    h: jax.Array
+    log_norm: jax.Array
+
+
+class Target(NamedTuple):
+    """The posterior seen by the Gibbs kernel (pure functions; see :func:`make_target`).
+
+    Attributes
+    ----------
+    u_logdensity : callable
+        ``(w, eta, cache, interior) -> logp``: log-density of ``w`` given ``eta``, up to
+        terms that do not depend on ``w``; differentiable in ``w``.
+    u_evaluate : callable
+        ``(w, eta, cache, interior) -> (logp, interior, cg_iterations, solve_ok)``, the same
+        value with the interior solution at ``w``.
+    evaluate : callable
+        ``(w, eta, interior, log_norm) -> (logp_eta, logp_natural, interior, cg_iterations,
+        solve_ok)``: the joint log-density over ``(w, eta)`` (with the log-Jacobian and the
+        normaliser ``log_norm``) and over the natural parameters ``(u_b, lam, mu)`` (with
+        the normaliser, without the Jacobian), from a solve that does not use the cache.
+    log_norm : callable
+        ``eta -> ()`` the normaliser term (0 for the paper's prior).
+    build_cache : callable
+        ``(eta, log_norm) -> Cache``.
+    position : callable
+        ``(w, eta) -> theta``, the stored position ``[u_b.ravel(), phi]``.
+    coordinates : callable
+        ``theta -> (w, eta)``, the inverse of ``position``.
+    n_free : int
+    """
+
+    u_logdensity: Callable
+    u_evaluate: Callable
+    evaluate: Callable
+    log_norm: Callable
+    build_cache: Callable
+    position: Callable
+    coordinates: Callable
+    n_free: int
+
+
+def make_target(post, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8, maxiter=1000) -> Target:
+    """:class:`Target` of a :class:`bayesreg.posterior.Posterior`.
+
+    Parameters
+    ----------
+    post : Posterior
+    center_u : (3 n_b,) array
+        ``c`` of ``u_b = c + F w`` (mm).
+    factor : (3 n_b,) or (3 n_b, 3 n_b) array
+        ``F`` (mm per unit of ``w``): a vector of scales or a dense matrix.
+    exact : bool
+        Include the exact normaliser of the elastic prior (``prior_normaliser: exact``).
+    condensed : bool
+        Gradient moves take the interior from the cached dense map ``H`` instead of a CG solve.
+    rtol, maxiter
+        CG tolerance and cap (see :func:`bayesreg.posterior.log_density`).
+    """
+    from bayesreg.posterior import (
+        condensation, from_unconstrained, log_density, log_density_condensed, log_normaliser,
+        to_unconstrained,
+    )
+
+    c = jnp.asarray(center_u)
+    f = jnp.asarray(factor)
+    nb3 = c.shape[0]
+    dense = f.ndim == 2
+    f_inv = jnp.linalg.inv(f) if dense else 1.0 / f
+
+    def u_of(w):
+        return c + (f @ w if dense else f * w)
+
+    def theta_of(w, eta):
+        phi, _ = from_unconstrained(post, eta)
+        return jnp.concatenate([u_of(w), phi])
+
+    def u_evaluate(w, eta, cache, interior):
+        theta = theta_of(w, eta)
+        if condensed:
+            lp, aux = log_density_condensed(post, theta, cache.h)
+        else:
+            lp, aux = log_density(post, theta, interior, rtol=rtol, maxiter=maxiter)
+        return lp, aux.interior, aux.solve.iterations, aux.solve.converged
+
+    def u_logdensity(w, eta, cache, interior):
+        return u_evaluate(w, eta, cache, interior)[0]
+
+    def log_norm(eta):
+        if not exact:
+            return jnp.zeros(())
+        return log_normaliser(post, from_unconstrained(post, eta)[0])
+
+    def evaluate(w, eta, interior, log_norm_value):
+        _, log_jac = from_unconstrained(post, eta)
+        lp, aux = log_density(post, theta_of(w, eta), interior, rtol=rtol, maxiter=maxiter)
+        lp_nat = jnp.where(jnp.isfinite(log_norm_value), lp + log_norm_value, -jnp.inf)
+        return lp_nat + log_jac, lp_nat, aux.interior, aux.solve.iterations, aux.solve.converged
+
+    def build_cache(eta, log_norm_value):
+        h = condensation(post, theta_of(jnp.zeros(nb3), eta)) if condensed else jnp.zeros((0,))
+        return Cache(h, jnp.asarray(log_norm_value, jnp.float64))
+
+    def coordinates(theta):
+        d = theta[:nb3] - c
+        w = f_inv @ d if dense else f_inv * d
+        return w, to_unconstrained(post, theta[nb3:])
+
+    return Target(u_logdensity, u_evaluate, evaluate, log_norm, build_cache, theta_of, coordinates,
+                  int(post.n_free))
+
+
+class GibbsState(NamedTuple):
+    """State of one chain.
+
+    Attributes
+    ----------
+    position : (dim,)  ``[u_b.ravel() (mm), phi]`` (natural parameters, what is stored)
+    logdensity : ()  log posterior at ``position`` in the natural parameters
+    interior : (n_i, 3)  interior FE solution at ``position`` (mm)
+    u : blackjax HMCState  ``w`` (``(3 n_b,)``), its conditional log-density and gradient
+    eta : (n_free,)  unconstrained elastic parameters
+    """
+
+    position: jax.Array
+    logdensity: jax.Array
+    interior: jax.Array
+    u: bj_hmc.HMCState
+    eta: jax.Array
+
+
+class GibbsInfo(NamedTuple):
+    """One transition.
+
+    Attributes
+    ----------
+    acceptance_rate : (B,)  u_b kernel's (NUTS: mean over the trajectory), elastic move's
+    is_accepted : (B,) bool  (NUTS: whether the chain moved)
+    cg_iterations : ()  CG iterations of the transition's solves
+    solve_failed : ()  solves that did not converge (their moves are rejected)
+    grad_evals : ()  gradient evaluations (leapfrog steps, plus one after an accepted
+        elastic move)
+    divergent : () bool
+    tree_depth : ()  NUTS trajectory doublings (0 for MALA, HMC)
+    """
+
+    acceptance_rate: jax.Array
+    is_accepted: jax.Array
+    cg_iterations: jax.Array
+    solve_failed: jax.Array
+    grad_evals: jax.Array
+    divergent: jax.Array
+    tree_depth: jax.Array
+
+
+class GibbsParams(NamedTuple):
+    """Tuned values of one chain: ``step_size`` ``()``, ``inverse_mass`` ``(3 n_b,)`` or
+    ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free,)`` (elastic random-walk scale)."""
+
+    step_size: jax.Array
+    inverse_mass: jax.Array
+    eta_scale: jax.Array
+
+
+def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
+    """State and cache at the natural position ``theta`` ``(dim,)``."""
+    w, eta = target.coordinates(jnp.asarray(theta))
+    cache = target.build_cache(eta, target.log_norm(eta))
+    lp, interior, _, _ = target.u_evaluate(w, eta, cache, interior0)
+    grad = jax.grad(target.u_logdensity)(w, eta, cache, interior)
+    _, lp_nat, interior, _, _ = target.evaluate(w, eta, interior, cache.log_norm)
+    return GibbsState(target.position(w, eta), lp_nat, interior, bj_hmc.HMCState(w, lp, grad), eta), cache
+
+
+def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
+                 max_num_doublings: int = 10, divergence_threshold: float = 1000.0) -> Callable:
+    """Gibbs kernel ``(rng_key, state, params, cache) -> (state, info, cache)``.
+
+    Parameters
+    ----------
+    target : Target
+    kind : {"mala", "hmc", "nuts"}
+    num_integration_steps : int
+        HMC's leapfrog steps per transition.
+    max_num_doublings : int
+        NUTS' maximum tree depth.
+    divergence_threshold : float
+        Energy error above which a trajectory is divergent (BlackJAX's default 1000).
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``kind``.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
+    if kind == "nuts":
+        inner = bj_nuts.build_kernel(divergence_threshold=divergence_threshold)
+    else:
+        inner = bj_hmc.build_kernel(divergence_threshold=divergence_threshold)
+    n_leap = 1 if kind == "mala" else int(num_integration_steps)
+
+    def u_step(key, ustate, logdensity_fn, params):
+        if kind == "nuts":
+            new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass,
+                              max_num_doublings=max_num_doublings)
+            moved = jnp.any(new.position != ustate.position)
+            return new, (info.acceptance_rate, moved, info.num_integration_steps, info.is_divergent,
+                         info.num_trajectory_expansions)
+        new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n_leap)
+        return new, (info.acceptance_rate, info.is_accepted, jnp.asarray(n_leap), info.is_divergent,
+                     jnp.asarray(0))
+
+    def kernel(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
+        k_u, k_e, k_acc = jax.random.split(rng_key, 3)
+        eta = state.eta
+
+        def cond_fn(w):
+            return target.u_logdensity(w, eta, cache, state.interior)
+
+        ustate, (acc_u, moved_u, n_grad, divergent, depth) = u_step(k_u, state.u, cond_fn, params)
+        _, interior, its, ok_u = target.u_evaluate(ustate.position, eta, cache, state.interior)
+        # a rejected trajectory keeps the old interior (the cached map gives the same)
+        interior = jnp.where(moved_u, interior, state.interior)
+        its = jnp.where(moved_u, its, 0)
+        w = ustate.position
+        acc = [acc_u]
+        accepted = [moved_u]
+        failed = (~ok_u & moved_u).astype(jnp.int32)
+        grads = n_grad
+        if target.n_free:
+            eta_p = eta + params.eta_scale * jax.random.normal(k_e, eta.shape)
+            norm_p = target.log_norm(eta_p)
+            lz_p, lnat_p, int_p, its_p, ok_p = target.evaluate(w, eta_p, interior, norm_p)
+            lz_c, lnat_c, int_c, its_c, _ = target.evaluate(w, eta, interior, cache.log_norm)
+            log_ratio = lz_p - lz_c
+            log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
+            _, (do, p_acc, _) = static_binomial_sampling(k_acc, log_ratio, jnp.zeros(()), jnp.ones(()))
+
+            def rebuild(_):
+                new_cache = target.build_cache(eta_p, norm_p)
+                lp, g = jax.value_and_grad(target.u_logdensity)(w, eta_p, new_cache, int_p)
+                return new_cache, bj_hmc.HMCState(w, lp, g)
+
+            cache, ustate = jax.lax.cond(do, rebuild, lambda _: (cache, ustate), None)
+            eta = jnp.where(do, eta_p, eta)
+            interior = jnp.where(do, int_p, int_c)
+            lp_nat = jnp.where(do, lnat_p, lnat_c)
+            its = its + its_p + its_c
+            failed = failed + (~ok_p).astype(jnp.int32)
+            grads = grads + do.astype(grads.dtype)
+            acc.append(p_acc)
+            accepted.append(do)
+        else:
+            lp_nat = ustate.logdensity + cache.log_norm
+        state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)
+        info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth)
+        return state, info, cache
+
+    def init_cache(state: GibbsState) -> Cache:
+        return target.build_cache(state.eta, target.log_norm(state.eta))
+
+    kernel.init_cache = init_cache
+    kernel.per_chain_params = True
+    return kernel
+
+
+class WarmupState(NamedTuple):
+    """Adaptation state of one chain: BlackJAX's dual averaging and mass-matrix (Welford)
+    states for the u_b kernel, a Welford state of ``eta`` whose window variances set the
+    elastic random walk's per-parameter scales (``2.38 / sqrt(n_free)`` times the standard
+    deviation), and the Robbins-Monro log-multiplier of those scales."""
+
+    da: tuple
+    mm: tuple
+    step_size: jax.Array
+    inverse_mass: jax.Array
+    mm_eta: tuple
+    eta_base: jax.Array
+    log_eta_scale: jax.Array
+    count: jax.Array
+
+
+def schedule(num_steps: int) -> np.ndarray:
+    """Stan's warm-up windows ``(num_steps, 2)``: ``(slow?, window ends?)`` per step
+    (:func:`blackjax.adaptation.window_adaptation.build_schedule`)."""
+    from blackjax.adaptation.window_adaptation import build_schedule
+
+    return np.array(build_schedule(num_steps), dtype=np.int32).reshape(-1, 2)
+
+
+def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass: bool = False):
+    """``(init, step, final)`` of the windowed warm-up of :func:`build_kernel`'s kernel.
+
+    ``init(dim_u, initial_step_size, eta_scale) -> WarmupState``;
+    ``step(key, state, ws, cache, stage) -> (state, ws, cache, info)`` with ``stage`` the
+    ``(slow?, window ends?)`` row of :func:`schedule`; ``final(ws) -> GibbsParams``.
+    """
+    mm_init, mm_update, mm_final = mass_matrix_adaptation(not dense_mass)
+    da_init, da_update, da_final = dual_averaging_adaptation(target_acceptance)
+
+    mm_eta_init, mm_eta_update, mm_eta_final = mass_matrix_adaptation(True)
+
+    def init_ws(dim_u: int, initial_step_size, eta_scale) -> WarmupState:
+        mm = mm_init(dim_u)
+        da = da_init(jnp.asarray(initial_step_size, jnp.float64))
+        eta_scale = jnp.asarray(eta_scale, jnp.float64)
+        return WarmupState(da, mm, jnp.asarray(initial_step_size, jnp.float64), mm.inverse_mass_matrix,
+                           mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0))
+
+    def step(key, state, ws: WarmupState, cache, stage):
+        params = GibbsParams(ws.step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale))
+        state, info, cache = kernel(key, state, params, cache)
+        slow, window_end = stage[0] == 1, stage[1] == 1
+        acc_u = jnp.nan_to_num(info.acceptance_rate[0])
+        da = da_update(ws.da, acc_u)
+        eta_pad = state.eta if state.eta.shape[0] else jnp.zeros(1)
+        mm, mm_eta = jax.lax.cond(
+            slow, lambda m: (mm_update(m[0], state.u.position), mm_eta_update(m[1], eta_pad)),
+            lambda m: m, (ws.mm, ws.mm_eta))
+        n_free = state.eta.shape[0]
+
+        def end_window(args):
+            da_, mm_, mm_eta_, base, log_eta = args
+            mm_ = mm_final(mm_)
+            mm_eta_ = mm_eta_final(mm_eta_)
+            if n_free:  # per-parameter scales from the window's variances, multiplier reset
+                base = 2.38 / jnp.sqrt(n_free) * jnp.sqrt(mm_eta_.inverse_mass_matrix)
+                log_eta = jnp.zeros(())
+            return da_init(da_final(da_)), mm_, mm_eta_, base, log_eta
+
+        count = jnp.where(window_end, 0, ws.count + 1)
+        da, mm, mm_eta, base, log_eta = jax.lax.cond(
+            window_end, end_window, lambda a: a, (da, mm, mm_eta, ws.eta_base, ws.log_eta_scale))
+        if info.acceptance_rate.shape[0] > 1:
+            gain = 1.0 / ((count + 1).astype(jnp.float64) ** 0.6)
+            log_eta = log_eta + gain * (jnp.nan_to_num(info.acceptance_rate[1]) - ELASTIC_TARGET_ACCEPTANCE)
+        ws = WarmupState(da, mm, jnp.exp(da.log_step_size), mm.inverse_mass_matrix, mm_eta, base,
+                         log_eta, count)
+        return state, ws, cache, info
+
+    def final(ws: WarmupState) -> GibbsParams:
+        return GibbsParams(jnp.exp(ws.da.log_step_size_avg), ws.inverse_mass,
+                           ws.eta_base * jnp.exp(ws.log_eta_scale))
+
+    return init_ws, step, final
