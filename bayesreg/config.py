@@ -169,6 +169,9 @@ class SamplerConfig(_Strict):
     max_tree_depth: int = Field(8, ge=1, le=15, description="nuts: maximum trajectory doublings")
     dense_mass: bool = Field(False, description="gradient kernels: adapt a dense inverse mass "
                              "matrix instead of a diagonal one")
+    adapt_mass: bool = Field(True, description="gradient kernels: adapt the inverse mass matrix in "
+                             "the warm-up windows; false: identity in the Laplace-preconditioned "
+                             "coordinates, step size alone adapted")
     sigma_eta: float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
                              "random walk in the unconstrained (logit) space (adapted)")
 

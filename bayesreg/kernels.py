@@ -364,8 +364,13 @@ def schedule(num_steps: int) -> np.ndarray:
     return np.array(build_schedule(num_steps), dtype=np.int32).reshape(-1, 2)
 
 
-def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass: bool = False):
+def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass: bool = False,
+                      adapt_mass: bool = True):
     """``(init, step, final)`` of the windowed warm-up of :func:`build_kernel`'s kernel.
+
+    ``adapt_mass=False`` keeps the identity inverse mass matrix (the preconditioned
+    coordinates ``w`` already have about unit scale) and adapts the step size alone, by
+    dual averaging over the whole warm-up (no restarts at the window ends).
 
     ``init(dim_u, initial_step_size, eta_scale) -> WarmupState``;
     ``step(key, state, ws, cache, stage) -> (state, ws, cache, info)`` with ``stage`` the
@@ -391,18 +396,21 @@ def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass:
         da = da_update(ws.da, acc_u)
         eta_pad = state.eta if state.eta.shape[0] else jnp.zeros(1)
         mm, mm_eta = jax.lax.cond(
-            slow, lambda m: (mm_update(m[0], state.u.position), mm_eta_update(m[1], eta_pad)),
+            slow, lambda m: (mm_update(m[0], state.u.position) if adapt_mass else m[0],
+                             mm_eta_update(m[1], eta_pad)),
             lambda m: m, (ws.mm, ws.mm_eta))
         n_free = state.eta.shape[0]
 
         def end_window(args):
             da_, mm_, mm_eta_, base, log_eta = args
-            mm_ = mm_final(mm_)
+            if adapt_mass:
+                mm_ = mm_final(mm_)
+                da_ = da_init(da_final(da_))
             mm_eta_ = mm_eta_final(mm_eta_)
             if n_free:  # per-parameter scales from the window's variances, multiplier reset
                 base = 2.38 / jnp.sqrt(n_free) * jnp.sqrt(mm_eta_.inverse_mass_matrix)
                 log_eta = jnp.zeros(())
-            return da_init(da_final(da_)), mm_, mm_eta_, base, log_eta
+            return da_, mm_, mm_eta_, base, log_eta
 
         count = jnp.where(window_end, 0, ws.count + 1)
         da, mm, mm_eta, base, log_eta = jax.lax.cond(

@@ -623,6 +623,7 @@ def sample_gradient(
     step_size: float = 0.2,
     eta_scale=0.1,
     dense_mass: bool = False,
+    adapt_mass: bool = True,
     num_integration_steps: int = 16,
     max_tree_depth: int = 10,
     thinning: int = 1,
@@ -658,6 +659,7 @@ def sample_gradient(
     step_size : float  initial leapfrog step (in the preconditioned coordinates ``w``)
     eta_scale : float or (n_free,) array  initial scale of the elastic random walk
     dense_mass : bool  adapt a dense inverse mass matrix instead of a diagonal one
+    adapt_mass : bool  adapt the inverse mass matrix at all (else identity in ``w``)
     num_integration_steps : int  HMC's leapfrog steps
     max_tree_depth : int  NUTS' maximum number of trajectory doublings
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
@@ -694,7 +696,7 @@ def sample_gradient(
         states = jax.jit(init_states)()
         _check_finite(states)
         ws_init, ws_step, ws_final = gk.build_warmup_step(
-            kernel, target_acceptance=target_acceptance, dense_mass=dense_mass)
+            kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
         dim_u = states.u.position.shape[1]
         ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
         per_chunk = chunk_draws * thinning

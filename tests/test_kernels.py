@@ -58,13 +58,14 @@ def toy_target() -> gk.Target:
     return gk.Target(u_lp, u_evaluate, evaluate, log_norm, build_cache, position, coordinates, 1)
 
 
-@pytest.mark.parametrize("kind", ["mala", "hmc", "nuts"])
-def test_gibbs_gradient_kernel_samples_a_known_joint(kind):
+@pytest.mark.parametrize("kind,adapt_mass", [("mala", True), ("hmc", True), ("nuts", True), ("nuts", False)])
+def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
     """Means and variances of u and eta within 5 Monte Carlo standard errors (ESS-based)."""
     rng = np.random.default_rng(0)
     x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
     res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
                           step_size=0.3, eta_scale=0.5, num_integration_steps=8, warmup_steps=600,
+                          adapt_mass=adapt_mass,
                           max_draws=1500, min_draws=1500, chunk_draws=100, thinning=1, progress=False)
     draws = res.positions  # (C, n, D + 1)
     assert res.divergences.mean() < 0.01  # the toy is a mild funnel: rare divergences allowed
@@ -83,6 +84,8 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind):
     assert 0.25 < acc[0] < 0.99 and 0.1 < acc[1] < 0.7, acc  # targets 0.57 (MALA), 0.8; 0.3
     step, inv_mass, eta_scale = res.sigma
     assert step.shape == (4,) and inv_mass.shape == (4, D) and eta_scale.shape == (4, 1)
+    if not adapt_mass:
+        np.testing.assert_array_equal(inv_mass, 1.0)
     assert np.all(res.grad_evals >= 1)
 
 
