@@ -172,6 +172,8 @@ class SamplerConfig(_Strict):
     adapt_mass: bool = Field(True, description="gradient kernels: adapt the inverse mass matrix in "
                              "the warm-up windows; false: identity in the Laplace-preconditioned "
                              "coordinates, step size alone adapted")
+    elastic_moves: int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
+                               "elastic parameters per transition (cheap next to a trajectory)")
     sigma_eta: float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
                              "random walk in the unconstrained (logit) space (adapted)")
 

@@ -248,7 +248,8 @@ def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
 
 
 def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
-                 max_num_doublings: int = 10, divergence_threshold: float = 1000.0) -> Callable:
+                 max_num_doublings: int = 10, divergence_threshold: float = 1000.0,
+                 elastic_moves: int = 1) -> Callable:
     """Gibbs kernel ``(rng_key, state, params, cache) -> (state, info, cache)``.
 
     Parameters
@@ -261,6 +262,10 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         NUTS' maximum tree depth.
     divergence_threshold : float
         Energy error above which a trajectory is divergent (BlackJAX's default 1000).
+    elastic_moves : int
+        Random-walk updates of the elastic parameters per transition (each a full
+        Metropolis step given ``u_b``; the cache is rebuilt once after them if any was
+        accepted).  Their acceptance is reported as the mean over the moves.
 
     Raises
     ------
@@ -287,7 +292,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                      jnp.asarray(0))
 
     def kernel(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
-        k_u, k_e, k_acc = jax.random.split(rng_key, 3)
+        k_u, k_e = jax.random.split(rng_key)
         eta = state.eta
 
         def cond_fn(w):
@@ -304,27 +309,37 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         failed = (~ok_u & moved_u).astype(jnp.int32)
         grads = n_grad
         if target.n_free:
-            eta_p = eta + params.eta_scale * jax.random.normal(k_e, eta.shape)
-            norm_p = target.log_norm(eta_p)
-            lz_p, lnat_p, int_p, its_p, ok_p = target.evaluate(w, eta_p, interior, norm_p)
             lz_c, lnat_c, int_c, its_c, _ = target.evaluate(w, eta, interior, cache.log_norm)
-            log_ratio = lz_p - lz_c
-            log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
-            _, (do, p_acc, _) = static_binomial_sampling(k_acc, log_ratio, jnp.zeros(()), jnp.ones(()))
+
+            def elastic_move(carry, key):
+                eta_c, lz, lnat, int_, ln, n_its, n_fail = carry
+                k_prop, k_a = jax.random.split(key)
+                eta_p = eta_c + params.eta_scale * jax.random.normal(k_prop, eta_c.shape)
+                norm_p = target.log_norm(eta_p)
+                lz_p, lnat_p, int_p, its_p, ok_p = target.evaluate(w, eta_p, int_, norm_p)
+                log_ratio = jnp.where(jnp.isnan(lz_p - lz), -jnp.inf, lz_p - lz)
+                _, (do, p_acc, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()), jnp.ones(()))
+                carry = (jnp.where(do, eta_p, eta_c), jnp.where(do, lz_p, lz), jnp.where(do, lnat_p, lnat),
+                         jnp.where(do, int_p, int_), jnp.where(do, norm_p, ln), n_its + its_p,
+                         n_fail + (~ok_p).astype(jnp.int32))
+                return carry, (p_acc, do)
+
+            carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, jnp.asarray(0, jnp.int32))
+            (eta_new, _, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
+                elastic_move, carry0, jax.random.split(k_e, elastic_moves))
+            do = jnp.any(dos)
 
             def rebuild(_):
-                new_cache = target.build_cache(eta_p, norm_p)
-                lp, g = jax.value_and_grad(target.u_logdensity)(w, eta_p, new_cache, int_p)
+                new_cache = target.build_cache(eta_new, norm_new)
+                lp, g = jax.value_and_grad(target.u_logdensity)(w, eta_new, new_cache, interior)
                 return new_cache, bj_hmc.HMCState(w, lp, g)
 
             cache, ustate = jax.lax.cond(do, rebuild, lambda _: (cache, ustate), None)
-            eta = jnp.where(do, eta_p, eta)
-            interior = jnp.where(do, int_p, int_c)
-            lp_nat = jnp.where(do, lnat_p, lnat_c)
-            its = its + its_p + its_c
-            failed = failed + (~ok_p).astype(jnp.int32)
+            eta = eta_new
+            its = its + its_e
+            failed = failed + fail_e
             grads = grads + do.astype(grads.dtype)
-            acc.append(p_acc)
+            acc.append(jnp.mean(p_acc))
             accepted.append(do)
         else:
             lp_nat = ustate.logdensity + cache.log_norm

@@ -692,7 +692,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
         result = sample_gradient(
             jax.random.key(cfg.seed), target, init.x0, jnp.zeros((post.op.n_interior, 3)),
             kind=s.kind, step_size=s.step_size, eta_scale=init.sigma[1], dense_mass=s.dense_mass,
-            adapt_mass=s.adapt_mass,
+            adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
             num_integration_steps=s.hmc_steps, max_tree_depth=s.max_tree_depth,
             thinning=s.thinning, warmup_steps=s.warmup_steps, max_draws=s.max_draws,
             min_draws=s.min_draws, chunk_draws=s.chunk_draws, target_acceptance=s.target_acceptance,

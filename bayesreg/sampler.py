@@ -626,6 +626,7 @@ def sample_gradient(
     adapt_mass: bool = True,
     num_integration_steps: int = 16,
     max_tree_depth: int = 10,
+    elastic_moves: int = 1,
     thinning: int = 1,
     warmup_steps: int = 1000,
     max_draws: int = 1000,
@@ -662,6 +663,7 @@ def sample_gradient(
     adapt_mass : bool  adapt the inverse mass matrix at all (else identity in ``w``)
     num_integration_steps : int  HMC's leapfrog steps
     max_tree_depth : int  NUTS' maximum number of trajectory doublings
+    elastic_moves : int  elastic random-walk updates per transition
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
     estimands, progress, on_chunk, resume, resume_draws
         As :func:`sample` (``warmup_steps`` rounded up to whole chunks).
@@ -682,7 +684,7 @@ def sample_gradient(
     target_acceptance = target_acceptance or gk.default_target_acceptance(kind)
     x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance)
     kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
-                             max_num_doublings=max_tree_depth)
+                             max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)
     chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = 1 + (target.n_free > 0)

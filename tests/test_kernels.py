@@ -65,7 +65,7 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
     x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
     res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
                           step_size=0.3, eta_scale=0.5, num_integration_steps=8, warmup_steps=600,
-                          adapt_mass=adapt_mass,
+                          adapt_mass=adapt_mass, elastic_moves=1 if adapt_mass else 3,
                           max_draws=1500, min_draws=1500, chunk_draws=100, thinning=1, progress=False)
     draws = res.positions  # (C, n, D + 1)
     assert res.divergences.mean() < 0.01  # the toy is a mild funnel: rare divergences allowed
