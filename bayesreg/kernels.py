@@ -11,11 +11,12 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    MALA (HMC with one leapfrog step, which is MALA preconditioned by the inverse mass matrix).
    With ``condensed`` the interior comes from a cached dense map ``u_i = H(lam, mu) u_b``
    (no CG solve in the gradient), else from the CG solve with implicit differentiation.
-2. ``lam, mu | u_b``: a random-walk Metropolis step on ``eta``, the logit of the free
+2. ``lam, mu | u_b``: ``elastic_moves`` random-walk Metropolis steps on ``eta``, the logit of the free
    parameters on their prior support, with the log-Jacobian (:func:`bayesreg.posterior.
    from_unconstrained`) and, for ``prior_normaliser: exact``, the normaliser
-   ``(1/2) log pdet S(lam, mu)`` (:func:`bayesreg.posterior.log_normaliser`).  An accepted
-   move rebuilds the cache (``H`` and the normaliser) and the gradient state of part 1.
+   ``(1/2) log pdet S(lam, mu)`` (:func:`bayesreg.posterior.log_normaliser`).  If any move
+   was accepted, the cache (``H`` and the normaliser) and the gradient state of part 1 are
+   rebuilt once.
 
 The elastic parameters move by a random walk rather than inside the gradient kernel because
 they are few (1-6) and because the exact normaliser's gradient costs about eight dense
