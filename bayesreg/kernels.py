@@ -134,7 +134,7 @@ def make_target(post, *, center_u, factor, exact: bool, condensed: bool, rtol=1e
         CG tolerance and cap (see :func:`bayesreg.posterior.log_density`).
     """
     from bayesreg.posterior import (
-        condensation, from_unconstrained, log_density, log_density_condensed, log_normaliser,
+        add_normaliser, condensation, from_unconstrained, log_density, log_density_condensed, log_normaliser,
         to_unconstrained,
     )
 
@@ -170,7 +170,7 @@ def make_target(post, *, center_u, factor, exact: bool, condensed: bool, rtol=1e
     def evaluate(w, eta, interior, log_norm_value):
         _, log_jac = from_unconstrained(post, eta)
         lp, aux = log_density(post, theta_of(w, eta), interior, rtol=rtol, maxiter=maxiter)
-        lp_nat = jnp.where(jnp.isfinite(log_norm_value), lp + log_norm_value, -jnp.inf)
+        lp_nat = add_normaliser(lp, log_norm_value)
         return lp_nat + log_jac, lp_nat, aux.interior, aux.solve.iterations, aux.solve.converged
 
     def build_cache(eta, log_norm_value):

@@ -37,7 +37,7 @@ from bayesreg.images import (  # noqa: E402
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
     ParamLayout, Posterior, build_posterior, elastic_groups, log_density, log_density_condensed,
-    log_normaliser, split_position,
+    add_normaliser, log_normaliser, split_position,
 )
 from bayesreg.posterior import condensation as condensation_map  # noqa: E402
 from bayesreg.kernels import make_target  # noqa: E402
@@ -353,7 +353,7 @@ def make_logdensity(problem: Problem, cfg: Config):
     def exact(theta, interior):
         lp, aux = base(theta, interior)
         ln = log_normaliser(post, split_position(post, theta)[1])
-        return jnp.where(jnp.isfinite(lp) & jnp.isfinite(ln), lp + ln, -jnp.inf), aux
+        return add_normaliser(lp, ln), aux
 
     return exact
 
@@ -369,7 +369,7 @@ def _condensed_rw(problem: Problem, cfg: Config):
 
     def logdensity(theta, cache):
         lp, aux = log_density_condensed(post, theta, cache[0])
-        return jnp.where(jnp.isfinite(lp) & jnp.isfinite(cache[1]), lp + cache[1], -jnp.inf), aux
+        return add_normaliser(lp, cache[1]), aux
 
     return Condensation(logdensity, build, 0, cfg.sampler.u_moves)
 

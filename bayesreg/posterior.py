@@ -60,6 +60,7 @@ __all__ = [
     "from_unconstrained",
     "to_unconstrained",
     "log_normaliser",
+    "add_normaliser",
 ]
 
 
@@ -513,3 +514,9 @@ def log_normaliser(post: Posterior, phi):
     k = k.at[-nb3:, -nb3:].add(c * post.rigid_b @ post.rigid_b.T)
     chol = jnp.linalg.cholesky(0.5 * (k + k.T))
     return jnp.sum(jnp.log(jnp.diag(chol)[-nb3:])) - 3.0 * jnp.log(c)
+
+
+def add_normaliser(logp, log_norm):
+    """``logp + log_norm``, ``-inf`` where either is not finite (a failed factorisation gives
+    a NaN normaliser: that position is rejected like any other hard-constraint violation)."""
+    return jnp.where(jnp.isfinite(logp) & jnp.isfinite(log_norm), logp + log_norm, -jnp.inf)
