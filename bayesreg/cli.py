@@ -2,9 +2,10 @@
 
 ``bayesreg run CONFIG [--out DIR] [--set key=value ...] [--overwrite]``
     one run (:func:`bayesreg.run`); ``bayesreg run --resume RUN_DIR`` continues a killed one.
-``bayesreg reproduce [--out DIR] [--set key=value ...]``
+``bayesreg reproduce [--variant paper|nuts] [--out DIR] [--set key=value ...]``
     the paper's two experiments (``configs/paper_uniform.yaml``,
-    ``configs/paper_three_compartment.yaml``) and their report (Tables 1-2, Figures 2-5).
+    ``configs/paper_three_compartment.yaml``; ``--variant nuts``: their gradient-sampler
+    variants ``configs/paper_*_nuts.yaml``) and their report (Tables 1-2, Figures 2-5).
 ``bayesreg report RUN_DIR ... --out DIR``
     the report of finished runs.
 
@@ -39,7 +40,11 @@ def _parser():
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     q = sub.add_parser("reproduce", help="the paper's two experiments and their report")
-    q.add_argument("--out", default="runs/paper", help="folder of the two runs and the report")
+    q.add_argument("--variant", choices=("paper", "nuts"), default="paper",
+                   help="paper: the paper's RW-MH (configs/paper_*.yaml); nuts: the same experiments "
+                        "sampled by NUTS (configs/paper_*_nuts.yaml)")
+    q.add_argument("--out", default=None,
+                   help="folder of the two runs and the report (default runs/paper, runs/paper_nuts)")
     q.add_argument("--configs", default=None,
                    help="folder holding paper_uniform.yaml and paper_three_compartment.yaml "
                         "(default: configs/ of the working folder or of the source tree)")
@@ -109,9 +114,11 @@ def main(argv=None) -> int:
             from bayesreg.report import write_report
 
             cdir = _configs_dir(args.configs)
-            out = Path(args.out)
+            out = Path(args.out or ("runs/paper" if args.variant == "paper" else f"runs/paper_{args.variant}"))
             runs = {}
             for label, fname in PAPER_CONFIGS.items():
+                if args.variant != "paper":
+                    fname = fname.replace(".yaml", f"_{args.variant}.yaml")
                 print(f"== {label}: {cdir / fname}")
                 res = _run_or_resume(cdir / fname, out / label, args.set, progress)
                 print(format_report(res.info.get("errors"), res.info))

@@ -290,10 +290,42 @@ def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
     return raw
 
 
+def _read_raw(path: Path, chain: tuple) -> dict:
+    """The raw mapping of one YAML file, with ``extends: OTHER.yaml`` (relative to the file's
+    folder) merged under it: mappings merge key by key, any other value (``null`` included)
+    replaces the base's."""
+    if not path.exists():
+        raise FileNotFoundError(f"config not found: {path}")
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping")
+    base = raw.pop("extends", None)
+    if base is None:
+        return raw
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: extends must be the file name of another config, got {base!r}")
+    base_path = (path.parent / base).resolve()
+    if base_path in chain or base_path == path.resolve():
+        raise ConfigError(f"{path}: extends {base} makes a cycle")
+    return _merge(_read_raw(base_path, chain + (path.resolve(),)), raw)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
 def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None) -> Config:
     """Read, override and validate a YAML config.
 
-    Relative data paths are resolved against the config file's folder.
+    Relative data paths are resolved against the config file's folder.  A config may start
+    from another with ``extends: OTHER.yaml`` (relative to its folder) and give only what
+    differs (mappings merge key by key; ``null`` replaces).
 
     Raises
     ------
@@ -306,14 +338,7 @@ def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None)
     source = "(defaults)"
     if path is not None:
         path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"config not found: {path}")
-        try:
-            raw = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-        if not isinstance(raw, dict):
-            raise ConfigError(f"{path}: the top level must be a mapping")
+        raw = _read_raw(path, ())
         source = str(path)
         base_dir = base_dir or path.parent
     raw = apply_overrides(raw, overrides)

@@ -27,8 +27,8 @@ Warm-up (:func:`build_warmup_step`): Stan's windowed adaptation with BlackJAX's 
 (:func:`blackjax.adaptation.step_size.dual_averaging_adaptation` for the step size,
 :func:`blackjax.adaptation.mass_matrix.mass_matrix_adaptation` for a diagonal or dense inverse
 mass matrix, :func:`blackjax.adaptation.window_adaptation.build_schedule` for the windows),
-per-parameter scales of the elastic random walk from the same windows' variances of ``eta``
-(``2.38 / sqrt(n_free)`` standard deviations), and Robbins-Monro on the log of a common
+the elastic random walk's covariance from the same windows' covariance of ``eta``
+(``2.38^2 / n_free`` times it, dense: Haario et al.'s adaptive Metropolis), and Robbins-Monro on the log of a common
 multiplier toward acceptance 0.3.
 Each chain adapts its own values; they are frozen after the warm-up.
 """
@@ -231,7 +231,9 @@ class GibbsInfo(NamedTuple):
 
 class GibbsParams(NamedTuple):
     """Tuned values of one chain: ``step_size`` ``()``, ``inverse_mass`` ``(3 n_b,)`` or
-    ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free,)`` (elastic random-walk scale)."""
+    ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
+    of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
+    ``(n_free,)`` is accepted as independent scales."""
 
     step_size: jax.Array
     inverse_mass: jax.Array
@@ -315,7 +317,9 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             def elastic_move(carry, key):
                 eta_c, lz, lnat, int_, ln, n_its, n_fail = carry
                 k_prop, k_a = jax.random.split(key)
-                eta_p = eta_c + params.eta_scale * jax.random.normal(k_prop, eta_c.shape)
+                z = jax.random.normal(k_prop, eta_c.shape)
+                scale = params.eta_scale
+                eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
                 norm_p = target.log_norm(eta_p)
                 lz_p, lnat_p, int_p, its_p, ok_p = target.evaluate(w, eta_p, int_, norm_p)
                 log_ratio = jnp.where(jnp.isnan(lz_p - lz), -jnp.inf, lz_p - lz)
@@ -358,9 +362,11 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
 
 class WarmupState(NamedTuple):
     """Adaptation state of one chain: BlackJAX's dual averaging and mass-matrix (Welford)
-    states for the u_b kernel, a Welford state of ``eta`` whose window variances set the
-    elastic random walk's per-parameter scales (``2.38 / sqrt(n_free)`` times the standard
-    deviation), and the Robbins-Monro log-multiplier of those scales."""
+    states for the u_b kernel, a dense Welford state of ``eta`` whose window covariance
+    ``C`` sets the elastic random walk's factor ``2.38 / sqrt(n_free) chol(C)`` (Haario et
+    al.'s adaptive Metropolis; the posterior of the parameters is strongly correlated along
+    the overall stiffness scale under the exact normaliser), and the Robbins-Monro
+    log-multiplier of that factor."""
 
     da: tuple
     mm: tuple
@@ -395,12 +401,14 @@ def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass:
     mm_init, mm_update, mm_final = mass_matrix_adaptation(not dense_mass)
     da_init, da_update, da_final = dual_averaging_adaptation(target_acceptance)
 
-    mm_eta_init, mm_eta_update, mm_eta_final = mass_matrix_adaptation(True)
+    mm_eta_init, mm_eta_update, mm_eta_final = mass_matrix_adaptation(False)
 
     def init_ws(dim_u: int, initial_step_size, eta_scale) -> WarmupState:
         mm = mm_init(dim_u)
         da = da_init(jnp.asarray(initial_step_size, jnp.float64))
         eta_scale = jnp.asarray(eta_scale, jnp.float64)
+        if eta_scale.ndim == 1:
+            eta_scale = jnp.diag(eta_scale)
         return WarmupState(da, mm, jnp.asarray(initial_step_size, jnp.float64), mm.inverse_mass_matrix,
                            mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0))
 
@@ -423,8 +431,8 @@ def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass:
                 mm_ = mm_final(mm_)
                 da_ = da_init(da_final(da_))
             mm_eta_ = mm_eta_final(mm_eta_)
-            if n_free:  # per-parameter scales from the window's variances, multiplier reset
-                base = 2.38 / jnp.sqrt(n_free) * jnp.sqrt(mm_eta_.inverse_mass_matrix)
+            if n_free:  # factor from the window's (regularised) covariance, multiplier reset
+                base = 2.38 / jnp.sqrt(n_free) * jnp.linalg.cholesky(mm_eta_.inverse_mass_matrix)
                 log_eta = jnp.zeros(())
             return da_, mm_, mm_eta_, base, log_eta
 

@@ -241,9 +241,17 @@ def _adapted(cfg, result) -> dict:
                 "inverse_mass_diag_quantiles_0_50_100": np.quantile(
                     inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
                     [0, 0.5, 1]).tolist(),
-                "elastic_scale_per_chain": eta_scale.tolist()}
-    return {"proposal_scale_rms_per_block": [float(np.sqrt(np.mean(np.asarray(s_) ** 2)))
-                                             for s_ in result.sigma]}
+                "elastic_proposal_sd_per_chain": _marginal_sd(eta_scale, eta_scale.ndim == 3).tolist(),
+                "elastic_factor_per_chain": eta_scale.tolist()}
+    sds = [_marginal_sd(np.asarray(s_), np.ndim(s_) == 2) for s_ in result.sigma]
+    return {"proposal_sd_rms_per_block": [float(np.sqrt(np.mean(sd ** 2))) for sd in sds],
+            "elastic_proposal_sd": sds[-1].tolist() if len(sds) > 1 else None}
+
+
+def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
+    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
+    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
+    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
 
 
 def format_report(errors: dict | None, info: dict) -> str:

@@ -189,7 +189,7 @@ class SamplerResult(NamedTuple):
     divergences : (C, D)   divergent transitions per interval (gradient kernels)
     rhat_history : list of (draws per chain, max monitored R-hat)
     sigma : tuple  the frozen tuned values: the proposal scale of each block (RW-MH), or
-        ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free))`` (gradient kernels)
+        ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free))`` (gradient kernels)
     warmup_acceptance : (B,) ndarray  acceptance per block in the last warm-up chunk
     timings : dict  seconds for compile, warm-up, sampling
     converged : bool   max R-hat < threshold at the end
@@ -318,9 +318,14 @@ def _scaled(sigmas, log_scales):
     return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
 
 
+DENSE_MAX = 16  # blocks up to this size (the elastic parameters) adapt a dense proposal
+
+
 def _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps, chunk_draws,
             thinning, target_acceptance, progress):
-    """Robbins-Monro on each block's log-scale; diagonal scales re-estimated from draws.
+    """Robbins-Monro on each block's log-scale; scales re-estimated from the draws of two
+    windows: a dense factor ``2.38 / sqrt(d) chol(C)`` for blocks of at most ``DENSE_MAX``
+    coordinates (the elastic parameters), per-coordinate scales for larger ones.
 
     Returns ``(states, frozen sigmas, last acceptance per block, timings)``.
     """
@@ -354,7 +359,13 @@ def _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps
                 sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
                 if not adapt[b] or not np.all(sd > 0):
                     continue
-                if sigmas[b].ndim == 1:
+                if len(ix) <= DENSE_MAX:  # small block: the window's covariance (Haario et al.)
+                    cov = np.mean([np.atleast_2d(np.cov(p_[:, ix], rowvar=False)) for p_ in pos], axis=0)
+                    try:
+                        new[b] = 2.38 / np.sqrt(len(ix)) * np.linalg.cholesky(cov)
+                    except np.linalg.LinAlgError:
+                        new[b] = 2.38 / np.sqrt(len(ix)) * np.diag(sd)
+                elif sigmas[b].ndim == 1:
                     new[b] = 2.38 / np.sqrt(len(ix)) * sd
                 else:  # keep the correlations of the factor, match its marginal scales
                     implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
@@ -414,8 +425,11 @@ def sample(
         Per block: at 1/2 and 3/4 of the warm-up, set the proposal's marginal scales to
         ``2.38 / sqrt(d_b)`` times the within-chain standard deviation of the chains' draws
         since the previous window (Haario-style diagonal adaptation): a vector ``sigma`` is
-        replaced, the rows of a matrix factor are rescaled (its correlations are kept).  The
-        scale adaptation then restarts.
+        replaced, the rows of a matrix factor are rescaled (its correlations are kept).
+        Blocks of at most ``DENSE_MAX`` coordinates (the elastic parameters) get the dense
+        factor ``2.38 / sqrt(d_b) chol(C)`` of the window's within-chain covariance ``C``
+        instead (their ``sigma`` is taken as a diagonal factor from the start, so the kernel
+        is traced once).  The scale adaptation then restarts.
     thinning : int
         Steps per stored draw (paper: 10).
     warmup_steps : int
@@ -472,6 +486,8 @@ def sample(
         if s_.shape not in ((len(ix),), (len(ix), len(ix))):
             raise ValueError(f"sigma of block {k} has shape {s_.shape}, block size {len(ix)}")
     adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * len(idxs)
+    sigmas = tuple(np.diag(np.broadcast_to(s_, (len(ix),))) if a_ and warmup_steps and s_.ndim < 2
+                   and len(ix) <= DENSE_MAX else s_ for s_, ix, a_ in zip(sigmas, idxs, adapt))
     if condensation is not None and blocks is None:
         raise ValueError("condensation needs coordinate blocks")
     kernel = build_kernel(logdensity_fn, None if blocks is None else idxs, condensation)
@@ -648,7 +664,7 @@ def sample_gradient(
     ``target_acceptance``, a diagonal or dense inverse mass matrix from the slow windows) on
     each chain, plus the scale of the elastic random walk; the tuned values are frozen
     after it and returned in ``SamplerResult.sigma`` as ``(step_size (C,), inverse_mass
-    (C, ...), eta_scale (C, n_free))``.
+    (C, ...), eta_scale (C, n_free, n_free))`` (the elastic random walk's factor).
 
     Parameters
     ----------
@@ -658,7 +674,8 @@ def sample_gradient(
     interior0 : (n_i, 3) array  warm start of the first solve
     kind : {"mala", "hmc", "nuts"}
     step_size : float  initial leapfrog step (in the preconditioned coordinates ``w``)
-    eta_scale : float or (n_free,) array  initial scale of the elastic random walk
+    eta_scale : float, (n_free,) or (n_free, n_free) array
+        initial scale(s), or lower-triangular factor, of the elastic random walk
     dense_mass : bool  adapt a dense inverse mass matrix instead of a diagonal one
     adapt_mass : bool  adapt the inverse mass matrix at all (else identity in ``w``)
     num_integration_steps : int  HMC's leapfrog steps
@@ -688,7 +705,8 @@ def sample_gradient(
     chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = 1 + (target.n_free > 0)
-    eta0 = np.broadcast_to(np.asarray(eta_scale, np.float64), (target.n_free,))
+    eta0 = np.asarray(eta_scale, np.float64)
+    eta0 = eta0 if eta0.ndim == 2 else np.diag(np.broadcast_to(eta0, (target.n_free,)))
 
     def init_states():
         return jax.vmap(lambda x: gk.init(target, x, interior0)[0])(x0)

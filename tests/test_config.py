@@ -53,3 +53,29 @@ def test_beta_prior_range(tmp_path):
     p.write_text("model:\n  prior_lam: {r1: 5, r2: 1}\n")
     with pytest.raises(ConfigError, match="prior_lam"):
         load_config(p)
+
+
+def test_extends_merges_the_base_config(tmp_path):
+    """A child config gives only what differs: mappings merge, null replaces."""
+    (tmp_path / "base.yaml").write_text(
+        "name: base\nmodel:\n  t_r: 5.0\n  fixed: {param: mu, group: gm, value: 1.0}\nsampler:\n  chains: 4\n")
+    (tmp_path / "child.yaml").write_text("extends: base.yaml\nmodel:\n  fixed: null\nsampler:\n  kind: nuts\n")
+    cfg = load_config(tmp_path / "child.yaml")
+    assert cfg.name == "base" and cfg.model.t_r == 5.0 and cfg.model.fixed is None
+    assert cfg.sampler.kind == "nuts" and cfg.sampler.chains == 4
+    (tmp_path / "a.yaml").write_text("extends: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("extends: a.yaml\n")
+    with pytest.raises(ConfigError, match="cycle"):
+        load_config(tmp_path / "a.yaml")
+    with pytest.raises(FileNotFoundError, match="missing.yaml"):
+        (tmp_path / "c.yaml").write_text("extends: missing.yaml\n")
+        load_config(tmp_path / "c.yaml")
+
+
+@pytest.mark.parametrize("model", ["uniform", "three_compartment"])
+def test_paper_configs_gradient_variants_differ_only_in_the_sampler(model):
+    base = load_config(f"configs/paper_{model}.yaml")
+    nuts = load_config(f"configs/paper_{model}_nuts.yaml")
+    assert base.sampler.kind == "rwmh" and nuts.sampler.kind == "nuts"
+    assert nuts.model == base.model and nuts.synthetic == base.synthetic and nuts.mesh == base.mesh
+    assert nuts.model.prior_normaliser == "paper"

@@ -83,10 +83,53 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
     acc = res.acceptance.reshape(-1, 2).mean(axis=0)
     assert 0.25 < acc[0] < 0.99 and 0.1 < acc[1] < 0.7, acc  # targets 0.57 (MALA), 0.8; 0.3
     step, inv_mass, eta_scale = res.sigma
-    assert step.shape == (4,) and inv_mass.shape == (4, D) and eta_scale.shape == (4, 1)
+    assert step.shape == (4,) and inv_mass.shape == (4, D) and eta_scale.shape == (4, 1, 1)
     if not adapt_mass:
         np.testing.assert_array_equal(inv_mass, 1.0)
     assert np.all(res.grad_evals >= 1)
+
+
+ETA_COV = np.array([[0.04, 0.0392], [0.0392, 0.04]])  # sd 0.2, correlation 0.98
+
+
+def correlated_target() -> gk.Target:
+    """``eta ~ N(0, ETA_COV)`` (two strongly correlated "elastic parameters", like the overall
+    stiffness scale under the exact normaliser), ``u | eta ~ N((eta_0 - eta_1) 1, I)``."""
+    prec = jnp.asarray(np.linalg.inv(ETA_COV))
+
+    def u_lp(w, eta, cache, interior):
+        return -0.5 * jnp.sum((w - (eta[0] - eta[1])) ** 2) - 0.5 * eta @ prec @ eta
+
+    def evaluate(w, eta, interior, ln):
+        lp = u_lp(w, eta, None, interior) + ln
+        return lp, lp, interior, jnp.asarray(0), jnp.asarray(True)
+
+    return gk.Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
+                     evaluate, lambda eta: jnp.zeros(()),
+                     lambda eta, ln: gk.Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
+                     lambda w, eta: jnp.concatenate([w, eta]), lambda theta: (theta[:2], theta[2:]), 2)
+
+
+def test_elastic_random_walk_adapts_a_dense_factor_to_correlated_parameters():
+    """The warm-up's elastic factor ``L`` follows the parameters' correlation (0.98), and the
+    draws recover their covariance within Monte Carlo error."""
+    rng = np.random.default_rng(3)
+    x0 = np.concatenate([rng.normal(size=(3, 2)), rng.multivariate_normal([0, 0], ETA_COV, size=3)], axis=1)
+    res = sample_gradient(jax.random.key(4), correlated_target(), x0, jnp.zeros((1, 3)), kind="hmc",
+                          step_size=0.5, eta_scale=0.05, num_integration_steps=4, warmup_steps=1000,
+                          elastic_moves=4, max_draws=2000, min_draws=2000, chunk_draws=100, progress=False)
+    factor = res.sigma[2]  # (C, 2, 2)
+    cov_prop = factor @ np.swapaxes(factor, 1, 2)
+    corr = cov_prop[:, 0, 1] / np.sqrt(cov_prop[:, 0, 0] * cov_prop[:, 1, 1])
+    assert np.all(corr > 0.9), corr
+    eta = res.positions[..., 2:].reshape(-1, 2)
+    ess = min(float(az.ess(res.positions[..., j], method="bulk")) for j in (2, 3))
+    assert ess > 100, ess
+    for j in range(2):
+        assert abs(eta[:, j].mean()) < 5 * 0.2 / np.sqrt(ess)
+        assert abs(eta[:, j].var() - 0.04) < 5 * 0.04 * np.sqrt(2.0 / ess)
+    acc = res.acceptance.reshape(-1, 2).mean(axis=0)
+    assert 0.15 < acc[1] < 0.5, acc  # Robbins-Monro toward 0.3 on top of the dense factor
 
 
 def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
