@@ -132,12 +132,16 @@ class SolverConfig(_Strict):
 
 class SamplerConfig(_Strict):
     kind: Literal["rwmh", "mala", "hmc", "nuts"] = Field(
-        "rwmh", description="kernel of u_b: rwmh (the paper's random walk; blocked or joint), or a "
+        "nuts", description="kernel of u_b: rwmh (the paper's random walk; blocked or joint), or a "
         "gradient kernel in Gibbs with a random walk of the elastic parameters in their "
-        "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up)")
+        "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up).  Default "
+        "nuts, the kernel that mixed best in benchmarks/samplers.py; the quickstart and the "
+        "paper's configs say rwmh")
     chains: int = Field(3, ge=2)
-    thinning: int = Field(10, ge=1)
-    warmup_steps: int = Field(2000, ge=0)
+    thinning: int | None = Field(None, ge=1, description="keep every n-th step; default 10 (rwmh), "
+                                 "1 (gradient kernels)")
+    warmup_steps: int | None = Field(None, ge=0, description="steps per chain before the stored "
+                                     "draws; default 2000 (rwmh), 500 (gradient kernels)")
     max_draws: int = Field(2000, ge=1)
     min_draws: int = Field(100, ge=2)
     chunk_draws: int = Field(50, ge=2)
@@ -166,7 +170,8 @@ class SamplerConfig(_Strict):
     step_size: float = Field(0.1, gt=0, description="gradient kernels: initial leapfrog step in the "
                              "preconditioned coordinates (adapted in the warm-up)")
     hmc_steps: int = Field(16, ge=1, description="hmc: leapfrog steps per transition")
-    max_tree_depth: int = Field(8, ge=1, le=15, description="nuts: maximum trajectory doublings")
+    max_tree_depth: int = Field(6, ge=1, le=15, description="nuts: maximum trajectory doublings "
+                                "(at most 2^depth - 1 gradients per transition)")
     dense_mass: bool = Field(False, description="gradient kernels: adapt a dense inverse mass "
                              "matrix instead of a diagonal one")
     adapt_mass: bool = Field(True, description="gradient kernels: adapt the inverse mass matrix in "
@@ -176,6 +181,14 @@ class SamplerConfig(_Strict):
                                "elastic parameters per transition (cheap next to a trajectory)")
     sigma_eta: float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
                              "random walk in the unconstrained (logit) space (adapted)")
+
+    @model_validator(mode="after")
+    def _per_kind_defaults(self):
+        if self.thinning is None:
+            self.thinning = 1 if self.gradient else 10
+        if self.warmup_steps is None:
+            self.warmup_steps = 500 if self.gradient else 2000
+        return self
 
     @property
     def gradient(self) -> bool:

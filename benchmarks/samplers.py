@@ -66,6 +66,16 @@ def estimands(problem, draws):
     return np.concatenate([draws, lam_g / mu_g], axis=-1)
 
 
+def _name(j: int, nb3: int, problem) -> str:
+    """Estimand ``j``: a boundary coordinate, a free parameter or a ratio."""
+    n_free = problem.posterior.n_free
+    if j < nb3:
+        return f"u_b[{j // 3}].{'xyz'[j % 3]}"
+    if j < nb3 + n_free:
+        return f"phi[{j - nb3}]"
+    return f"lam/mu[{problem.layout.group_names[j - nb3 - n_free]}]"
+
+
 def rank_rhat_max(x):
     return float(np.nanmax(np.asarray(az.rhat(x, method="rank"))))
 
@@ -112,6 +122,7 @@ def measure(kind: str, args) -> dict:
         "grad_evals_per_draw": float(result.grad_evals.mean() * thin),
         "ess_bulk_min": float(ess.min()), "ess_bulk_median": float(np.median(ess)),
         "ess_bulk_min_elastic": float(ess[nb3:].min()),
+        "ess_bulk_lowest": {_name(j, nb3, problem): float(ess[j]) for j in np.argsort(ess)[:6]},
         "ess_bulk_min_per_s_sampling": float(ess.min() / t_samp),
         "ess_bulk_min_per_s_total": float(ess.min() / (t_init + t_warm + t_samp)),
         "rhat_rank_max": rank_rhat_max(est), "rhat_classic_max": float(np.nanmax(gelman_rubin(est))),

@@ -79,3 +79,15 @@ def test_paper_configs_gradient_variants_differ_only_in_the_sampler(model):
     assert base.sampler.kind == "rwmh" and nuts.sampler.kind == "nuts"
     assert nuts.model == base.model and nuts.synthetic == base.synthetic and nuts.mesh == base.mesh
     assert nuts.model.prior_normaliser == "paper"
+
+
+def test_sampler_defaults_follow_the_kernel():
+    """New configs default to NUTS (thinning 1, 500 warm-up steps) and the exact normaliser;
+    a random walk gets thinning 10 and 2000 warm-up steps unless given."""
+    cfg = load_config(None)
+    assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.warmup_steps == 500
+    assert cfg.model.prior_normaliser == "exact" and cfg.sampler.use_condensed
+    rw = load_config(None, overrides=["sampler.kind=rwmh"])
+    assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
+    given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
+    assert given.sampler.thinning == 3
