@@ -114,6 +114,11 @@ class ModelConfig(_Strict):
     t_r: float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12)")
     prior_lam: BetaPrior | TissuePriors = BetaPrior(r2=100.0)
     prior_mu: BetaPrior | TissuePriors = BetaPrior(r2=10.0)
+    skull_barrier_mm: float = Field(
+        0.0, ge=0, description="width w (mm) of a smooth barrier -sum (w/d - 1)^2 over nodes at "
+        "clearance d < w from the skull, added to the log-density (a change of the model that "
+        "helps gradient kernels turn before the hard constraint); 0: off, the paper's hard "
+        "constraint alone (which stays in place either way)")
     fixed: FixedParam | None = FixedParam()
     prior_normaliser: Literal["paper", "exact"] = Field(
         "exact", description="exact: the elastic prior on u_b carries its normaliser "

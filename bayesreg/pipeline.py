@@ -277,7 +277,7 @@ def assemble(cfg: Config, data: dict) -> Problem:
     post = build_posterior(
         mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s), forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
-        prior=prior, phi_ref=phi_init,
+        prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,
     )
     return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init,
                    data["intensity_scale"], data["n_skull_carved"], dict(data["timings"]),

@@ -12,7 +12,9 @@ Hard constraints (Sec. 3.2) give ``log p = -inf``: a node inside the forbidden (
 region or outside the image, a parameter outside its prior support or non-positive, an
 inverted element in the deformed mesh.  A CG solve that does not converge also gives
 ``-inf`` (the proposal is rejected) and is flagged in :class:`Aux` so that the driver
-counts and reports it: it is never silently accepted.
+counts and reports it: it is never silently accepted.  An optional smooth barrier of width
+``w`` (:func:`skull_barrier`, off by default) bends the log-density down near the skull for
+gradient kernels; the hard constraint stays.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
 node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.  Gradient kernels
@@ -32,6 +34,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+import scipy.ndimage as ndi
 
 from bayesreg import _xla
 
@@ -40,6 +43,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpyro.distributions as dist  # noqa: E402
 
+from bayesreg.images import interpolate  # noqa: E402
 from bayesreg.fem import ElasticOperator, build_operator, element_strain_energy, shape_gradients  # noqa: E402
 from bayesreg.mesh import Mesh  # noqa: E402
 from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
@@ -123,6 +127,12 @@ class Posterior(NamedTuple):
     rigid_b : (3 n_b, 6)
         Orthonormal basis of the rigid-body modes restricted to the boundary DOFs (the null
         space of the Schur complement ``S``).
+    clearance : (I, J, K) or (1, 1, 1)
+        Signed distance to the forbidden region on its grid (mm, > 0 outside it, zero level
+        on the voxel faces between the classes), for the skull barrier; ``(1, 1, 1)`` zeros
+        when the barrier is off.
+    barrier_width : ()
+        Width ``w`` (mm) of the skull barrier, 0 = off (:func:`skull_barrier`).
     """
 
     op: ElasticOperator
@@ -147,6 +157,8 @@ class Posterior(NamedTuple):
     inv_t_r: jax.Array
     dense_index: jax.Array
     rigid_b: jax.Array
+    clearance: jax.Array
+    barrier_width: jax.Array
 
     @property
     def n_boundary(self) -> int:
@@ -188,6 +200,7 @@ def build_posterior(
     element_group,
     prior: dict,
     phi_ref,
+    barrier_mm: float = 0.0,
 ) -> Posterior:
     """Assemble :class:`Posterior` from a mesh, the SSD term and the parameter layout.
 
@@ -207,12 +220,17 @@ def build_posterior(
         ``{"lam": [(A, B, r1, r2) per group], ...}``.
     phi_ref : (n_free,) array_like
         A valid parameter vector (inside the prior support).
+    barrier_mm : float
+        Width (mm) of the optional smooth skull barrier (:func:`skull_barrier`); 0 = off.
 
     Raises
     ------
     ValueError
-        Non-positive temperatures, an invalid prior or ``phi_ref`` outside its support.
+        Non-positive temperatures, an invalid prior, ``phi_ref`` outside its support or a
+        negative barrier width.
     """
+    if not (barrier_mm >= 0 and np.isfinite(barrier_mm)):
+        raise ValueError(f"the skull barrier width must be finite and >= 0 mm, got {barrier_mm}")
     if not (t_s > 0 and t_r > 0 and np.isfinite(t_s) and np.isfinite(t_r)):
         raise ValueError(f"temperatures must be finite and > 0, got T_s={t_s}, T_r={t_r}")
     n_groups = len(layout.group_names)
@@ -274,7 +292,51 @@ def build_posterior(
         inv_t_r=jnp.asarray(1.0 / t_r),
         dense_index=jnp.asarray(dense_index, dtype=jnp.int32 if n_dof**2 < 2**31 else jnp.int64),
         rigid_b=jnp.asarray(rigid_b),
+        clearance=jnp.asarray(clearance_grid(forbidden) if barrier_mm > 0 else np.zeros((1, 1, 1))),
+        barrier_width=jnp.asarray(float(barrier_mm)),
     )
+
+
+def clearance_grid(forbidden) -> np.ndarray:
+    """Signed distance (mm) of each voxel centre to the forbidden region ``(I, J, K)``:
+    ``edt - h/2`` outside it, ``-(edt - h/2)`` inside (``edt`` the Euclidean distance to the
+    nearest centre of the other class, ``h`` the smallest spacing), so that its trilinear
+    interpolant is zero about where the nearest-voxel rule of the hard constraint flips
+    (exactly, for a wall along voxel faces)."""
+    mask = np.asarray(forbidden.data) > 0
+    spacing = np.linalg.norm(np.asarray(forbidden.affine)[:3, :3], axis=0)
+    half = 0.5 * spacing.min()
+    if not mask.any():
+        return np.full(mask.shape, 1e3)
+    outside = ndi.distance_transform_edt(~mask, sampling=spacing)
+    inside = ndi.distance_transform_edt(mask, sampling=spacing)
+    return np.where(mask, -(inside - half), outside - half)
+
+
+def skull_barrier(post: Posterior, points):
+    """Smooth barrier against the skull: ``-sum (w / d - 1)^2`` over the points with
+    clearance ``0 < d < w`` (``d`` trilinear in :attr:`Posterior.clearance`, ``w =
+    barrier_width``), 0 beyond ``w``, ``-> -inf`` as ``d -> 0``; continuously differentiable.
+
+    An optional change of the model (``model.skull_barrier_mm``, default 0 = off, the
+    paper's hard constraint alone): it bends the log-density down within ``w`` of the skull
+    so that gradient trajectories turn before they reach the hard ``-inf`` wall, which
+    stays in place (no stored draw can violate it).
+
+    Parameters
+    ----------
+    post : Posterior
+    points : (P, 3) array  deformed node positions, world mm
+
+    Returns
+    -------
+    () array
+    """
+    w = post.barrier_width
+    d = interpolate(post.clearance, post.forbidden_inv_affine, points, cval=-1.0)
+    near = (w > 0) & (d < w)
+    d_safe = jnp.where(near, jnp.maximum(d, 1e-6 * jnp.maximum(w, 1e-12)), 1.0)
+    return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0))
 
 
 def split_position(post: Posterior, theta):
@@ -378,7 +440,7 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
         & jnp.isfinite(e_s)
         & jnp.isfinite(e_r)
     )
-    logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior
+    logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior + skull_barrier(post, post.nodes + u)
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
 
 

@@ -209,3 +209,36 @@ def test_condensed_kernel_samples_the_same_posterior():
     assert np.max(np.abs(z)) < 5.0
     rel = np.log(s2 / s1) / np.sqrt(1 / (2 * e1) + 1 / (2 * e2))  # sd of log(sd) ~ 1/sqrt(2 ESS)
     assert np.max(np.abs(rel)) < 5.0
+
+
+def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
+    """The barrier adds -(w/d - 1)^2 for a node at clearance d < w of the skull (a wall at
+    world x = 36.5 mm, where the nearest-voxel rule flips), nothing beyond w, and keeps the
+    hard -inf; its gradient is finite."""
+    mesh, post, theta = small
+    from bayesreg.images import Image
+    from bayesreg.posterior import clearance_grid
+
+    forb = post.forbidden
+    affine = np.linalg.inv(np.asarray(post.forbidden_inv_affine))
+    grid = clearance_grid(Image(np.asarray(forb).astype(np.uint8), affine))
+    w = 1.0
+    barred = post._replace(clearance=jnp.asarray(grid), barrier_width=jnp.asarray(w))
+    k = int(np.argmax(mesh.nodes[mesh.boundary, 0]))  # a node at x = 30 mm
+    x0 = float(mesh.nodes[mesh.boundary[k], 0])
+    for d in (0.5, 0.1, 0.9, 1.5):
+        t = theta.copy()
+        t[3 * k: 3 * k + 3] = [36.5 - d - x0, 0.0, 0.0]
+        lp0, lp1 = float(_lp(post, t)[0]), float(_lp(barred, t)[0])
+        expected = -(w / d - 1.0) ** 2 if d < w else 0.0
+        assert lp1 - lp0 == pytest.approx(expected, abs=1e-8), d
+    t[3 * k] = 36.6 - x0  # across the wall: still -inf
+    assert float(_lp(barred, t)[0]) == -np.inf
+    t[3 * k] = 36.2 - x0
+    g = jax.grad(lambda th: _lp(barred, th)[0])(jnp.asarray(t))
+    assert np.all(np.isfinite(np.asarray(g)))
+    # d(barrier)/dx = -2 (w/d - 1) w / d^2 (clearance falls as x grows): compare with the
+    # difference of the gradients with and without the barrier
+    g0 = jax.grad(lambda th: _lp(post, th)[0])(jnp.asarray(t))
+    d = 0.3
+    assert float(g[3 * k] - g0[3 * k]) == pytest.approx(-2 * (w / d - 1) * w / d**2, rel=1e-6)
