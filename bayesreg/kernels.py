@@ -28,8 +28,8 @@ Warm-up (:func:`build_warmup_step`): Stan's windowed adaptation with BlackJAX's 
 :func:`blackjax.adaptation.mass_matrix.mass_matrix_adaptation` for a diagonal or dense inverse
 mass matrix, :func:`blackjax.adaptation.window_adaptation.build_schedule` for the windows),
 the elastic random walk's covariance from the same windows' covariance of ``eta``
-(``2.38^2 / n_free`` times it, dense: Haario et al.'s adaptive Metropolis), and Robbins-Monro on the log of a common
-multiplier toward acceptance 0.3.
+(``2.38^2 / n_free`` times it, dense: Haario et al.'s adaptive Metropolis), and
+Robbins-Monro on the log of a common multiplier toward acceptance 0.3.
 Each chain adapts its own values; they are frozen after the warm-up.
 """
 

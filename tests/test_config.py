@@ -77,8 +77,10 @@ def test_paper_configs_gradient_variants_differ_only_in_the_sampler(model):
     base = load_config(f"configs/paper_{model}.yaml")
     nuts = load_config(f"configs/paper_{model}_nuts.yaml")
     assert base.sampler.kind == "rwmh" and nuts.sampler.kind == "nuts"
-    assert nuts.model == base.model and nuts.synthetic == base.synthetic and nuts.mesh == base.mesh
-    assert nuts.model.prior_normaliser == "paper"
+    assert nuts.synthetic == base.synthetic and nuts.mesh == base.mesh
+    assert nuts.model.model_copy(update={"skull_barrier_mm": 0.0}) == base.model
+    assert nuts.model.prior_normaliser == "paper" and base.model.skull_barrier_mm == 0.0
+    assert nuts.model.skull_barrier_mm == 1.0
 
 
 def test_sampler_defaults_follow_the_kernel():
@@ -87,6 +89,7 @@ def test_sampler_defaults_follow_the_kernel():
     cfg = load_config(None)
     assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.warmup_steps == 500
     assert cfg.model.prior_normaliser == "exact" and cfg.sampler.use_condensed
+    assert cfg.model.skull_barrier_mm == 1.0
     rw = load_config(None, overrides=["sampler.kind=rwmh"])
     assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
     given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
