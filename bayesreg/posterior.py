@@ -13,7 +13,7 @@ region or outside the image, a parameter outside its prior support or non-positi
 inverted element in the deformed mesh.  A CG solve that does not converge also gives
 ``-inf`` (the proposal is rejected) and is flagged in :class:`Aux` so that the driver
 counts and reports it: it is never silently accepted.  An optional smooth barrier of width
-``w`` (:func:`skull_barrier`, off by default) bends the log-density down near the skull for
+``w`` (:func:`skull_barrier`, ``barrier_mm`` of :func:`build_posterior`) bends the log-density down near the skull for
 gradient kernels; the hard constraint stays.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
@@ -318,8 +318,9 @@ def skull_barrier(post: Posterior, points):
     clearance ``0 < d < w`` (``d`` trilinear in :attr:`Posterior.clearance`, ``w =
     barrier_width``), 0 beyond ``w``, ``-> -inf`` as ``d -> 0``; continuously differentiable.
 
-    An optional change of the model (``model.skull_barrier_mm``, default 0 = off, the
-    paper's hard constraint alone): it bends the log-density down within ``w`` of the skull
+    An optional change of the model (``model.skull_barrier_mm``: 1 mm for new configs; 0 =
+    off, the paper's hard constraint alone, in the quickstart and the paper's configs;
+    measured in ``benchmarks/barrier.py``): it bends the log-density down within ``w`` of the skull
     so that gradient trajectories turn before they reach the hard ``-inf`` wall, which
     stays in place (no stored draw can violate it).
 
