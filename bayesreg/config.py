@@ -214,7 +214,7 @@ class InitConfig(_Strict):
     method: Literal["perturb", "mode"] = Field(
         "perturb",
         description="perturb: chains at the central start plus Gaussian jitter perturb_mm; mode: "
-        "maximise the posterior from the central start (L-BFGS-B) and start the chains "
+        "maximise the posterior from the central start (L-BFGS, optax) and start the chains "
         "overdispersed around the mode",
     )
     fraction: float = Field(0.5, ge=0, le=1, description="between: start at fraction * truth")
