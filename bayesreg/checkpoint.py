@@ -67,7 +67,11 @@ class Checkpoint:
         if not self.config_path.is_file():
             raise FileNotFoundError(f"{self.config_path} not found: not a run directory written "
                                     "with output.checkpoint, or not a run directory at all")
-        return Config.model_validate(json.loads(self.config_path.read_text()))
+        raw = json.loads(self.config_path.read_text())
+        # a run written before a key existed resumes with the behaviour it was started with,
+        # not with a later default
+        raw.setdefault("model", {}).setdefault("skull_barrier_mm", 0.0)
+        return Config.model_validate(raw)
 
     def save_init(self, init) -> None:
         arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}

@@ -12,8 +12,8 @@
 from __future__ import annotations
 
 import time
-from types import SimpleNamespace
 from functools import partial
+from types import SimpleNamespace
 from typing import NamedTuple
 
 import numpy as np
@@ -432,8 +432,9 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     Optimises ``u_b`` and, with ``init.optimize_parameters``, the free elastic parameters
     too (in their logit coordinates, :func:`bayesreg.posterior.from_unconstrained`, kept a
     relative margin 1e-3 inside their prior support); otherwise the parameters stay at
-    ``theta0``'s.  A step into a hard constraint returns a huge value, so the line
-    search backtracks.  With ``prior_normaliser: exact`` this runs without the normaliser
+    ``theta0``'s.  A step into a hard constraint (``-inf``) lies outside the line search's
+    domain and is shortened; if no feasible step gains, the search stops and says so in
+    ``message``.  With ``prior_normaliser: exact`` this runs without the normaliser
     (it depends on the parameters only, and its gradient costs about eight dense
     factorisations), then the parameters alone are optimised with it (at most 100 steps).
 
@@ -443,7 +444,6 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     info : dict  ``{"logp_start", "logp_mode", "iterations", "message"}`` (and
         ``parameter_iterations_exact``)
     """
-
     post = problem.posterior
     nb3 = 3 * post.n_boundary
     theta0 = np.asarray(theta0, dtype=np.float64)
@@ -498,10 +498,11 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
             x = x_new
             if f_new < best_f:
                 best_x, best_f = x, f_new
-            if f_new == v and float(jnp.linalg.norm(g)) > 1e-8:
+            g_norm = float(jnp.linalg.norm(g))
+            if f_new == v and g_norm > 1e-8:
                 message = "no step: the line search found no feasible decrease (a hard constraint)"
                 break
-            if abs(v - f_new) <= 1e-10 * max(abs(f_new), 1.0) or float(jnp.linalg.norm(g)) <= 1e-8:
+            if abs(v - f_new) <= 1e-10 * max(abs(f_new), 1.0) or g_norm <= 1e-8:
                 message = "converged: relative reduction <= 1e-10 or gradient norm <= 1e-8"
                 break
         out = theta.copy()

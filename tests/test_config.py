@@ -94,3 +94,19 @@ def test_sampler_defaults_follow_the_kernel():
     assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
     given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
     assert given.sampler.thinning == 3
+
+
+def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
+    """A checkpointed config without ``model.skull_barrier_mm`` (a run from before the key
+    existed) resumes with the hard constraint alone, not the later default of 1 mm."""
+    import json
+
+    from bayesreg.checkpoint import Checkpoint
+
+    cfg = load_config("configs/quickstart.yaml")
+    raw = cfg.model_dump(mode="json")
+    del raw["model"]["skull_barrier_mm"]
+    (tmp_path / "checkpoint").mkdir()
+    (tmp_path / "checkpoint" / "config.json").write_text(json.dumps(raw))
+    assert Checkpoint(tmp_path).load_config().model.skull_barrier_mm == 0.0
+    assert load_config(None).model.skull_barrier_mm == 1.0
