@@ -705,8 +705,8 @@ def sample_gradient(
     chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = 1 + (target.n_free > 0)
-    eta0 = np.asarray(eta_scale, np.float64)
-    eta0 = eta0 if eta0.ndim == 2 else np.diag(np.broadcast_to(eta0, (target.n_free,)))
+    eta0 = np.asarray(eta_scale, np.float64)  # scales become a diagonal factor in ws_init
+    eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
 
     def init_states():
         return jax.vmap(lambda x: gk.init(target, x, interior0)[0])(x0)
