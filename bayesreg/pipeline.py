@@ -38,7 +38,7 @@ from bayesreg.images import (  # noqa: E402
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
     ParamLayout, Posterior, build_posterior, elastic_groups, log_density, log_density_condensed,
-    add_normaliser, from_unconstrained, log_normaliser, split_position, to_unconstrained,
+    add_normaliser, log_normaliser, split_position,
 )
 from bayesreg.posterior import condensation as condensation_map  # noqa: E402
 from bayesreg.kernels import make_target  # noqa: E402
@@ -430,9 +430,16 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     """Maximise the log posterior from ``theta0`` (L-BFGS, JAX gradients through the solve).
 
     Optimises ``u_b`` and, with ``init.optimize_parameters``, the free elastic parameters
-    too (in their logit coordinates, :func:`bayesreg.posterior.from_unconstrained`, kept a
-    relative margin 1e-3 inside their prior support); otherwise the parameters stay at
-    ``theta0``'s.  A step into a hard constraint (``-inf``) lies outside the line search's
+    too; otherwise the parameters stay at ``theta0``'s.  The joint search runs in two
+    stages of ``init.optimizer_iterations // 2`` L-BFGS iterations each: ``u_b`` alone at
+    ``theta0``'s parameters, then ``u_b`` and the parameters together, these in the
+    coordinates ``log(phi - r1)`` (the result kept a relative margin 1e-3 inside the prior
+    support).  Both choices avoid a trap measured on the paper's uniform model: far from
+    the mode the parameter gradient is meaningless, and the logit coordinates of the
+    sampler (:func:`bayesreg.posterior.from_unconstrained`) saturate at the bounds, so a
+    first joint step that took ``lam`` to its upper bound 1000 never came back (log p
+    -10,476 there, where ``lam`` = 10 with ``u_b`` re-optimised gives -9,376).  A step
+    into a hard constraint (``-inf``, also beyond ``r2``) lies outside the line search's
     domain and is shortened; if no feasible step gains, the search stops and says so in
     ``message``.  With ``prior_normaliser: exact`` this runs without the normaliser
     (it depends on the parameters only, and its gradient costs about eight dense
@@ -509,32 +516,41 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
         out[sl] = np.asarray(best_x)
         return out, start, SimpleNamespace(fun=best_f, nit=nit, message=message)
 
-    # the parameters move in their logit coordinates eta (from_unconstrained; the same
-    # objective, no Jacobian: this is the mode over phi), so no bounds are needed and a
-    # step cannot take lam across its whole range in natural units
-    lo, hi = np.asarray(post.prior_r1), np.asarray(post.prior_r2)
+    # the parameters move in the coordinates x = log(phi - r1) (the same objective, no
+    # Jacobian: this is the mode over phi): positive by construction, a step beyond r2 is
+    # -inf (outside the line search's domain), and unlike the sampler's logit coordinates
+    # the gradient does not vanish near the upper bound
+    lo, hi = np.maximum(np.asarray(post.prior_r1), 0.0), np.asarray(post.prior_r2)
     margin = 1e-3
-    eta_bound = float(np.log(margin) - np.log1p(-margin))
 
-    def in_eta(logdensity):
+    def in_log(logdensity):
         def f(x, guess):
-            phi, _ = from_unconstrained(post, x[nb3:])
+            phi = lo + jnp.exp(x[nb3:])
             return logdensity(jnp.concatenate([x[:nb3], phi]), guess)
         return f
 
-    def to_eta(theta):
-        phi = np.clip(theta[nb3:], lo + margin * (hi - lo), hi - margin * (hi - lo))
-        return np.concatenate([theta[:nb3], np.asarray(to_unconstrained(post, phi))])
+    def clip(phi):  # parameters kept the relative margin inside their support
+        return np.clip(phi, lo + margin * (hi - lo), hi - margin * (hi - lo))
 
-    def to_theta(x):  # parameters kept the relative margin inside their support
-        eta = np.clip(x[nb3:], eta_bound, -eta_bound)
-        return np.concatenate([x[:nb3], np.asarray(from_unconstrained(post, jnp.asarray(eta))[0])])
+    def to_log(theta):
+        return np.concatenate([theta[:nb3], np.log(clip(theta[nb3:]) - lo)])
 
-    x, start, res = maximise(in_eta(logdensity), to_eta(theta0), free, cfg.init.optimizer_iterations)
-    info = {"logp_start": start, "logp_mode": -float(res.fun), "iterations": int(res.nit),
+    def to_theta(x):
+        return np.concatenate([x[:nb3], clip(lo + np.exp(x[nb3:]))])
+
+    iters = cfg.init.optimizer_iterations
+    x = to_log(theta0)
+    if joint and post.n_free:  # stage 1: u_b alone at theta0's parameters
+        x, start, res1 = maximise(in_log(logdensity), x, slice(0, nb3), max(iters // 2, 1))
+        x, _, res = maximise(in_log(logdensity), x, free, max(iters - iters // 2, 1))
+        nit = res1.nit + res.nit
+    else:
+        x, start, res = maximise(in_log(logdensity), x, free, iters)
+        nit = res.nit
+    info = {"logp_start": start, "logp_mode": -float(res.fun), "iterations": int(nit),
             "message": str(res.message), "parameters_optimized": bool(joint)}
     if joint and cfg.model.prior_normaliser == "exact" and post.n_free:
-        x, _, res_p = maximise(in_eta(make_logdensity(problem, cfg)), x, slice(nb3, post.dim), 100)
+        x, _, res_p = maximise(in_log(make_logdensity(problem, cfg)), x, slice(nb3, post.dim), 100)
         info.update(logp_mode=-float(res_p.fun), parameter_iterations_exact=int(res_p.nit))
     return (to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])), info
 

@@ -413,7 +413,9 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         ``max_violation_mm`` = max over the non-pushed nodes of ``d(x_n + u_n)`` (> 0: in
         the skull; about ``-clearance`` at a contact; None without such nodes);
         ``max_violation_pushed_mm`` the same
-        for the pushed nodes (not constrained); ``n_forbidden_nodes`` (every node, by the
+        for the pushed nodes (not constrained); ``max_constraint_mm`` = ``max g_n`` over
+        the constrained nodes (``<= tol_mm`` when converged: ``d_n <= -c_n``, where ``c_n``
+        is below ``clearance`` for a node nearer the skull at rest); ``n_forbidden_nodes`` (every node, by the
         nearest-voxel rule of ``posterior._node_forbidden``); ``n_active`` (nodes with
         ``g_n >= -tol_mm``); ``iterations`` (outer), ``newton_iterations`` (total);
         ``penalty`` (final dimensionless ``rho``); ``converged``; ``n_inverted`` (deformed
@@ -625,6 +627,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         "energy_unconstrained": float(energy_unc),
         "max_violation_mm": float(d_all[cons].max()) if cons.size else None,
         "max_violation_pushed_mm": float(d_all[pushed].max()),
+        "max_constraint_mm": float(g.max()) if cons.size else None,
         "n_forbidden_nodes": int(np.sum(_nearest_forbidden(mask, inv_affine, nodes + u))),
         "n_active": int(np.sum(g >= -tol_mm)),
         "iterations": int(it),

@@ -242,3 +242,38 @@ def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
     g0 = jax.grad(lambda th: _lp(post, th)[0])(jnp.asarray(t))
     d = 0.3
     assert float(g[3 * k] - g0[3 * k]) == pytest.approx(-2 * (w / d - 1) * w / d**2, rel=1e-6)
+
+
+def test_find_mode_reaches_a_stationary_point_from_a_far_start():
+    """``pipeline.find_mode`` (u_b alone, then u_b and log(phi) jointly): from a start with
+    one ``lam`` at 97% of its prior range the returned point gains log p and its gradient
+    in the search coordinates ``(u_b, log phi)`` has fallen by four orders of magnitude."""
+    from bayesreg.config import Config
+    from bayesreg.pipeline import Problem, find_mode
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    layout = ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2)),
+                         fixed=(("mu", 0, 1.0), ("mu", 1, 1.0), ("mu", 2, 1.0)))
+    phi = np.array([5.0, 10.0, 97.0])
+    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+    _, base, theta = _box_posterior(prior, 3.0, np.array([1.0, 10.0, 30.0, 0.5, 1.0]))
+    post = build_posterior(mesh, base.ssd, Image(np.asarray(base.forbidden).astype(np.uint8),
+                                                  np.linalg.inv(np.asarray(base.forbidden_inv_affine))),
+                           t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
+                           prior=prior, phi_ref=phi)
+    theta = np.concatenate([theta[: 3 * len(mesh.boundary)], phi])
+    problem = Problem(None, None, None, mesh, layout, mesh.tissue, post, None, None, phi,
+                      1.0, 0, {})
+    cfg = Config.model_validate({"model": {"prior_normaliser": "paper"},
+                                 "init": {"optimizer_iterations": 600}})
+    mode, info = find_mode(problem, cfg, theta)
+    nb3 = 3 * len(mesh.boundary)
+
+    def grad_search(th):  # gradient in (u_b, log phi): d/d log phi = phi d/d phi
+        g = np.asarray(jax.grad(lambda t: _lp(post, t)[0])(jnp.asarray(th)))
+        return np.concatenate([g[:nb3], th[nb3:] * g[nb3:]])
+
+    assert info["logp_mode"] > info["logp_start"]
+    assert float(_lp(post, mode)[0]) == pytest.approx(info["logp_mode"], rel=1e-9)
+    assert np.all((mode[nb3:] > 0) & (mode[nb3:] < 100))
+    assert np.linalg.norm(grad_search(mode)) <= 1e-4 * np.linalg.norm(grad_search(theta))
