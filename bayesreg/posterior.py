@@ -52,6 +52,9 @@ __all__ = [
     "Aux",
     "ParamLayout",
     "build_posterior",
+    "with_skull_barrier",
+    "skull_barrier",
+    "skull_distance",
     "log_density",
     "log_density_condensed",
     "condensation",
@@ -230,8 +233,6 @@ def build_posterior(
         Non-positive temperatures, an invalid prior, ``phi_ref`` outside its support or a
         negative barrier width.
     """
-    if not (barrier_mm >= 0 and np.isfinite(barrier_mm)):
-        raise ValueError(f"the skull barrier width must be finite and >= 0 mm, got {barrier_mm}")
     if not (t_s > 0 and t_r > 0 and np.isfinite(t_s) and np.isfinite(t_r)):
         raise ValueError(f"temperatures must be finite and > 0, got T_s={t_s}, T_r={t_r}")
     n_groups = len(layout.group_names)
@@ -271,12 +272,7 @@ def build_posterior(
         rigid[:, :, 3 + k] = np.cross(np.eye(3)[k], xb)
     rigid_b = np.linalg.qr(rigid.reshape(-1, 6))[0]
     spacing = np.linalg.norm(np.asarray(forbidden.affine, dtype=np.float64)[:3, :3], axis=0)
-    offsets = np.zeros((0, 3), dtype=np.int32)
-    if barrier_mm > 0:
-        r = max(1, int(np.ceil(barrier_mm / spacing.min() - 1e-12)))  # cube at offset k: >= (k-1) h away
-        rng = np.arange(-r, r + 1)
-        offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(-1, 3)
-    return Posterior(
+    post = Posterior(
         op=op,
         nodes=jnp.asarray(mesh.nodes),
         tets=jnp.asarray(mesh.tets, dtype=jnp.int32),
@@ -300,9 +296,32 @@ def build_posterior(
         dense_index=jnp.asarray(dense_index, dtype=jnp.int32 if n_dof**2 < 2**31 else jnp.int64),
         rigid_b=jnp.asarray(rigid_b),
         voxel_size=jnp.asarray(spacing),
-        barrier_offsets=jnp.asarray(offsets, dtype=jnp.int32),
-        barrier_width=jnp.asarray(float(barrier_mm)),
+        barrier_offsets=jnp.zeros((0, 3), dtype=jnp.int32),
+        barrier_width=jnp.asarray(0.0),
     )
+    return with_skull_barrier(post, barrier_mm)
+
+
+def with_skull_barrier(post: Posterior, barrier_mm: float) -> Posterior:
+    """``post`` with the skull barrier of width ``barrier_mm`` (mm; 0 = off) in place of its
+    own (:func:`skull_barrier`): sets :attr:`Posterior.barrier_width` and the voxel offsets
+    searched, ``{-R..R}^3`` with ``R = max(1, ceil(w / min voxel_size))`` (a cube at offset
+    ``k`` is at least ``(k - 1) h`` away, so every cube nearer than ``w`` is searched).
+
+    Raises
+    ------
+    ValueError
+        ``barrier_mm`` negative or not finite.
+    """
+    if not (barrier_mm >= 0 and np.isfinite(barrier_mm)):
+        raise ValueError(f"the skull barrier width must be finite and >= 0 mm, got {barrier_mm}")
+    offsets = np.zeros((0, 3), dtype=np.int32)
+    if barrier_mm > 0:
+        r = max(1, int(np.ceil(barrier_mm / float(np.min(np.asarray(post.voxel_size))) - 1e-12)))
+        rng = np.arange(-r, r + 1)
+        offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(-1, 3)
+    return post._replace(barrier_offsets=jnp.asarray(offsets, dtype=jnp.int32),
+                         barrier_width=jnp.asarray(float(barrier_mm)))
 
 
 def skull_distance(post: Posterior, points):
