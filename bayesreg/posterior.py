@@ -390,7 +390,7 @@ def skull_barrier(post: Posterior, points):
     if post.barrier_offsets.shape[0] == 0:
         return jnp.zeros(())
     d = skull_distance(post, points)
-    near = (w > 0) & (d < w)
+    near = d < w
     d_safe = jnp.where(near, jnp.maximum(d, 1e-6 * jnp.maximum(w, 1e-12)), 1.0)
     return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0))
 

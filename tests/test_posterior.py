@@ -217,18 +217,10 @@ def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
     soft minimum over the wall's cubes, nothing beyond w, and keeps the hard -inf; its
     gradient is finite and equals the formula's."""
     mesh, post, theta = small
-    from bayesreg.images import Image
-    from bayesreg.posterior import skull_distance
+    from bayesreg.posterior import skull_distance, with_skull_barrier
 
-    affine = np.linalg.inv(np.asarray(post.forbidden_inv_affine))
     w = 1.0
-    barred = build_posterior(
-        mesh, post.ssd, Image(np.asarray(post.forbidden).astype(np.uint8), affine), t_s=0.5,
-        t_r=3.0, layout=ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2),
-                                                             ("mu", 0), ("mu", 2)),
-                                    fixed=(("mu", 1, 1.0),)),
-        element_group=mesh.tissue, prior={"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)},
-        phi_ref=theta[-5:], barrier_mm=w)
+    barred = with_skull_barrier(post, w)
     assert barred.barrier_offsets.shape == (27, 3)  # 1 mm voxels, w = 1 mm: the 27 nearest cubes
     k = int(np.argmax(mesh.nodes[mesh.boundary, 0]))  # a node at x = 30 mm
     x0 = np.asarray(mesh.nodes[mesh.boundary[k]])
