@@ -119,8 +119,9 @@ class ModelConfig(_Strict):
         "distance d < w from the skull's voxel cubes (a soft minimum, never positive inside "
         "the forbidden voxels), added to the log-density (a change of the model that "
         "helps gradient kernels turn before the hard constraint: at 1 mm NUTS diverged in 12% "
-        "of transitions against 85% on the wall alone, benchmarks/barrier.py); 0: off, the paper's hard constraint alone (which "
-        "stays in place either way).  The quickstart and the paper's configs say 0")
+        "of transitions against 85% on the wall alone, benchmarks/barrier.py); 0: off, the "
+        "paper's hard constraint alone (which stays in place either way).  The quickstart "
+        "and the paper's configs say 0")
     fixed: FixedParam | None = FixedParam()
     prior_normaliser: Literal["paper", "exact"] = Field(
         "exact", description="exact: the elastic prior on u_b carries its normaliser "

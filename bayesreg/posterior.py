@@ -13,8 +13,8 @@ region or outside the image, a parameter outside its prior support or non-positi
 inverted element in the deformed mesh.  A CG solve that does not converge also gives
 ``-inf`` (the proposal is rejected) and is flagged in :class:`Aux` so that the driver
 counts and reports it: it is never silently accepted.  An optional smooth barrier of width
-``w`` (:func:`skull_barrier`, ``barrier_mm`` of :func:`build_posterior`) bends the log-density down near the skull for
-gradient kernels; the hard constraint stays.
+``w`` (:func:`skull_barrier`, ``barrier_mm`` of :func:`build_posterior`) bends the
+log-density down near the skull for gradient kernels; the hard constraint stays.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
 node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.  Gradient kernels
@@ -346,17 +346,13 @@ def skull_distance(post: Posterior, points):
     -------
     (P,) array  mm (``+inf`` where no forbidden cube is searched)
     """
-    c = points @ post.forbidden_inv_affine[:3, :3].T + post.forbidden_inv_affine[:3, 3]
+    c = _voxel_coordinates(post, points)
     v = jnp.floor(c + 0.5)  # nearest voxel (the hard rule's)
     cells = v[:, None, :] + post.barrier_offsets  # (P, K, 3)
     gap = jnp.maximum(jnp.abs(c[:, None, :] - cells) - 0.5, 0.0) * post.voxel_size
     s2 = jnp.sum(gap * gap, axis=-1)
     dist = jnp.where(s2 > 0, jnp.sqrt(jnp.where(s2 > 0, s2, 1.0)), 0.0)  # 0 inside the cube
-    shape = jnp.array(post.forbidden.shape)
-    idx = cells.astype(jnp.int32)
-    inside = jnp.all((idx >= 0) & (idx < shape), axis=-1)
-    idc = jnp.clip(idx, 0, shape - 1)
-    forb = ~inside | post.forbidden[idc[..., 0], idc[..., 1], idc[..., 2]]
+    forb = _voxel_forbidden(post, cells.astype(jnp.int32))
     tau = post.barrier_width / 20.0
     z = jnp.where(forb, -dist / tau, -jnp.inf)
     return -tau * jax.nn.logsumexp(z, axis=-1)
@@ -433,13 +429,22 @@ def _log_prior(post: Posterior, phi):
     return jnp.sum(lp), jnp.all(inside)
 
 
-def _node_forbidden(post: Posterior, points):
-    c = points @ post.forbidden_inv_affine[:3, :3].T + post.forbidden_inv_affine[:3, 3]
-    idx = jnp.floor(c + 0.5).astype(jnp.int32)  # nearest voxel (as scipy's order-0)
+def _voxel_coordinates(post: Posterior, points):
+    """Continuous voxel coordinates ``(..., 3)`` of world points on the forbidden grid."""
+    return points @ post.forbidden_inv_affine[:3, :3].T + post.forbidden_inv_affine[:3, 3]
+
+
+def _voxel_forbidden(post: Posterior, idx):
+    """Whether the voxels ``idx`` ``(..., 3)`` int are forbidden (outside the grid counts)."""
     shape = jnp.array(post.forbidden.shape)
     inside = jnp.all((idx >= 0) & (idx < shape), axis=-1)
     idc = jnp.clip(idx, 0, shape - 1)
-    return (~inside) | post.forbidden[idc[:, 0], idc[:, 1], idc[:, 2]]
+    return ~inside | post.forbidden[idc[..., 0], idc[..., 1], idc[..., 2]]
+
+
+def _node_forbidden(post: Posterior, points):
+    idx = jnp.floor(_voxel_coordinates(post, points) + 0.5).astype(jnp.int32)  # nearest voxel
+    return _voxel_forbidden(post, idx)  # (as scipy's order-0)
 
 
 def energies(post: Posterior, u, phi):
