@@ -43,7 +43,7 @@ from bayesreg.posterior import (  # noqa: E402
 from bayesreg.posterior import condensation as condensation_map  # noqa: E402
 from bayesreg.kernels import make_target  # noqa: E402
 from bayesreg.sampler import Condensation, SamplerResult, sample, sample_gradient  # noqa: E402
-from bayesreg.similarity import GAUSS_BARY, build_ssd  # noqa: E402
+from bayesreg.similarity import build_ssd  # noqa: E402
 from bayesreg.synthetic import Truth, brain_shift, constrained_shift, warp_image  # noqa: E402
 
 __all__ = [
@@ -276,7 +276,8 @@ def assemble(cfg: Config, data: dict) -> Problem:
                     for i in (f, m))
     forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
     post = build_posterior(
-        mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s), forbidden,
+        mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s, quadrature_level=cfg.model.quadrature_level),
+        forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,
     )
@@ -640,20 +641,26 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
     u[idf] = h @ u_b
     u = u.reshape(-1, 3)
     term = post.ssd
-    u_q = np.einsum("qa,mad->mqd", GAUSS_BARY, u[mesh.tets])
+    bary = np.asarray(term.bary)  # (Q, 4)
+    nq = len(bary)
+    u_q = np.einsum("qa,mad->mqd", bary, u[mesh.tets])
     y = np.asarray(term.points) + u_q
     grad_m = jax.vmap(jax.grad(lambda p: interpolate(term.m, term.m_inv_affine, p, term.cval)))(
         jnp.asarray(y.reshape(-1, 3))
     )
-    grad_m = np.asarray(grad_m).reshape(len(mesh.tets), 4, 3)
-    vals = -np.asarray(term.sqrt_w)[:, :, None, None] * GAUSS_BARY[None, :, :, None] * grad_m[:, :, None, :]
-    rows = np.broadcast_to(np.arange(4 * len(mesh.tets)).reshape(-1, 4)[:, :, None, None], vals.shape)
+    grad_m = np.asarray(grad_m).reshape(len(mesh.tets), nq, 3)
+    vals = -np.asarray(term.sqrt_w)[:, :, None, None] * bary[None, :, :, None] * grad_m[:, :, None, :]
+    rows = np.broadcast_to(np.arange(nq * len(mesh.tets)).reshape(-1, nq)[:, :, None, None], vals.shape)
     cols = 3 * mesh.tets[:, None, :, None] + np.arange(3)[None, None, None, :]
     cols = np.broadcast_to(cols, vals.shape)
     jac = sp.csr_array((vals.ravel(), (rows.ravel(), cols.ravel())),
-                       shape=(4 * len(mesh.tets), 3 * len(mesh.nodes)))
-    j_b = jac[:, bd].toarray() + jac[:, idf] @ h
-    prec = 2.0 * float(post.inv_t_s) * (j_b.T @ j_b) + float(post.inv_t_r) * schur
+                       shape=(nq * len(mesh.tets), 3 * len(mesh.nodes)))
+    # J_b^T J_b with J_b = J_b' + J_i H, through the sparse Gram matrix (J_b itself is dense
+    # with one row per quadrature point: too large for a composite rule)
+    gram = (jac.T @ jac).tocsr()
+    g_ib = gram[idf][:, bd]
+    jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
+    prec = 2.0 * float(post.inv_t_s) * jtj + float(post.inv_t_r) * schur
     prec = 0.5 * (prec + prec.T)
     ridge = 1e-6 * np.trace(prec) / len(prec)
     return prec + ridge * np.eye(len(prec))

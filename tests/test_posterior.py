@@ -12,7 +12,7 @@ from bayesreg.similarity import build_ssd
 from conftest import box_mesh
 
 
-def _box_posterior(prior, t_r, phi):
+def _box_posterior(prior, t_r, phi, *, quadrature_level=0):
     mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
     rng = np.random.default_rng(0)
     shape = (48, 48, 48)
@@ -26,7 +26,8 @@ def _box_posterior(prior, t_r, phi):
     layout = ParamLayout(("csf", "gm", "wm"),
                          free=(("lam", 0), ("lam", 1), ("lam", 2), ("mu", 0), ("mu", 2)),
                          fixed=(("mu", 1, 1.0),))
-    post = build_posterior(mesh, build_ssd(mesh.nodes, mesh.tets, f, m), forbidden, t_s=0.5,
+    post = build_posterior(mesh, build_ssd(mesh.nodes, mesh.tets, f, m, quadrature_level=quadrature_level),
+                           forbidden, t_s=0.5,
                            t_r=t_r, layout=layout, element_group=mesh.tissue, prior=prior,
                            phi_ref=phi)
     theta = np.concatenate([0.3 * rng.normal(size=3 * len(mesh.boundary)), phi])
@@ -339,3 +340,39 @@ def test_find_mode_reaches_a_stationary_point_from_a_far_start():
     assert float(_lp(post, mode)[0]) == pytest.approx(info["logp_mode"], rel=1e-9)
     assert np.all((mode[nb3:] > 0) & (mode[nb3:] < 100))
     assert np.linalg.norm(grad_search(mode)) <= 1e-4 * np.linalg.norm(grad_search(theta))
+
+
+@pytest.mark.parametrize("level", [0, 1])
+def test_laplace_precision_is_the_gauss_newton_matrix_of_the_condensed_posterior(level):
+    """``pipeline.laplace_precision`` = ``2 J_b^T J_b / T_s + S / T_r`` (+ its small ridge), with
+    ``J_b`` the Jacobian of the quadrature residuals with respect to ``u_b`` through the
+    interior map ``u_i = -K_ii^-1 K_ib u_b`` (here by ``jax.jacfwd`` and a dense solve)."""
+    import scipy.linalg as sla
+
+    from bayesreg.fem import stiffness_matrix
+    from bayesreg.pipeline import Problem, _dofs, laplace_precision
+    from bayesreg.posterior import elastic_groups
+    from bayesreg.similarity import ssd_residuals
+
+    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+    phi = np.array([1.0, 10.0, 30.0, 0.5, 1.0])
+    mesh, post, theta = _box_posterior(prior, 3.0, phi, quadrature_level=level)
+    problem = Problem(None, None, None, mesh, None, mesh.tissue, post, None, None, phi, 1.0, 0, {})
+    prec = laplace_precision(problem, theta)
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[mesh.tissue], mu_g[mesh.tissue]).toarray()
+    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    h = -sla.solve(k[np.ix_(idf, idf)], k[np.ix_(idf, bd)], assume_a="pos")
+    schur = k[np.ix_(bd, bd)] + k[np.ix_(idf, bd)].T @ h
+
+    def residuals(u_b):
+        u = jnp.zeros(3 * len(mesh.nodes)).at[bd].set(u_b).at[idf].set(jnp.asarray(h) @ u_b)
+        return ssd_residuals(post.ssd, u.reshape(-1, 3)[mesh.tets]).ravel()
+
+    nb3 = 3 * len(mesh.boundary)
+    jac = np.asarray(jax.jacfwd(residuals)(jnp.asarray(theta[:nb3])))
+    assert jac.shape == (len(mesh.tets) * 4 * 8**level, nb3)
+    expected = 2.0 / 0.5 * jac.T @ jac + schur / 3.0
+    ridge = 1e-6 * np.trace(expected) / nb3
+    np.testing.assert_allclose(prec, expected + ridge * np.eye(nb3), rtol=1e-7,
+                               atol=1e-9 * np.abs(expected).max())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayesreg.images import Image, interpolate, interpolate_numpy
-from bayesreg.similarity import build_ssd, gauss_points, ssd
+from bayesreg.similarity import GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, ssd
 from conftest import box_mesh
 
 
@@ -18,11 +18,12 @@ def _grid_image(fn, shape=(40, 40, 40), spacing=1.0, origin=-5.0):
     return Image(fn(x), affine)
 
 
-def test_quadrature_of_linear_image_is_exact():
+@pytest.mark.parametrize("level", [0, 1])
+def test_quadrature_of_linear_image_is_exact(level):
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
     lin = _grid_image(lambda x: 0.5 + 0.01 * x[..., 0] - 0.02 * x[..., 1] + 0.03 * x[..., 2])
     zero = Image(np.zeros_like(lin.data), lin.affine)
-    term = build_ssd(m.nodes, m.tets, lin, zero)
+    term = build_ssd(m.nodes, m.tets, lin, zero, quadrature_level=level)
     # E_s with m = 0 is the integral of f^2 (a quadratic: the 4-point rule is exact)
     a = np.array([0.01, -0.02, 0.03])
     # int over [0,20]^3 of (0.5 + a.x)^2
@@ -33,8 +34,35 @@ def test_quadrature_of_linear_image_is_exact():
     exact = vol * ((0.5 + mean_lin) ** 2 + var_terms)
     got = float(ssd(term, jnp.zeros((len(m.tets), 4, 3))))
     assert got == pytest.approx(exact, rel=1e-10)
-    pts, w = gauss_points(m.nodes, m.tets)
+    pts, w = gauss_points(m.nodes, m.tets, level)
     assert w.sum() == pytest.approx(vol)
+    assert pts.shape == (len(m.tets), 4 * 8**level, 3)
+
+
+def _monomial_integral(p):
+    """Mean of l1^p1 l2^p2 l3^p3 l4^p4 over a tetrahedron: 3! prod(p_i!) / (|p| + 3)!."""
+    from math import factorial
+    return 6 * np.prod([factorial(k) for k in p]) / factorial(sum(p) + 3)
+
+
+def test_composite_rule_partitions_the_element_and_converges():
+    assert np.array_equal(quadrature_rule(0)[0], GAUSS_BARY)
+    # degree <= 2 exact at every level (only true if the children tile the element exactly)
+    for level in (0, 1, 2):
+        bary, w = quadrature_rule(level)
+        assert bary.shape == (4 * 8**level, 4) and w.sum() == pytest.approx(1.0)
+        assert np.allclose(bary.sum(1), 1.0) and bary.min() > 0
+        for p in [(0, 0, 0, 0), (1, 0, 0, 0), (2, 0, 0, 0), (1, 1, 0, 0), (0, 1, 0, 1)]:
+            got = np.sum(w * np.prod(bary ** np.asarray(p), axis=1))
+            assert got == pytest.approx(_monomial_integral(p), rel=1e-12), (level, p)
+    # a smooth non-polynomial: error O(h^3), i.e. down ~8x per level
+    fn = lambda b: np.exp(2.0 * b[:, 0] - b[:, 1] + 0.5 * b[:, 2] * b[:, 3])  # noqa: E731
+    ref_b, ref_w = quadrature_rule(3)
+    ref = np.sum(ref_w * fn(ref_b))
+    err = [abs(np.sum(w * fn(b)) - ref) for b, w in map(quadrature_rule, (0, 1, 2))]
+    assert err[0] / err[1] > 6 and err[1] / err[2] > 6
+    with pytest.raises(ValueError, match="quadrature level"):
+        quadrature_rule(4)
 
 
 def test_identical_images_zero_displacement_give_zero():
