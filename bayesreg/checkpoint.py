@@ -71,6 +71,7 @@ class Checkpoint:
         # a run written before a key existed resumes with the behaviour it was started with,
         # not with a later default
         raw.setdefault("model", {}).setdefault("skull_barrier_mm", 0.0)
+        raw["model"].setdefault("quadrature_level", 0)
         return Config.model_validate(raw)
 
     def save_init(self, init) -> None:

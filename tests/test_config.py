@@ -78,9 +78,10 @@ def test_paper_configs_gradient_variants_differ_only_in_the_sampler(model):
     nuts = load_config(f"configs/paper_{model}_nuts.yaml")
     assert base.sampler.kind == "rwmh" and nuts.sampler.kind == "nuts"
     assert nuts.synthetic == base.synthetic and nuts.mesh == base.mesh
-    assert nuts.model.model_copy(update={"skull_barrier_mm": 0.0}) == base.model
+    assert nuts.model.model_copy(update={"skull_barrier_mm": 0.0, "quadrature_level": 0}) == base.model
     assert nuts.model.prior_normaliser == "paper" and base.model.skull_barrier_mm == 0.0
     assert nuts.model.skull_barrier_mm == 1.0
+    assert base.model.quadrature_level == 0 and nuts.model.quadrature_level == 1
 
 
 def test_sampler_defaults_follow_the_kernel():
@@ -89,7 +90,8 @@ def test_sampler_defaults_follow_the_kernel():
     cfg = load_config(None)
     assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.warmup_steps == 500
     assert cfg.model.prior_normaliser == "exact" and cfg.sampler.use_condensed
-    assert cfg.model.skull_barrier_mm == 1.0
+    assert cfg.model.skull_barrier_mm == 1.0 and cfg.model.quadrature_level == 1
+    assert load_config("configs/quickstart.yaml").model.quadrature_level == 0
     rw = load_config(None, overrides=["sampler.kind=rwmh"])
     assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
     given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
@@ -97,16 +99,18 @@ def test_sampler_defaults_follow_the_kernel():
 
 
 def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
-    """A checkpointed config without ``model.skull_barrier_mm`` (a run from before the key
-    existed) resumes with the hard constraint alone, not the later default of 1 mm."""
+    """A checkpointed config without ``model.skull_barrier_mm`` and ``quadrature_level`` (a run
+    from before the keys existed) resumes with the hard constraint alone and the 4-point rule,
+    not the later defaults (1 mm, level 1)."""
     import json
 
     from bayesreg.checkpoint import Checkpoint
 
     cfg = load_config("configs/quickstart.yaml")
     raw = cfg.model_dump(mode="json")
-    del raw["model"]["skull_barrier_mm"]
+    del raw["model"]["skull_barrier_mm"], raw["model"]["quadrature_level"]
     (tmp_path / "checkpoint").mkdir()
     (tmp_path / "checkpoint" / "config.json").write_text(json.dumps(raw))
-    assert Checkpoint(tmp_path).load_config().model.skull_barrier_mm == 0.0
+    resumed = Checkpoint(tmp_path).load_config().model
+    assert resumed.skull_barrier_mm == 0.0 and resumed.quadrature_level == 0
     assert load_config(None).model.skull_barrier_mm == 1.0
