@@ -920,8 +920,16 @@ def _paper_key(row: str, runs: dict) -> str | None:
 def _run_summary(run: RunData) -> dict:
     s, mesh, t = run.info.get("sampler", {}), run.info.get("mesh", {}), run.info.get("timings_s", {})
     wall = t.get("total_before_outputs_s", sum(v for v in t.values() if isinstance(v, (int, float))))
+    cfg = run.info.get("config", {})
+    model, kind = cfg.get("model", {}), cfg.get("sampler", {}).get("kind")
+    # how E_s, the skull constraint and Eq. 12 were evaluated (older runs: the defaults of then)
+    setup = ", ".join(x for x in [
+        kind, f"quadrature {4 * 8 ** int(model.get('quadrature_level', 0))} pts/tet",
+        f"barrier {float(model.get('skull_barrier_mm', 0.0)):g} mm",
+        f"normaliser {model['prior_normaliser']}" if "prior_normaliser" in model else None,
+    ] if x) if cfg else "–"
     return {
-        "path": str(run.path), "name": run.name, "elastic": run.elastic,
+        "path": str(run.path), "name": run.name, "elastic": run.elastic, "setup": setup,
         "n_nodes": mesh.get("n_nodes", len(run.points)),
         "n_boundary": mesh.get("n_boundary", mesh.get("n_boundary_nodes", len(run.boundary))),
         "n_tets": mesh.get("n_tets", len(run.tets)),
@@ -962,12 +970,13 @@ _CAPTIONS = {
 def _markdown(runs, summaries, t1, t2, cov, ratios, fig5) -> str:
     out = ["# Bayesian registration: reproduction of Risholm et al., Section 4", ""]
     out += ["## Runs", ""]
-    keys = ["name", "elastic", "n_nodes", "n_boundary", "n_tets", "chains", "draws_per_chain",
+    keys = ["name", "elastic", "setup", "n_nodes", "n_boundary", "n_tets", "chains", "draws_per_chain",
             "thinning", "wall_time_s", "steps_per_s_per_chain", "rhat_classic_max", "converged"]
     ps = PAPER["setup"]
     rows = [[lab, *[s[k] if isinstance(s[k], str) else _fmt(s[k], 2) for k in keys]]
             for lab, s in summaries.items()]
-    rows.append(["paper", "BrainWeb", "uniform / tissue", ps["n_nodes"], ps["n_boundary"],
+    rows.append(["paper", "BrainWeb", "uniform / tissue",
+                 "rwmh, quadrature 4 pts/tet, hard constraint, normaliser paper", ps["n_nodes"], ps["n_boundary"],
                  ps["n_tets"], ps["chains"], ps["draws_per_chain"], ps["thinning"],
                  f"~{ps['wall_time_h']} h", ps["steps_per_s_per_chain"],
                  f"< {ps['rhat_threshold']}", "yes"])

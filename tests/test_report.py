@@ -100,7 +100,9 @@ def make_run(path, *, elastic="tissue", scale=1.0, init_scale=1.0, truth=True, s
         _nii(path / "displacement_init.nii.gz", d_true + init_scale * INIT_OFFSET * inside)
     info = {
         "name": path.name,
-        "config": {"model": {"elastic": elastic}},
+        "config": {"model": {"elastic": elastic, "quadrature_level": 1 if elastic == "tissue" else 0,
+                             "skull_barrier_mm": 1.0, "prior_normaliser": "paper"},
+                   "sampler": {"kind": "nuts" if elastic == "tissue" else "rwmh"}},
         "timings_s": {"sampling_s": 10.0, "total_before_outputs_s": 12.5},
         "sampler": {"chains": C, "draws_per_chain": D, "thinning": 10, "steps_per_chain": 10 * D,
                     "acceptance": [0.25, 0.3], "rhat_classic_max": 1.05, "converged": True,
@@ -182,7 +184,9 @@ def test_write_report_all_artefacts(runs, tmp_path):
     assert rep["fig5"]["skull_distance_mm"] <= 6.0
     assert any(v is not None for row in rep["fig5"]["skull_limits_mm"] for v in row)
     md = (out / "report.md").read_text()
-    for s in ("Table 1", "Table 2", "0.160", "0.065", "fig5_boundary_node.png", "Coverage"):
+    for s in ("Table 1", "Table 2", "0.160", "0.065", "fig5_boundary_node.png", "Coverage",
+              "nuts, quadrature 32 pts/tet, barrier 1 mm, normaliser paper",
+              "rwmh, quadrature 4 pts/tet, barrier 1 mm"):
         assert s in md, s
 
 
