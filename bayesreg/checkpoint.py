@@ -72,6 +72,7 @@ class Checkpoint:
         # not with a later default
         raw.setdefault("model", {}).setdefault("skull_barrier_mm", 0.0)
         raw["model"].setdefault("quadrature_level", 0)
+        raw.setdefault("synthetic", {}).setdefault("outside", "background")
         return Config.model_validate(raw)
 
     def save_init(self, init) -> None:

@@ -77,6 +77,10 @@ class SyntheticConfig(_Strict):
         None, ge=0, description="constrained truth: distance kept from the skull region (default "
         "half a voxel diagonal, so no node's nearest voxel is skull)")
     tol_mm: float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
+    outside: Literal["extend", "background"] = Field(
+        "extend", description="voxels of m that no deformed element covers: extend, f shifted by "
+        "the displacement continued from the nearest boundary nodes (so that trilinear samples "
+        "of m near the deformed surface are not blended with a constant); background, 0")
     lam: TissueValues = TissueValues(csf=1e-6, gm=10.0, wm=30.0)
     mu: TissueValues = TissueValues(csf=1e-6, gm=1.0, wm=1.0)
 

@@ -236,7 +236,7 @@ def make_data(cfg: Config) -> dict:
     t = time.perf_counter()
     if cfg.synthetic.enabled:
         truth, truth_info = _make_truth(cfg, mesh, labels)
-        m = warp_image(f, mesh, truth.u, background=0.0)
+        m = warp_image(f, mesh, truth.u, background=0.0, outside=cfg.synthetic.outside)
     elif m is None:  # pragma: no cover - guarded by the config validator
         raise ValueError("no intra-operative image")
     timings["synthetic_s"] = time.perf_counter() - t

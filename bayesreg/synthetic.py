@@ -23,6 +23,7 @@ import scipy.linalg as sla
 import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
 
 from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image, interpolate_numpy
@@ -220,19 +221,44 @@ def grid_moments(mesh: Mesh, grid: Image, draws, *, located=None):
     return mean.reshape(*shape, 3), sd.reshape(*shape, 3)
 
 
-def warp_image(f: Image, mesh: Mesh, u, *, background=0.0) -> Image:
+def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "background",
+               extend_k: int = 8) -> Image:
     """Intra-operative image ``m`` with ``m(x + u(x)) = f(x)`` for the FE map ``x -> x + u(x)``.
 
     For every voxel centre ``y`` of ``m`` (same grid as ``f``) the deformed element
     containing ``y`` is found; its barycentric coordinates give ``x`` in the undeformed
     element and ``m(y) = f(x)`` (trilinear).  Voxels covered by no deformed element take
-    ``background``.
+    ``background`` (``outside="background"``) or, with ``outside="extend"``,
+    ``f(y - u~(y))``, ``u~`` the inverse-square-distance mean of the displacements of the
+    ``extend_k`` deformed boundary nodes nearest ``y``: the displacement continued outside
+    the mesh.  The SSD samples ``m`` trilinearly at points up to a voxel from the deformed
+    surface, so a constant background there blends into every element at the surface and
+    moves the likelihood's optimum away from the truth (measured on the paper's truth,
+    16 mm mesh, 32-point quadrature: the mode searched from the truth lies 0.72 mm (median
+    over boundary nodes) from it with the background, 0.36 mm with the extension).
+
+    Parameters
+    ----------
+    f : Image
+        Pre-operative image; ``m`` gets its grid and affine.
+    mesh : Mesh
+        Undeformed mesh, nodes ``(N, 3)`` world mm.
+    u : (N, 3) array
+        Nodal displacements, mm.
+    background : float
+        Value of uncovered voxels (``"background"``), and of ``f`` outside its grid.
+    outside : {"background", "extend"}
+    extend_k : int
+        Boundary nodes averaged by ``"extend"``.
 
     Raises
     ------
     ValueError
-        If the deformed mesh has an inverted element (the map is then not invertible).
+        If the deformed mesh has an inverted element (the map is then not invertible), or
+        ``outside`` is not one of the two.
     """
+    if outside not in ("background", "extend"):
+        raise ValueError(f"outside must be 'background' or 'extend', got {outside!r}")
     u = np.asarray(u, np.float64)
     deformed = mesh.nodes + u
     vol = signed_volumes(deformed, mesh.tets)
@@ -244,6 +270,14 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0) -> Image:
     x = np.einsum("pa,pad->pd", bary[inside], mesh.nodes[mesh.tets[elem[inside]]])
     out = np.full(len(pts), float(background))
     out[inside] = interpolate_numpy(f, x, order=1, cval=background)
+    if outside == "extend" and not np.all(inside):
+        b = np.asarray(mesh.boundary)
+        k = min(int(extend_k), len(b))
+        dist, j = cKDTree(deformed[b]).query(pts[~inside], k=k)
+        dist, j = dist.reshape(len(dist), k), j.reshape(len(j), k)
+        w = 1.0 / np.maximum(dist, 1e-9) ** 2
+        u_ext = np.einsum("pk,pkd->pd", w, u[b][j]) / w.sum(axis=1, keepdims=True)
+        out[~inside] = interpolate_numpy(f, pts[~inside] - u_ext, order=1, cval=background)
     return Image(out.reshape(f.data.shape), f.affine)
 
 

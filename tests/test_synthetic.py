@@ -156,6 +156,27 @@ def test_warp_image_inverts_an_affine_map():
     assert inside.sum() > 1000 and outside.sum() > 1000
     np.testing.assert_allclose(m.data[inside], x[inside] @ coef + c0, rtol=0, atol=1e-10)
     assert np.all(m.data[outside] == -99.0)
+    # extended: the covered voxels are unchanged, the others take f at a finite preimage
+    ext = warp_image(f, mesh, u, background=-99.0, outside="extend")
+    np.testing.assert_array_equal(ext.data[inside], m.data[inside])
+    assert np.all(np.isfinite(ext.data)) and np.sum(ext.data[outside] != -99.0) > 1000
+    with pytest.raises(ValueError, match="outside"):
+        warp_image(f, mesh, u, outside="zero")
+
+
+def test_warp_image_extended_translation_is_exact_everywhere():
+    """A rigid translation continued outside the mesh is the same translation, so the
+    extended ``m`` is ``f(y - t)`` on every voxel whose preimage is inside ``f``'s grid."""
+    mesh = box_mesh(n=(3, 3, 3), size=(30, 30, 30))
+    t = np.array([1.3, -2.1, 0.6])
+    _, aff, xyz = grid(-6.0, 36.0, 1.5)
+    coef, c0 = np.array([0.7, -1.3, 2.1]), 4.0
+    f = Image(xyz @ coef + c0, aff)
+    m = warp_image(f, mesh, np.broadcast_to(t, mesh.nodes.shape), background=-99.0, outside="extend")
+    pre = xyz - t
+    ok = np.all((pre > -6.0) & (pre < 36.0 - 1.5), axis=-1)
+    assert ok.mean() > 0.7
+    np.testing.assert_allclose(m.data[ok], pre[ok] @ coef + c0, rtol=0, atol=1e-9)
 
 
 def test_brain_paper_truth(brain):
