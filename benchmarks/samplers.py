@@ -18,6 +18,7 @@ Run: ``python benchmarks/samplers.py [--kinds rwmh,mala,hmc,nuts] [--normaliser 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import platform
 import time
@@ -50,7 +51,11 @@ KINDS = {
 
 
 def problem_for(cfg, cache: Path):
-    path = cache / f"quickstart-e{cfg.mesh.edge_length_mm:g}-r{cfg.data.resolution_mm:g}.npz"
+    """The quickstart problem from ``cache`` or built; the file name carries a hash of the
+    data, mesh and synthetic sections, so a change there builds a new one."""
+    sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
+    tag = hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
+    path = cache / f"quickstart-e{cfg.mesh.edge_length_mm:g}-r{cfg.data.resolution_mm:g}-{tag}.npz"
     if path.is_file():
         return pipeline.load_problem(path, cfg), True
     problem = pipeline.prepare(cfg)
