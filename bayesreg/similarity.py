@@ -4,6 +4,8 @@
 4-point rule (Zienkiewicz & Taylor, ref. [11] of the paper): barycentric points
 ``(a, b, b, b)`` and permutations, ``a = (5 + 3 sqrt 5) / 20``, ``b = (5 - sqrt 5) / 20``,
 weights ``V_e / 4``.  ``u(x_eq)`` is the FE interpolant of the nodal displacements;
+``m`` is sampled by trilinear interpolation in world coordinates through its affine and
+takes the value ``cval`` (default 0, background) outside its grid.
 
 Beyond the paper, ``level`` k > 0 uses the composite rule: every tetrahedron is split k
 times into 8 of equal volume (edge midpoints; the inner octahedron cut along one
@@ -11,9 +13,8 @@ diagonal, Bey's red refinement) and the 4-point rule applied in each of the ``8^
 children, ``4 * 8^k`` points of weight ``V_e / (4 * 8^k)``.  On a paper-size mesh (16 mm
 edges, about 60 voxels of 2 mm per element) the paper's 4 points sample the image far
 below its resolution, so ``E_s`` as a function of ``u`` wiggles at the voxel scale
-(aliasing); the composite rule converges to the integral of Eq. 1.
-``m`` is sampled by trilinear interpolation in world coordinates through its affine and
-takes the value ``cval`` (default 0, background) outside its grid.
+(aliasing: local modes of the boundary nodes); the composite rule converges to the
+integral of Eq. 1.
 
 Units: intensities as given (the pipeline scales them to about [0, 1]), volumes in mm^3,
 so ``E_s`` is in ``intensity^2 mm^3``.
@@ -56,7 +57,7 @@ def quadrature_rule(level: int = 0):
 
     Parameters
     ----------
-    level : int, keyword or positional
+    level : int
         0: the paper's 4-point rule; k: that rule in each of the ``8^k`` children of k red
         refinements (module docstring).
 
