@@ -124,15 +124,15 @@ class ModelConfig(_Strict):
         "the forbidden voxels), added to the log-density (a change of the model that "
         "helps gradient kernels turn before the hard constraint: at 1 mm NUTS diverged in 12% "
         "of transitions against 85% on the wall alone, benchmarks/barrier.py); 0: off, the "
-        "paper's hard constraint alone (which stays in place either way).  The quickstart "
-        "and the paper's configs say 0")
+        "paper's hard constraint alone (which stays in place either way), as the paper's "
+        "configs say")
     quadrature_level: int = Field(
         1, ge=0, le=3, description="quadrature of E_s (Eq. 1): 0, the paper's 4 Gauss points per "
         "tetrahedron; k, the same rule in each of the 8^k children of k red refinements "
         "(4 * 8^k points, up to 8^k times the cost of E_s), against the aliasing of 4 points "
         "per element on an image of finer voxels, which makes local modes of the boundary "
         "nodes.  Default 1 for new configs (NUTS on the 24 mm paper problem: median bulk ESS "
-        "1031-1442 against 200 at level 0, benchmarks/barrier.py); the quickstart and the "
+        "1031-1442 against 200 at level 0, benchmarks/barrier.py) and the quickstart; the "
         "paper's RW-MH configs say 0, the paper's rule")
     fixed: FixedParam | None = FixedParam()
     prior_normaliser: Literal["paper", "exact"] = Field(
@@ -155,8 +155,8 @@ class SamplerConfig(_Strict):
         "nuts", description="kernel of u_b: rwmh (the paper's random walk; blocked or joint), or a "
         "gradient kernel in Gibbs with a random walk of the elastic parameters in their "
         "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up).  Default "
-        "nuts, the kernel that mixed best in benchmarks/samplers.py; the quickstart and the "
-        "paper's configs say rwmh")
+        "nuts, the kernel that mixed best in benchmarks/samplers.py (the quickstart's too); "
+        "the paper's configs say rwmh")
     chains: int = Field(3, ge=2)
     thinning: int | None = Field(None, ge=1, description="keep every n-th step; default 10 (rwmh), "
                                  "1 (gradient kernels)")

@@ -364,7 +364,7 @@ def skull_barrier(post: Posterior, points):
     ``-> -inf`` as ``d -> 0``; C1 in the points.
 
     An optional change of the model (``model.skull_barrier_mm``: 1 mm for new configs; 0 =
-    off, the paper's hard constraint alone, in the quickstart and the paper's configs;
+    off, the paper's hard constraint alone, in the paper's configs;
     measured in ``benchmarks/barrier.py``): it bends the log-density down within ``w`` of the
     skull so that gradient trajectories turn before they reach the hard ``-inf`` wall, which
     stays in place (no stored draw can violate it).  ``d`` is the distance to the voxel

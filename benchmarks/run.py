@@ -30,7 +30,7 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    paper's vector ``sigma``, the blocked kernel's dense Laplace factor).
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
-   proposal=isotropic``) and ``blocked-laplace`` (the quickstart's kernel: ``u_b`` with the
+   proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
    Gauss-Newton Laplace factor, then the elastic parameters, two log-densities per step).
    :func:`bayesreg.sampler.sample` runs with no warm-up, a fixed number of draws (``min_draws
    = max_draws``), thinning 10, and ``chunk_draws`` sized from figure 1 so that a chunk lasts

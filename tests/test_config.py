@@ -9,6 +9,13 @@ def test_quickstart_config_is_valid():
     cfg = load_config("configs/quickstart.yaml")
     assert cfg.sampler.chains == 3 and cfg.sampler.rhat_threshold == 1.2
     assert cfg.model.elastic == "tissue"
+    # the main job: NUTS on the 32-point quadrature with the 1 mm barrier (converges in
+    # minutes); the paper's random walk stays in configs/paper_*.yaml
+    assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.use_condensed
+    assert cfg.model.quadrature_level == 1 and cfg.model.skull_barrier_mm == 1.0
+    assert cfg.model.prior_normaliser == "paper" and cfg.model.fixed is not None
+    paper = load_config("configs/paper_three_compartment.yaml")
+    assert paper.sampler.kind == "rwmh" and paper.model.quadrature_level == 0
 
 
 def test_unknown_key_is_named(tmp_path):
@@ -91,7 +98,7 @@ def test_sampler_defaults_follow_the_kernel():
     assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.warmup_steps == 500
     assert cfg.model.prior_normaliser == "exact" and cfg.sampler.use_condensed
     assert cfg.model.skull_barrier_mm == 1.0 and cfg.model.quadrature_level == 1
-    assert load_config("configs/quickstart.yaml").model.quadrature_level == 0
+    assert load_config("configs/paper_three_compartment.yaml").model.quadrature_level == 0
     rw = load_config(None, overrides=["sampler.kind=rwmh"])
     assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
     given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
