@@ -19,8 +19,8 @@ TINY = [
     "output.progress=false",
 ]
 # the paper's random-walk configs on tiny settings
-TINY_RW = [s for s in TINY if not s.startswith(("sampler.warmup_steps", "sampler.max_tree_depth"))] + [
-    "sampler.warmup_steps=200", "sampler.thinning=5"]
+TINY_RW = [s for s in TINY if not s.startswith(("sampler.warmup_steps", "sampler.max_tree_depth"))]
+TINY_RW += ["sampler.warmup_steps=200", "sampler.thinning=5"]
 
 OUTPUTS = [
     "posterior.nc", "summary.csv", "displacement_mean.nii.gz", "displacement_sd.nii.gz",
