@@ -98,7 +98,6 @@ def test_sampler_defaults_follow_the_kernel():
     assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.warmup_steps == 500
     assert cfg.model.prior_normaliser == "exact" and cfg.sampler.use_condensed
     assert cfg.model.skull_barrier_mm == 1.0 and cfg.model.quadrature_level == 1
-    assert load_config("configs/paper_three_compartment.yaml").model.quadrature_level == 0
     rw = load_config(None, overrides=["sampler.kind=rwmh"])
     assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
     given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
