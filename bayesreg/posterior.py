@@ -42,10 +42,17 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpyro.distributions as dist  # noqa: E402
 
-from bayesreg.fem import ElasticOperator, build_operator, element_strain_energy, shape_gradients  # noqa: E402
+from bayesreg.fem import (  # noqa: E402
+    ElasticOperator,
+    GroupBlocks,
+    build_operator,
+    element_strain_energy,
+    group_blocks,
+    shape_gradients,
+)
 from bayesreg.mesh import Mesh  # noqa: E402
 from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
-from bayesreg.solver import SolveInfo, interior_map, solve_interior  # noqa: E402
+from bayesreg.solver import SolveInfo, interior_map_blocks, solve_interior_blocks  # noqa: E402
 
 __all__ = [
     "Posterior",
@@ -62,11 +69,19 @@ __all__ = [
     "elastic_groups",
     "full_displacement",
     "energies",
+    "stiffness_blocks",
+    "MAX_GROUPED",
     "from_unconstrained",
     "to_unconstrained",
     "log_normaliser",
     "add_normaliser",
 ]
+
+
+#: At most this many parameter groups get shared per-group stiffness blocks
+#: (:class:`bayesreg.fem.GroupBlocks`, ``144 G n_i (S_i + S_b)`` bytes); more (the
+#: per-element model) assemble ``K`` from the elements at each evaluation.
+MAX_GROUPED = 16
 
 
 class ParamLayout(NamedTuple):
@@ -136,6 +151,10 @@ class Posterior(NamedTuple):
         ``w``; ``(0, 3)`` when off).
     barrier_width : ()
         Width ``w`` (mm) of the skull barrier, 0 = off (:func:`skull_barrier`).
+    unit_blocks : GroupBlocks or None
+        Per-group unit blocks of ``K_ii``, ``K_ib`` when there are at most
+        ``MAX_GROUPED`` groups (uniform and tissue models), else ``None`` (per-element
+        model: the blocks are assembled from the elements); see :func:`stiffness_blocks`.
     """
 
     op: ElasticOperator
@@ -163,6 +182,7 @@ class Posterior(NamedTuple):
     voxel_size: jax.Array
     barrier_offsets: jax.Array
     barrier_width: jax.Array
+    unit_blocks: GroupBlocks | None = None
 
     @property
     def n_boundary(self) -> int:
@@ -298,6 +318,7 @@ def build_posterior(
         voxel_size=jnp.asarray(spacing),
         barrier_offsets=jnp.zeros((0, 3), dtype=jnp.int32),
         barrier_width=jnp.asarray(0.0),
+        unit_blocks=group_blocks(op, element_group, n_groups) if n_groups <= MAX_GROUPED else None,
     )
     return with_skull_barrier(post, barrier_mm)
 
@@ -447,6 +468,19 @@ def _node_forbidden(post: Posterior, points):
     return _voxel_forbidden(post, idx)  # (as scipy's order-0)
 
 
+def stiffness_blocks(post: Posterior, lam_g, mu_g):
+    """ELL blocks ``(b_ii, b_ib)`` of ``K_ii``, ``K_ib`` (paper Eqs. 5-7) for per-group
+    Lamé parameters ``lam_g``, ``mu_g`` ``(G,)``.
+
+    From the shared per-group unit blocks (:class:`bayesreg.fem.GroupBlocks`) when the
+    posterior has them, else assembled from the elements
+    (:meth:`bayesreg.fem.ElasticOperator.blocks`); the two agree to round-off (tested).
+    """
+    if post.unit_blocks is not None:
+        return post.unit_blocks.combine(lam_g, mu_g)
+    return post.op.blocks(lam_g[post.group], mu_g[post.group])
+
+
 def energies(post: Posterior, u, phi):
     """``(E_s, E_r)`` for nodal displacements ``u`` ``(N, 3)`` and parameters ``phi``."""
     lam_g, mu_g = elastic_groups(post, phi)
@@ -479,8 +513,8 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
     log_prior, in_support = _log_prior(post, phi)
     phi_solve = jnp.where(in_support, phi, post.phi_ref)
     lam_g, mu_g = elastic_groups(post, phi_solve)
-    u_i, info = solve_interior(
-        post.op, lam_g[post.group], mu_g[post.group], u_b, u_i0, rtol=rtol, maxiter=maxiter
+    u_i, info = solve_interior_blocks(
+        post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter
     )
     return _finish(post, u_b, u_i, info, phi_solve, in_support, log_prior)
 
@@ -511,7 +545,7 @@ def condensation(post: Posterior, theta):
     _, phi = split_position(post, theta)
     _, in_support = _log_prior(post, phi)
     lam_g, mu_g = elastic_groups(post, jnp.where(in_support, phi, post.phi_ref))
-    return interior_map(post.op, lam_g[post.group], mu_g[post.group], post.n_boundary)
+    return interior_map_blocks(post.op, *stiffness_blocks(post, lam_g, mu_g), post.n_boundary)
 
 
 def log_density_condensed(post: Posterior, theta, h):
@@ -547,8 +581,8 @@ def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000
     lam_g, mu_g = elastic_groups(post, phi)
     if u_i0 is None:
         u_i0 = jnp.zeros((post.op.n_interior, 3))
-    u_i, info = solve_interior(
-        post.op, lam_g[post.group], mu_g[post.group], u_b, u_i0, rtol=rtol, maxiter=maxiter
+    u_i, info = solve_interior_blocks(
+        post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter
     )
     return full_displacement(post, u_b, u_i), info
 

@@ -20,7 +20,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from bayesreg.fem import ElasticOperator, ell_matvec  # noqa: E402
 
-__all__ = ["SolveInfo", "pcg", "solve_interior", "interior_map"]
+__all__ = ["SolveInfo", "pcg", "solve_interior", "solve_interior_blocks", "interior_map", "interior_map_blocks"]
 
 
 class SolveInfo(NamedTuple):
@@ -115,8 +115,36 @@ def solve_interior(op: ElasticOperator, lam_e, mu_e, u_b, u_i0, *, rtol=1e-8, ma
         Interior displacements, mm.  Differentiable in ``u_b``, ``lam_e``, ``mu_e``
         (implicit differentiation; the warm start carries no gradient).
     info : SolveInfo
+
+    See Also
+    --------
+    solve_interior_blocks : the same from assembled blocks (e.g. per-group,
+        :class:`bayesreg.fem.GroupBlocks`).
     """
     b_ii, b_ib = op.blocks(lam_e, mu_e)
+    return solve_interior_blocks(op, b_ii, b_ib, u_b, u_i0, rtol=rtol, maxiter=maxiter)
+
+
+def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e-8, maxiter=1000):
+    """:func:`solve_interior` with ``K_ii``, ``K_ib`` given as ELL blocks.
+
+    Parameters
+    ----------
+    op : ElasticOperator
+        Supplies the column layout (``cols_ii``, ``cols_ib``, ``self_slot``).
+    b_ii : (n_i, S_i, 3, 3) array
+    b_ib : (n_i, S_b, 3, 3) array
+        From :meth:`bayesreg.fem.ElasticOperator.blocks` or
+        :meth:`bayesreg.fem.GroupBlocks.combine`.
+    u_b, u_i0, rtol, maxiter
+        As :func:`solve_interior`.
+
+    Returns
+    -------
+    u_i : (n_i, 3) array
+        Differentiable in ``u_b`` and the blocks.
+    info : SolveInfo
+    """
     rhs = -ell_matvec(b_ib, op.cols_ib, u_b)
     diag = b_ii[jnp.arange(b_ii.shape[0]), op.self_slot]  # (n_i, 3, 3)
     dinv = jnp.linalg.inv(diag)
@@ -167,6 +195,13 @@ def interior_map(op: ElasticOperator, lam_e, mu_e, n_boundary: int):
         that as a failed solve).
     """
     b_ii, b_ib = op.blocks(lam_e, mu_e)
+    return interior_map_blocks(op, b_ii, b_ib, n_boundary)
+
+
+def interior_map_blocks(op: ElasticOperator, b_ii, b_ib, n_boundary: int):
+    """:func:`interior_map` with ``K_ii``, ``K_ib`` given as ELL blocks (shapes as in
+    :func:`solve_interior_blocks`); returns ``H`` ``(3 n_i, 3 n_b)``, all NaN on a failed
+    factorisation."""
     k_ii = _dense(b_ii, op.cols_ii, op.n_interior)
     k_ib = _dense(b_ib, op.cols_ib, n_boundary)
     chol = jnp.linalg.cholesky(0.5 * (k_ii + k_ii.T))

@@ -24,8 +24,8 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
 2. **Time split** of one step, each piece jitted alone and run 20 times inside one
    ``lax.scan`` (as in the sampler: no dispatch per call) on slightly jittered inputs, timed
    after warm-up calls with ``block_until_ready``: the interior solve
-   (:func:`bayesreg.solver.solve_interior`, cold and warm, including the assembly of ``K``'s
-   blocks), the similarity (:func:`bayesreg.similarity.ssd` of a full displacement), the whole
+   (:func:`bayesreg.solver.solve_interior_blocks`, cold and warm, including the assembly of
+   ``K``'s blocks by :func:`bayesreg.posterior.stiffness_blocks`), the similarity (:func:`bayesreg.similarity.ssd` of a full displacement), the whole
    log-density (warm), and the proposal (a Normal draw times the jumping-kernel scale: the
    paper's vector ``sigma``, the blocked kernel's dense Laplace factor).
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
@@ -85,10 +85,16 @@ import numpy as np  # noqa: E402
 
 from bayesreg import pipeline  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
-from bayesreg.posterior import elastic_groups, full_displacement, log_density, split_position  # noqa: E402
+from bayesreg.posterior import (  # noqa: E402
+    elastic_groups,
+    full_displacement,
+    log_density,
+    split_position,
+    stiffness_blocks,
+)
 from bayesreg.sampler import sample  # noqa: E402
 from bayesreg.similarity import ssd  # noqa: E402
-from bayesreg.solver import solve_interior  # noqa: E402
+from bayesreg.solver import solve_interior_blocks  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference import ReferencePosterior, reference_mh  # noqa: E402
@@ -419,8 +425,8 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
     def solve(theta, guess):
         u_b, phi = split_position(post, theta)
         lam_g, mu_g = elastic_groups(post, phi)
-        return solve_interior(post.op, lam_g[post.group], mu_g[post.group], u_b, guess,
-                              rtol=rtol, maxiter=maxiter)
+        return solve_interior_blocks(post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, guess,
+                                     rtol=rtol, maxiter=maxiter)
 
     u_i, _ = block(jax.jit(solve)(jnp.asarray(x), zeros))
     u = np.asarray(full_displacement(post, split_position(post, jnp.asarray(x))[0], u_i))

@@ -106,3 +106,24 @@ def test_ell_operator_matches_scipy_blocks():
     np.testing.assert_allclose(
         np.asarray(fem.ell_matvec(b_ib, op.cols_ib, jnp.asarray(xb))).ravel(),
         k[idf][:, bd] @ xb.ravel(), rtol=1e-12, atol=1e-10)
+
+
+def test_group_blocks_combine_to_the_element_assembly():
+    import jax.numpy as jnp
+
+    m = box_mesh((3, 3, 3))
+    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    group = np.arange(len(m.tets)) % 3
+    gb = fem.group_blocks(op, group, 3)
+    assert gb.lam_ii.shape == (3,) + op.cols_ii.shape + (3, 3)
+    assert gb.mu_ib.shape == (3,) + op.cols_ib.shape + (3, 3)
+    lam_g, mu_g = np.array([0.7, 12.0, 31.0]), np.array([0.3, 1.0, 2.5])
+    want = op.blocks(jnp.asarray(lam_g[group]), jnp.asarray(mu_g[group]))
+    got = gb.combine(jnp.asarray(lam_g), jnp.asarray(mu_g))
+    for a, b in zip(got, want):
+        scale = float(jnp.max(jnp.abs(b)))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13 * scale)
+    with pytest.raises(ValueError, match="group must have shape"):
+        fem.group_blocks(op, group[:-1], 3)
+    with pytest.raises(ValueError, match="group must have shape"):
+        fem.group_blocks(op, group, 2)

@@ -376,3 +376,16 @@ def test_laplace_precision_is_the_gauss_newton_matrix_of_the_condensed_posterior
     ridge = 1e-6 * np.trace(expected) / nb3
     np.testing.assert_allclose(prec, expected + ridge * np.eye(nb3), rtol=1e-7,
                                atol=1e-9 * np.abs(expected).max())
+
+
+def test_grouped_stiffness_blocks_give_the_element_assembled_log_density(small):
+    """The per-group blocks (tissue model) and the per-element assembly are the same K."""
+    _, post, theta = small
+    assert post.unit_blocks is not None and post.unit_blocks.lam_ii.shape[0] == 3
+    lp, aux = _lp(post, theta)
+    lp_e, aux_e = _lp(post._replace(unit_blocks=None), theta)
+    assert float(lp) == pytest.approx(float(lp_e), rel=1e-12)
+    np.testing.assert_allclose(np.asarray(aux.interior), np.asarray(aux_e.interior), rtol=0, atol=1e-10)
+    g = jax.grad(lambda th: _lp(post, th)[0])(jnp.asarray(theta))
+    g_e = jax.grad(lambda th: _lp(post._replace(unit_blocks=None), th)[0])(jnp.asarray(theta))
+    np.testing.assert_allclose(np.asarray(g), np.asarray(g_e), rtol=1e-8, atol=1e-8 * float(jnp.max(jnp.abs(g_e))))
