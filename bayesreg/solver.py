@@ -20,7 +20,14 @@ import jax.numpy as jnp  # noqa: E402
 
 from bayesreg.fem import ElasticOperator, ell_matvec  # noqa: E402
 
-__all__ = ["SolveInfo", "pcg", "solve_interior", "solve_interior_blocks", "interior_map", "interior_map_blocks"]
+__all__ = [
+    "SolveInfo",
+    "pcg",
+    "solve_interior",
+    "solve_interior_blocks",
+    "interior_map",
+    "interior_map_blocks",
+]
 
 
 class SolveInfo(NamedTuple):

@@ -25,9 +25,10 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    ``lax.scan`` (as in the sampler: no dispatch per call) on slightly jittered inputs, timed
    after warm-up calls with ``block_until_ready``: the interior solve
    (:func:`bayesreg.solver.solve_interior_blocks`, cold and warm, including the assembly of
-   ``K``'s blocks by :func:`bayesreg.posterior.stiffness_blocks`), the similarity (:func:`bayesreg.similarity.ssd` of a full displacement), the whole
-   log-density (warm), and the proposal (a Normal draw times the jumping-kernel scale: the
-   paper's vector ``sigma``, the blocked kernel's dense Laplace factor).
+   ``K``'s blocks by :func:`bayesreg.posterior.stiffness_blocks`), the similarity
+   (:func:`bayesreg.similarity.ssd` of a full displacement), the whole log-density (warm),
+   and the proposal (a Normal draw times the jumping-kernel scale: the paper's vector
+   ``sigma``, the blocked kernel's dense Laplace factor).
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
