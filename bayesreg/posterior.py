@@ -541,7 +541,8 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
 
 def condensation(post: Posterior, theta):
     """Dense interior map ``H(phi)`` ``(3 n_i, 3 n_b)`` at the parameters of ``theta``
-    (:func:`bayesreg.solver.interior_map`); the cache of :func:`log_density_condensed`."""
+    (:func:`bayesreg.solver.interior_map_blocks` of :func:`stiffness_blocks`); the cache of
+    :func:`log_density_condensed`."""
     _, phi = split_position(post, theta)
     _, in_support = _log_prior(post, phi)
     lam_g, mu_g = elastic_groups(post, jnp.where(in_support, phi, post.phi_ref))
