@@ -189,7 +189,11 @@ class SamplerConfig(_Strict):
     sigma_mu: float = Field(0.05, gt=0)
     step_size: float = Field(0.1, gt=0, description="gradient kernels: initial leapfrog step in the "
                              "preconditioned coordinates (adapted in the warm-up)")
-    hmc_steps: int = Field(16, ge=1, description="hmc: leapfrog steps per transition")
+    hmc_steps: int = Field(16, ge=1, description="hmc: leapfrog steps per transition (the mean "
+                           "number with hmc_jitter)")
+    hmc_jitter: bool = Field(True, description="hmc: draw each transition's number of leapfrog "
+                             "steps uniformly from 1 .. 2 hmc_steps - 1 (a fixed length can make "
+                             "trajectories nearly periodic: antithetic draws, a high tail R-hat)")
     max_tree_depth: int = Field(6, ge=1, le=15, description="nuts: maximum trajectory doublings "
                                 "(at most 2^depth - 1 gradients per transition)")
     dense_mass: bool = Field(False, description="gradient kernels: adapt a dense inverse mass "

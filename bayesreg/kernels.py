@@ -7,7 +7,10 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    in preconditioned coordinates ``u_b = c + F w`` (``c`` the start's centre, ``F`` a fixed
    factor, by default ``R^-T`` of the Gauss-Newton precision ``R R^T`` at the start:
    a constant affine map, so the target is unchanged).  NUTS (:func:`blackjax.nuts`,
-   multinomial, iterative), HMC (:func:`blackjax.hmc`, a fixed number of leapfrog steps) or
+   multinomial, iterative), HMC (:func:`blackjax.hmc`; by default the number of leapfrog
+   steps is drawn uniformly from ``1 .. 2L - 1`` each transition, mean ``L``, as
+   :func:`blackjax.dynamic_hmc` does, which breaks the periodicity of a fixed trajectory
+   length: Mackenzie 1989, Neal 2011 Sec. 5.4.2.2) or
    MALA (HMC with one leapfrog step, which is MALA preconditioned by the inverse mass matrix).
    With ``condensed`` the interior comes from a cached dense map ``u_i = H(lam, mu) u_b``
    (no CG solve in the gradient), else from the CG solve with implicit differentiation.
@@ -251,8 +254,8 @@ def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
 
 
 def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
-                 max_num_doublings: int = 10, divergence_threshold: float = 1000.0,
-                 elastic_moves: int = 1) -> Callable:
+                 jitter_integration_steps: bool = True, max_num_doublings: int = 10,
+                 divergence_threshold: float = 1000.0, elastic_moves: int = 1) -> Callable:
     """Gibbs kernel ``(rng_key, state, params, cache) -> (state, info, cache)``.
 
     Parameters
@@ -260,7 +263,13 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     target : Target
     kind : {"mala", "hmc", "nuts"}
     num_integration_steps : int
-        HMC's leapfrog steps per transition.
+        HMC's leapfrog steps per transition (the mean number if jittered).
+    jitter_integration_steps : bool
+        HMC: draw the number of leapfrog steps of each transition uniformly from
+        ``1 .. 2 num_integration_steps - 1`` (independently of the state, so each transition
+        is a mixture of reversible kernels and the target is unchanged).  A fixed length
+        can make the trajectory nearly periodic for some directions (antithetic or stuck
+        draws: bulk ESS above the number of draws next to a high tail R-hat).
     max_num_doublings : int
         NUTS' maximum tree depth.
     divergence_threshold : float
@@ -273,7 +282,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     Raises
     ------
     ValueError
-        For an unknown ``kind``.
+        For an unknown ``kind`` or fewer than one leapfrog step.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
@@ -282,6 +291,9 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     else:
         inner = bj_hmc.build_kernel(divergence_threshold=divergence_threshold)
     n_leap = 1 if kind == "mala" else int(num_integration_steps)
+    if n_leap < 1:
+        raise ValueError(f"num_integration_steps must be >= 1, got {num_integration_steps}")
+    jitter = kind == "hmc" and bool(jitter_integration_steps) and n_leap > 1
 
     def u_step(key, ustate, logdensity_fn, params):
         if kind == "nuts":
@@ -290,9 +302,13 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             moved = jnp.any(new.position != ustate.position)
             return new, (info.acceptance_rate, moved, info.num_integration_steps, info.is_divergent,
                          info.num_trajectory_expansions)
-        new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n_leap)
-        return new, (info.acceptance_rate, info.is_accepted, jnp.asarray(n_leap), info.is_divergent,
-                     jnp.asarray(0))
+        if jitter:
+            key, k_n = jax.random.split(key)
+            n = jax.random.randint(k_n, (), 1, 2 * n_leap)  # 1 .. 2L - 1, mean L
+        else:
+            n = jnp.asarray(n_leap)
+        new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n)
+        return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0))
 
     def kernel(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
         k_u, k_e = jax.random.split(rng_key)

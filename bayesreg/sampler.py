@@ -641,6 +641,7 @@ def sample_gradient(
     dense_mass: bool = False,
     adapt_mass: bool = True,
     num_integration_steps: int = 16,
+    jitter_integration_steps: bool = True,
     max_tree_depth: int = 10,
     elastic_moves: int = 1,
     thinning: int = 1,
@@ -678,7 +679,9 @@ def sample_gradient(
         initial scale(s), or lower-triangular factor, of the elastic random walk
     dense_mass : bool  adapt a dense inverse mass matrix instead of a diagonal one
     adapt_mass : bool  adapt the inverse mass matrix at all (else identity in ``w``)
-    num_integration_steps : int  HMC's leapfrog steps
+    num_integration_steps : int  HMC's leapfrog steps (their mean if jittered)
+    jitter_integration_steps : bool  HMC: draw the number of leapfrog steps uniformly from
+        ``1 .. 2 num_integration_steps - 1`` each transition (:func:`bayesreg.kernels.build_kernel`)
     max_tree_depth : int  NUTS' maximum number of trajectory doublings
     elastic_moves : int  elastic random-walk updates per transition
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
@@ -701,6 +704,7 @@ def sample_gradient(
     target_acceptance = target_acceptance or gk.default_target_acceptance(kind)
     x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance)
     kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
+                             jitter_integration_steps=jitter_integration_steps,
                              max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)
     chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)

@@ -152,3 +152,51 @@ def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
                               resume_draws=draws, **kw)
     np.testing.assert_array_equal(resumed.positions, full.positions)
     np.testing.assert_array_equal(resumed.grad_evals, full.grad_evals)
+
+
+def gaussian_target(dim: int) -> gk.Target:
+    """``u ~ N(0, I)``, no elastic parameters (``n_free = 0``)."""
+
+    def u_lp(w, eta, cache, interior):
+        return -0.5 * jnp.sum(w**2)
+
+    return gk.Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
+                     lambda w, eta, i, ln: (u_lp(w, eta, None, i), u_lp(w, eta, None, i), i, jnp.asarray(0),
+                                            jnp.asarray(True)),
+                     lambda eta: jnp.zeros(()),
+                     lambda eta, ln: gk.Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
+                     lambda w, eta: w, lambda theta: (theta, jnp.zeros((0,))), 0)
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_hmc_jitter_breaks_a_periodic_trajectory(jitter):
+    """On ``N(0, I)`` with ``L`` leapfrog steps of ``eps = 2 sin(pi / 2L)`` the leapfrog map
+    to the power ``L`` is exactly ``-I``: every fixed-length transition maps ``x`` to ``-x``
+    (accepted, energy conserved), so the chain never leaves ``{x0, -x0}``.  With the number
+    of steps drawn from ``1 .. 2L - 1`` the chain samples the target: mean and variance within
+    Monte Carlo error, and the drawn lengths cover that range with mean ``L``."""
+    dim, n_leap, n_steps = 8, 8, 3000
+    target = gaussian_target(dim)
+    kernel = gk.build_kernel(target, "hmc", num_integration_steps=n_leap, jitter_integration_steps=jitter)
+    x0 = jnp.linspace(0.5, 2.0, dim)
+    state, cache = gk.init(target, x0, jnp.zeros((1, 3)))
+    params = gk.GibbsParams(jnp.asarray(2 * np.sin(np.pi / (2 * n_leap))), jnp.ones(dim), jnp.zeros((0, 0)))
+
+    def step(carry, key):
+        st, ca = carry
+        st, info, ca = kernel(key, st, params, ca)
+        return (st, ca), (st.position, info.grad_evals)
+
+    _, (xs, n) = jax.jit(lambda k: jax.lax.scan(step, (state, cache), jax.random.split(k, n_steps)))(
+        jax.random.key(0))
+    xs, n = np.asarray(xs), np.asarray(n)
+    if not jitter:
+        np.testing.assert_array_equal(n, n_leap)
+        np.testing.assert_allclose(np.abs(xs), np.broadcast_to(np.asarray(x0), xs.shape), rtol=1e-9)
+        return
+    assert n.min() == 1 and n.max() == 2 * n_leap - 1
+    assert abs(n.mean() - n_leap) < 5 * np.sqrt((4 * n_leap**2 - 4) / 12 / n_steps)  # uniform on 1..2L-1
+    ess = min(float(az.ess(xs[None, :, j], method="bulk")) for j in range(dim))
+    assert ess > 300, ess
+    assert np.all(np.abs(xs.mean(axis=0)) < 5 / np.sqrt(ess))
+    assert np.all(np.abs(xs.var(axis=0) - 1.0) < 5 * np.sqrt(2.0 / ess))
