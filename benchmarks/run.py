@@ -568,6 +568,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
             per_draw = 8 * c * n_chunks * (3 * post.op.n_interior + post.dim)
             cap = max(1, int(2 * 2**30 // per_draw))
             chunk_draws = int(np.clip(round(args.chunk_seconds * rate / THINNING), 1, min(1000, cap)))
+            if args.chunk_draws:  # a fixed window: acceptance comparable across chain counts
+                chunk_draws = int(args.chunk_draws)
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
             t0 = time.perf_counter()
             stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
@@ -838,6 +840,10 @@ def parse_args(argv=None):
                         "uses a surrogate dense factor of the same shape")
     p.add_argument("--compare-vmap", action="store_true",
                    help="also time every chain count >= 2 vmapped on one device (not through sample)")
+    p.add_argument("--chunk-draws", type=int, default=None,
+                   help="draws per sampler chunk for every chain count, instead of --chunk-seconds: "
+                        "the timed steps then cover the same part of every chain (untuned chains "
+                        "change their acceptance as they leave their starts)")
     p.add_argument("--quickstart", action="store_true", help="also run configs/quickstart.yaml end to end")
     p.add_argument("--quickstart-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override for the quickstart job (repeatable), e.g. sampler.max_draws=200")
@@ -873,7 +879,7 @@ def main(argv=None) -> dict:
         f"{machine['backend']} {machine['devices']}")
     res = {"profile": "quick" if args.quick else "full", "command": [Path(sys.argv[0]).name, *sys.argv[1:]],
            "started_utc": started.isoformat(timespec="seconds"), "machine": machine,
-           "settings": {k: getattr(args, k) for k in ("chain_counts", "kernel_names", "chunk_seconds",
+           "settings": {k: getattr(args, k) for k in ("chain_counts", "kernel_names", "chunk_seconds", "chunk_draws",
                                                         "timed_chunks", "time_target_s", "reference_seconds",
                                                         "truth", "shift_mm", "laplace_max_gb")},
            "meshes": [], "memory": [memory_snapshot("start")]}
