@@ -55,15 +55,19 @@ def main(argv=None):
     p.add_argument("--out", type=Path, default=REPO / "runs" / "normaliser")
     p.add_argument("--set", action="append", default=[], help="config override (repeatable)")
     p.add_argument("--variants", default="paper,exact")
+    p.add_argument("--config", type=Path, default=CONFIG,
+                   help="config of the dataset and model (default: the paper's three-compartment "
+                        "experiment); e.g. configs/quickstart.yaml for the quickstart's smooth truth")
     args = p.parse_args(argv)
     base = DEFAULTS + args.set
-    cfg0 = load_config(CONFIG, overrides=base + VARIANTS["paper"])
+    config = args.config
+    cfg0 = load_config(config, overrides=base + VARIANTS["paper"])
     t = time.perf_counter()
     data = pipeline.make_data(cfg0)  # one mesh and truth for both runs
     print(f"data, mesh and truth in {time.perf_counter() - t:.0f} s", flush=True)
     rows = {}
     for name in args.variants.split(","):
-        cfg = load_config(CONFIG, overrides=base + VARIANTS[name])
+        cfg = load_config(config, overrides=base + VARIANTS[name])
         cfg.output.dir = args.out / name
         run_dir = RunDirectory(cfg.output.dir, overwrite=True)
         problem = pipeline.assemble(cfg, data)

@@ -99,8 +99,10 @@ def main(argv=None):
     p.add_argument("--tag", default="")
     p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache")
     p.add_argument("--no-mode", action="store_true", help="profiles at the truth only")
+    p.add_argument("--config", type=Path, default=CONFIG,
+                   help="dataset and model (default: the paper's three-compartment experiment)")
     args = p.parse_args(argv)
-    cfg = load_config(CONFIG, overrides=DEFAULTS + args.set)
+    cfg = load_config(args.config, overrides=DEFAULTS + args.set)
     t0 = time.perf_counter()
     problem, cached = problem_for(cfg, args.cache)
     post, layout = problem.posterior, problem.layout
@@ -182,7 +184,7 @@ def main(argv=None):
                                                "max": float(dist.max())},
                       "profiles": profiles(u_mode)}
         print("mode", at["mode"]["boundary_distance_mm"], flush=True)
-    result = {"config": str(CONFIG.relative_to(REPO)), "overrides": DEFAULTS + args.set,
+    result = {"config": str(args.config), "overrides": DEFAULTS + args.set,
               "mesh": {"nodes": int(post.nodes.shape[0]), "tets": int(post.tets.shape[0]),
                        "boundary": int(post.n_boundary)},
               "elements_per_tissue": {g: int(np.sum(np.asarray(problem.element_group) == k))
@@ -195,7 +197,7 @@ def main(argv=None):
     lines = [f"# lam/mu profiles at the true boundary displacement ({result['mesh']['nodes']} nodes, "
              f"{result['mesh']['boundary']} boundary; elements CSF / GM / WM "
              f"{' / '.join(str(v) for v in result['elements_per_tissue'].values())})", "",
-             f"`{' '.join('--set ' + s for s in args.set) or 'defaults'}`; normaliser "
+             f"`{args.config}` {' '.join('--set ' + s for s in args.set) or '(defaults)'}; normaliser "
              f"`{cfg.model.prior_normaliser}`; others at the truth", "",
              "| `u_b` at | tissue | truth | image-term peak | sd of log r (image) | truth - peak (sd) | "
              "image term's range over the grid (nats) | peak of all terms | sd of log r (all) |",
