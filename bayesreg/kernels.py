@@ -10,7 +10,8 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    multinomial, iterative), HMC (:func:`blackjax.hmc`; by default the number of leapfrog
    steps is drawn uniformly from ``1 .. 2L - 1`` each transition, mean ``L``, as
    :func:`blackjax.dynamic_hmc` does, which breaks the periodicity of a fixed trajectory
-   length: Mackenzie 1989, Neal 2011 Sec. 5.4.2.2) or
+   length: Mackenzie 1989; Neal 2011, "MCMC using Hamiltonian dynamics", on the trajectory
+   length) or
    MALA (HMC with one leapfrog step, which is MALA preconditioned by the inverse mass matrix).
    With ``condensed`` the interior comes from a cached dense map ``u_i = H(lam, mu) u_b``
    (no CG solve in the gradient), else from the CG solve with implicit differentiation.

@@ -204,9 +204,9 @@ def main(argv=None):
              "|---|---|---|---|---|---|---|---|---|"]
     for where, block in at.items():
         for g, r in block["profiles"].items():
-            lines.append(f"| {where} | {g} | {r['truth']:g} | {r['image_peak']:.4g} | {r['image_sd_log']:.3g} | "
-                         f"{r['truth_offset_sd']:.2g} | {r['image_range']:.3g} | {r['conditional_peak']:.4g} | "
-                         f"{r['conditional_sd_log']:.3g} |")
+            lines.append(f"| {where} | {g} | {r['truth']:g} | {r['image_peak']:.4g} | "
+                         f"{r['image_sd_log']:.3g} | {r['truth_offset_sd']:.2g} | {r['image_range']:.3g} | "
+                         f"{r['conditional_peak']:.4g} | {r['conditional_sd_log']:.3g} |")
     if "mode" in at:
         d = at["mode"]["boundary_distance_mm"]
         lines += ["", f"`u_b^` (conditional mode given the true parameters) lies {d['median']:.3g} / "
