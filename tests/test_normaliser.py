@@ -149,10 +149,9 @@ def test_exact_normaliser_returns_the_prior_when_the_images_say_nothing(exact):
     """With ``T_s = infinity`` (no image term) the posterior of the elastic parameters is
     their prior if and only if the elastic prior on ``u_b`` is normalised: the NUTS-within-
     Gibbs sampler (condensed, logit parameters with their Jacobian) recovers the Beta(2, 3)
-    and uniform marginals within 5 Monte Carlo standard errors under ``exact`` (measured:
-    |z| <= 1.3, sd within 5%), while the paper's unnormalised prior drags every parameter to
-    its lower bound (measured: lam 1.4-2.0 against the prior mean 20.6, mu 0.52 against 2.75;
-    z about -80)."""
+    and uniform marginals within 5 Monte Carlo standard errors under ``exact``, while the
+    paper's unnormalised prior drags every parameter to its lower bound (measured: lam
+    1.4-2.0 against the prior mean 20.6, mu 0.52 against 2.75)."""
     from bayesreg.sampler import sample_gradient
 
     post, target, factor = _prior_only_target(exact)
@@ -163,9 +162,11 @@ def test_exact_normaliser_returns_the_prior_when_the_images_say_nothing(exact):
     mu0 = rng.uniform(0.5, 5.0, size=(n_chains, 2))
     u0 = (factor @ rng.normal(size=(nb3, n_chains))).T
     x0 = np.concatenate([u0, lam0, mu0], axis=1)
+    # the paper's collapse is gross: a short run shows it
+    warmup, draws, chunk = (250, 1000, 250) if exact else (100, 300, 100)
     res = sample_gradient(jax.random.key(11), target, x0, jnp.zeros((post.op.n_interior, 3)), kind="nuts",
                           step_size=0.5, eta_scale=0.5, max_tree_depth=4, elastic_moves=8,
-                          warmup_steps=400, max_draws=1500, min_draws=1500, chunk_draws=500,
+                          warmup_steps=warmup, max_draws=draws, min_draws=draws, chunk_draws=chunk,
                           progress=False)
     phi = res.positions[..., nb3:]  # (C, n, 5): lam csf, gm, wm; mu csf, wm
     mean_true = np.r_[np.full(3, 1.0 + 49.0 * 0.4), np.full(2, 2.75)]
