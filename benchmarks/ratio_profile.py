@@ -40,7 +40,6 @@ and ``.md``.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -57,6 +56,7 @@ from bayesreg import pipeline  # noqa: E402
 from bayesreg.pipeline import find_mode  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
 from bayesreg.posterior import log_density, log_normaliser  # noqa: E402
+from samplers import problem_for  # noqa: E402  (benchmarks/ is on the path of a script run)
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "paper_three_compartment.yaml"
@@ -66,18 +66,6 @@ DEFAULTS = ["mesh.edge_length_mm=24", "model.quadrature_level=1", "model.skull_b
             "model.prior_mu.r2=1.0e5", "output.progress=false"]
 FACTORS = np.exp(np.linspace(np.log(1 / 3), np.log(3), 41))  # r_g / r_g*, for GM and WM
 FACTORS_WIDE = np.exp(np.linspace(np.log(1e-2), np.log(1e3), 41))  # for CSF
-
-
-def problem_for(cfg, cache: Path):
-    sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
-    tag = hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
-    path = cache / f"ratio-profile-e{cfg.mesh.edge_length_mm:g}-{tag}.npz"
-    if path.is_file():
-        return pipeline.load_problem(path, cfg), True
-    problem = pipeline.prepare(cfg)
-    cache.mkdir(parents=True, exist_ok=True)
-    pipeline.save_problem(problem, path)
-    return problem, False
 
 
 def peak(x, y):
@@ -104,7 +92,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     cfg = load_config(args.config, overrides=DEFAULTS + args.set)
     t0 = time.perf_counter()
-    problem, cached = problem_for(cfg, args.cache)
+    problem, cached = problem_for(cfg, args.cache, prefix="ratio-profile")
     post, layout = problem.posterior, problem.layout
     if problem.truth is None or problem.phi_true is None:
         raise ValueError("the profile needs a synthetic truth with per-tissue parameters")

@@ -50,12 +50,15 @@ KINDS = {
 }
 
 
-def problem_for(cfg, cache: Path):
-    """The quickstart problem from ``cache`` or built; the file name carries a hash of the
-    data, mesh and synthetic sections, so a change there builds a new one."""
+def problem_for(cfg, cache: Path, prefix: str = "quickstart"):
+    """The problem of ``cfg`` from ``cache`` or built (and cached), and whether it was cached.
+
+    The file name carries ``prefix`` and a hash of the data, mesh and synthetic sections,
+    so a change there builds a new one (meshing is not reproducible: the cache keeps one
+    mesh for every run that compares on it)."""
     sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
     tag = hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
-    path = cache / f"quickstart-e{cfg.mesh.edge_length_mm:g}-r{cfg.data.resolution_mm:g}-{tag}.npz"
+    path = cache / f"{prefix}-e{cfg.mesh.edge_length_mm:g}-r{cfg.data.resolution_mm:g}-{tag}.npz"
     if path.is_file():
         return pipeline.load_problem(path, cfg), True
     problem = pipeline.prepare(cfg)
