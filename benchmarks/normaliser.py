@@ -60,14 +60,13 @@ def main(argv=None):
                         "experiment); e.g. configs/quickstart.yaml for the quickstart's smooth truth")
     args = p.parse_args(argv)
     base = DEFAULTS + args.set
-    config = args.config
-    cfg0 = load_config(config, overrides=base + VARIANTS["paper"])
+    cfg0 = load_config(args.config, overrides=base + VARIANTS["paper"])
     t = time.perf_counter()
     data = pipeline.make_data(cfg0)  # one mesh and truth for both runs
     print(f"data, mesh and truth in {time.perf_counter() - t:.0f} s", flush=True)
     rows = {}
     for name in args.variants.split(","):
-        cfg = load_config(config, overrides=base + VARIANTS[name])
+        cfg = load_config(args.config, overrides=base + VARIANTS[name])
         cfg.output.dir = args.out / name
         run_dir = RunDirectory(cfg.output.dir, overwrite=True)
         problem = pipeline.assemble(cfg, data)

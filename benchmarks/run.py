@@ -567,9 +567,9 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
             # the draws' positions and interiors are kept on the host: at most ~2 GB of them
             per_draw = 8 * c * n_chunks * (3 * post.op.n_interior + post.dim)
             cap = max(1, int(2 * 2**30 // per_draw))
-            chunk_draws = int(np.clip(round(args.chunk_seconds * rate / THINNING), 1, min(1000, cap)))
-            if args.chunk_draws:  # a fixed window: acceptance comparable across chain counts
-                chunk_draws = int(args.chunk_draws)
+            # --chunk-draws: a fixed window, acceptance comparable across chain counts
+            wanted = args.chunk_draws or round(args.chunk_seconds * rate / THINNING)
+            chunk_draws = int(np.clip(wanted, 1, min(1000, cap)))
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
             t0 = time.perf_counter()
             stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
@@ -843,7 +843,8 @@ def parse_args(argv=None):
     p.add_argument("--chunk-draws", type=int, default=None,
                    help="draws per sampler chunk for every chain count, instead of --chunk-seconds: "
                         "the timed steps then cover the same part of every chain (untuned chains "
-                        "change their acceptance as they leave their starts)")
+                        "change their acceptance as they leave their starts); capped like the "
+                        "computed size (1000, and 2 GB of stored draws)")
     p.add_argument("--quickstart", action="store_true", help="also run configs/quickstart.yaml end to end")
     p.add_argument("--quickstart-set", action="append", default=[], metavar="KEY=VALUE",
                    help="override for the quickstart job (repeatable), e.g. sampler.max_draws=200")
