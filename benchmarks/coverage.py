@@ -63,7 +63,7 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg import pipeline  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
-from bayesreg.images import Image, interpolate_numpy, mni152  # noqa: E402
+from bayesreg.images import Image, interpolate_numpy, mni152, to_reference_grid  # noqa: E402
 from bayesreg.mesh import signed_volumes  # noqa: E402
 from bayesreg.posterior import elastic_groups, full_displacement  # noqa: E402
 from bayesreg.synthetic import Truth, warp_image  # noqa: E402
@@ -146,10 +146,7 @@ def _warp_at_1mm(base_problem, cfg, u):
     f1 = Image(np.asarray(t1.data) / base_problem.intensity_scale, t1.affine)
     m1 = warp_image(f1, base_problem.mesh, u, background=0.0, outside=cfg.synthetic.outside)
     m1 = Image(ndi.gaussian_filter(np.asarray(m1.data), 0.5), m1.affine)
-    f = base_problem.f
-    idx = np.stack(np.meshgrid(*(np.arange(n) for n in f.data.shape), indexing="ij"), axis=-1)
-    world = idx @ f.affine[:3, :3].T + f.affine[:3, 3]
-    return Image(interpolate_numpy(m1, world, order=1, cval=0.0), f.affine)
+    return to_reference_grid(m1, base_problem.f, name="m (1 mm)", reference_name="f", order=1)
 
 
 def run_replica(k: int, args, base_problem) -> dict:
