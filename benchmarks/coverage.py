@@ -22,11 +22,23 @@ with simulation-based calibration", arXiv:1804.06788):
    their 90% interval.
 
 Under a calibrated posterior every estimand's truth is inside its 90% interval in 90% of
-replicas and the ranks are uniform on ``0..L``.  The data are noiseless (like the paper's
-synthetic images and every synthetic case here), and the SSD likelihood (Eq. 1) is not a
-generative noise model: the check is the practical one (noiseless synthetic images, the
-posterior as defined), not an exact SBC.  Under ``prior_normaliser: paper`` the truths are
+replicas and the ranks are uniform on ``0..L``.  By default the data are noiseless (like the
+paper's synthetic images and every synthetic case here): the check is then the practical one
+(noiseless synthetic images, the posterior as defined), not an exact SBC, because noiseless
+data are not a draw from the likelihood.  Under ``prior_normaliser: paper`` the truths are
 the same, with ``mu_GM`` fixed at its true value (as the paper fixes it).
+
+``--noise`` makes the check an exact SBC.  The likelihood ``exp(-E_s / T_s)`` (Eqs. 1 and 9)
+sees ``f`` only through its values ``f_q`` at the fixed quadrature points ``x_q`` of the
+undeformed mesh, and reads them as independent Gaussian observations,
+``f_q ~ N(m(x_q + u(x_q)), T_s / (2 w_q))`` with ``w_q`` the point's weight (mm^3) and ``m``
+trilinear (:func:`bayesreg.similarity.ssd_residuals`).  ``--noise`` replaces ``f_q`` by one
+draw of exactly that: ``m`` at the truth's displaced points plus that noise.  The data are
+then drawn from the model itself (prior, then likelihood), and every rank is uniform for a
+correct sampler.  Two departures remain, both small here: the truth has no rigid-body part
+(the prior is flat along those six modes, so no draw exists), and the prior's truncation by
+the hard constraints changes its normaliser by the probability of a valid draw (accepted at
+the first or second try in every replica so far).
 
 ``--warp-1mm`` makes ``m`` from the 1 mm template instead (then anti-aliased and resampled
 onto ``f``'s grid, as ``f`` itself was made): the warp's interpolation error is then that
@@ -55,6 +67,7 @@ from bayesreg import _xla
 _xla.configure()
 
 import arviz as az  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 import scipy.linalg as sla  # noqa: E402
 import scipy.ndimage as ndi  # noqa: E402
 import scipy.sparse.linalg as spla  # noqa: E402
@@ -63,7 +76,7 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg import pipeline  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
-from bayesreg.images import Image, interpolate_numpy, mni152, to_reference_grid  # noqa: E402
+from bayesreg.images import Image, interpolate, interpolate_numpy, mni152, to_reference_grid  # noqa: E402
 from bayesreg.mesh import signed_volumes  # noqa: E402
 from bayesreg.posterior import elastic_groups, full_displacement  # noqa: E402
 from bayesreg.synthetic import Truth, warp_image  # noqa: E402
@@ -149,6 +162,34 @@ def _warp_at_1mm(base_problem, cfg, u):
     return to_reference_grid(m1, base_problem.f, name="m (1 mm)", reference_name="f", order=1)
 
 
+def with_likelihood_draw(rng, problem, u):
+    """``problem`` with ``f``'s quadrature values drawn from the likelihood at the truth ``u``.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+    problem : bayesreg.pipeline.Problem
+    u : (N, 3) array
+        True displacement of every node, world mm.
+
+    Returns
+    -------
+    problem : Problem
+        A copy whose ``posterior.ssd.f_q`` ``(M, Q)`` is ``m(x_q + u(x_q)) + e_q``,
+        ``e_q ~ N(0, T_s / (2 w_q))``: the observation model of ``exp(-E_s / T_s)``
+        (paper Eqs. 1 and 9), with ``m`` and ``u(x_q)`` evaluated exactly as the
+        log-density does.  ``problem.f`` (the image) is left as it was.
+    """
+    post = problem.posterior
+    term = post.ssd
+    u_e = jnp.asarray(u)[post.tets]  # (M, 4, 3)
+    u_q = jnp.einsum("qa,mad->mqd", term.bary, u_e)
+    m_q = np.asarray(interpolate(term.m, term.m_inv_affine, term.points + u_q, term.cval))
+    sd = np.sqrt(0.5 / float(post.inv_t_s)) / np.asarray(term.sqrt_w)
+    f_q = m_q + sd * rng.standard_normal(m_q.shape)
+    return problem._replace(posterior=post._replace(ssd=term._replace(f_q=jnp.asarray(f_q))))
+
+
 def run_replica(k: int, args, base_problem) -> dict:
     """Draw truth ``k`` (seed ``args.seed + k``), sample it, return the replica's record."""
     overrides = DEFAULTS + NORMALISERS[args.normaliser] + args.set
@@ -175,6 +216,8 @@ def run_replica(k: int, args, base_problem) -> dict:
             "truth_info": {"truth": "prior draw", "tries": tries}, "n_skull_carved": base_problem.n_skull_carved,
             "intensity_scale": base_problem.intensity_scale, "timings": {}}
     problem = pipeline.assemble(cfg, data)
+    if args.noise:
+        problem = with_likelihood_draw(rng, problem, u)
     t_truth = time.perf_counter() - t0
     init = pipeline.initialise(problem, cfg)
     result, init = pipeline.sample_problem(problem, cfg, init)
@@ -189,6 +232,7 @@ def run_replica(k: int, args, base_problem) -> dict:
         est[f"mu[{g}]"] = (mu_g[..., j], mu[j])
     lo, hi = (1 - LEVEL) / 2, (1 + LEVEL) / 2
     record = {"replica": k, "normaliser": args.normaliser, "seed": args.seed + k, "warp_1mm": args.warp_1mm,
+              "noise": args.noise, "overrides": list(args.set),
               "n_nodes": int(mesh.nodes.shape[0]), "n_boundary": int(post.n_boundary),
               "truth": {"lam": lam.tolist(), "mu": mu.tolist(), "tries": tries,
                         "u_b_rms_mm": float(np.sqrt(np.mean(u[np.asarray(post.boundary)] ** 2))),
@@ -239,6 +283,14 @@ def _write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def _data_kind(record: dict) -> str:
+    """How a replica's data were made (older records lack the keys: noiseless 2 mm warp)."""
+    extra = "".join(f", {o}" for o in record.get("overrides", []))
+    if record.get("noise"):
+        return "drawn from the likelihood (exact SBC)" + extra
+    return "noiseless, " + ("1 mm warp" if record.get("warp_1mm") else "2 mm warp") + extra
+
+
 def summarise(folder: Path) -> dict:
     """Coverage per normaliser and estimand over every ``replica-*.json`` in ``folder``."""
     recs = [json.loads(p.read_text()) for p in sorted(folder.glob("replica-*.json"))]
@@ -265,7 +317,9 @@ def summarise(folder: Path) -> dict:
                           "rhat_max": float(max(x["rhat"] for x in e)),
                           "ess_bulk_min": float(min(x["ess_bulk"] for x in e))}
         u_frac = [r["u_b"]["fraction_inside"] for r in rs]
-        out[norm] = {"replicas": len(rs), "n_nodes": rs[0]["n_nodes"], "n_boundary": rs[0]["n_boundary"],
+        kinds = sorted({_data_kind(r) for r in rs})
+        out[norm] = {"replicas": len(rs), "data": " + ".join(kinds),
+                     "n_nodes": rs[0]["n_nodes"], "n_boundary": rs[0]["n_boundary"],
                      "draws": f"{rs[0]['chains']} x {rs[0]['draws_per_chain']}",
                      "wall_s_median": float(np.median([r["wall_s"]["total"] for r in rs])),
                      "u_b_fraction_inside_mean": float(np.mean(u_frac)),
@@ -278,7 +332,7 @@ def summarise(folder: Path) -> dict:
              "see the script's docstring for the design.", ""]
     for norm, s in out.items():
         lines += [f"## prior_normaliser: {norm}", "",
-                  f"{s['replicas']} replicas, {s['n_nodes']} nodes ({s['n_boundary']} boundary), "
+                  f"{s['replicas']} replicas, data {s['data']}, {s['n_nodes']} nodes ({s['n_boundary']} boundary), "
                   f"{s['draws']} draws each, median wall {s['wall_s_median']:.0f} s; truth's max |u| "
                   f"median {s['truth_u_max_mm_median']:.1f} mm.  Boundary coordinates inside their "
                   f"90% interval: {s['u_b_fraction_inside_mean']:.1%} on average (RMSE of the mean "
@@ -308,6 +362,8 @@ def main(argv=None):
     p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache")
     p.add_argument("--warp-1mm", action="store_true",
                    help="make m from the 1 mm MNI template (mni152 data only), then bring it to f's grid")
+    p.add_argument("--noise", action="store_true",
+                   help="exact SBC: f's quadrature values drawn from the likelihood at the truth")
     p.add_argument("--summarise", type=Path, metavar="DIR", help="only summarise the replicas in DIR")
     args = p.parse_args(argv)
     if args.summarise is not None:
