@@ -115,6 +115,39 @@ def test_sampler_stops_at_rhat_and_is_reproducible():
     np.testing.assert_array_equal(a.positions, b.positions)
 
 
+@pytest.mark.parametrize("per_chain", [False, True])
+def test_chains_in_host_threads_equal_vmapped_chains(monkeypatch, per_chain):
+    import bayesreg.sampler as smp
+
+    # equal groups, at least one thread per core
+    assert [smp._chain_threads(c, 2) for c in (1, 2, 3, 4, 5, 6)] == [1, 2, 3, 2, 5, 2]
+    assert [smp._chain_threads(c, 16) for c in (3, 64, 1024)] == [3, 16, 16]
+    with pytest.raises(ValueError, match="n_chains"):
+        smp._chain_threads(0, 2)
+
+    def one_chain(key, x, scale):  # a random walk to a sphere: a while_loop of chain-dependent length
+        def body(c):
+            x_, k, n = c
+            k, sub = jax.random.split(k)
+            return x_ + scale * jax.random.normal(sub, x_.shape), k, n + 1
+
+        x, _, n = jax.lax.while_loop(lambda c: (jnp.sum(c[0] ** 2) < 16.0) & (c[2] < 5000), body, (x, key, 0))
+        return x, n
+
+    keys = jax.random.split(jax.random.key(7), 4)
+    x0 = jnp.asarray(np.random.default_rng(0).normal(size=(4, 3)))
+    scale = jnp.asarray([0.1, 0.2, 0.3, 0.4]) if per_chain else jnp.asarray(0.25)
+    expect = jax.vmap(one_chain, in_axes=(0, 0, 0 if per_chain else None))(keys, x0, scale)
+    monkeypatch.setattr(smp, "_chain_threads", lambda n: 2)  # 2 threads of 2 chains, on any machine
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    run = smp._over_chains(one_chain, 4, per_chain)
+    for _ in range(2):  # the first call compiles group 0 alone, the second runs both in the pool
+        got = run(keys, x0, scale)
+        np.testing.assert_allclose(got[0], expect[0], rtol=1e-12)
+        np.testing.assert_array_equal(got[1], expect[1])
+    assert len(set(np.asarray(expect[1]).tolist())) > 1  # the chains' loops did differ in length
+
+
 def test_sampler_rejects_bad_start():
     logdensity, mean, cov, n_i = _quadratic_problem()
 
