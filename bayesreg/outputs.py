@@ -233,6 +233,23 @@ def _full_draws(problem, result):
     return full[:, np.asarray(post.perm)]
 
 
+def _per_solve(cg_per_step, cfg, block_names):
+    """Mean CG iterations per solve from the per-step count, or ``None`` when a step's
+    counted solves are not a fixed number.
+
+    The random walk solves once per block and step.  A gradient-kernel transition counts
+    the solves outside its trajectory: with the cached condensation (the default) the
+    trajectory needs none, and the elastic block makes ``elastic_moves`` solves plus one
+    evaluation before them; without it every gradient solves (uncounted) and the interior
+    after a moved trajectory is one more solve, so the count per step varies.
+    """
+    if not cfg.sampler.gradient:
+        return float(cg_per_step / len(block_names))
+    if not cfg.sampler.use_condensed or "elastic" not in block_names:
+        return None
+    return float(cg_per_step / (cfg.sampler.elastic_moves + 1))
+
+
 def _adapted(cfg, result) -> dict:
     """The tuned values frozen after the warm-up (saved with the run)."""
     if cfg.sampler.gradient:
@@ -268,10 +285,10 @@ def format_report(errors: dict | None, info: dict) -> str:
         f"(stop below {s['rhat_threshold']} on {'split' if s['rhat_split_monitored'] else 'classic'}), "
         f"rank-normalised {s['rhat_rank_max']:.3f}  ESS bulk min {s['ess_bulk_min']:.0f}"
     )
-    lines.append(
-        f"CG iterations/solve mean {s['cg_iterations_per_solve_mean']:.1f}  failed solves "
-        f"{s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.1f}"
-    )
+    per_solve = s.get("cg_iterations_per_solve_mean")
+    cg = (f"CG iterations/solve mean {per_solve:.1f}" if per_solve is not None else
+          f"CG iterations/step mean {s['cg_iterations_per_step_mean']:.1f} (outside the trajectories)")
+    lines.append(f"{cg}  failed solves {s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.1f}")
     if s.get("kind", "rwmh") != "rwmh":
         lines.append(f"{s['kind']}: gradients/step {s['gradient_evaluations_per_step_mean']:.1f}  "
                      f"divergences {s['divergences']}  prior normaliser {s['prior_normaliser']}")
@@ -516,7 +533,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
             "rhat_threshold": cfg.sampler.rhat_threshold,
             "rhat_history": [[int(a), float(b)] for a, b in result.rhat_history],
             "cg_iterations_per_step_mean": float(result.cg_iterations.mean()),
-            "cg_iterations_per_solve_mean": float(result.cg_iterations.mean() / len(block_names)),
+            "cg_iterations_per_solve_mean": _per_solve(result.cg_iterations.mean(), cfg, block_names),
             "solve_failures": int(result.solve_failures.sum()),
             "steps_per_s_per_chain": float(d * cfg.sampler.thinning / max(timings.get("sampling_s", 1e-9), 1e-9)),
         },
