@@ -151,15 +151,19 @@ def _truth_overrides(lam, mu):
             for g, v in zip(L.TISSUES, vals)]
 
 
-def _warp_at_1mm(base_problem, cfg, u):
-    """``m`` warped from the 1 mm template, then brought to ``f``'s grid the way ``f`` was
-    (Gaussian anti-aliasing of sigma 0.5 voxels, trilinear): a synthetic ``m`` without the
-    second interpolation at the likelihood's own resolution."""
+def warp_at_1mm(f, mesh, intensity_scale, cfg, u):
+    """``m`` warped from the 1 mm MNI template, then brought to ``f``'s grid the way ``f``
+    was (Gaussian anti-aliasing of sigma 0.5 voxels, trilinear): a synthetic ``m`` without
+    the second interpolation at the likelihood's own resolution.
+
+    ``f``: the problem's (scaled) pre-operative image; ``intensity_scale``: what the
+    template was divided by; ``u`` ``(N, 3)`` mm: the nodal displacements of ``mesh``.
+    """
     t1 = mni152(1.0, margin_mm=4 * cfg.data.skull_margin_mm)[0]
-    f1 = Image(np.asarray(t1.data) / base_problem.intensity_scale, t1.affine)
-    m1 = warp_image(f1, base_problem.mesh, u, background=0.0, outside=cfg.synthetic.outside)
+    f1 = Image(np.asarray(t1.data) / intensity_scale, t1.affine)
+    m1 = warp_image(f1, mesh, u, background=0.0, outside=cfg.synthetic.outside)
     m1 = Image(ndi.gaussian_filter(np.asarray(m1.data), 0.5), m1.affine)
-    return to_reference_grid(m1, base_problem.f, name="m (1 mm)", reference_name="f", order=1)
+    return to_reference_grid(m1, f, name="m (1 mm)", reference_name="f", order=1)
 
 
 def with_likelihood_draw(rng, problem, u):
@@ -208,7 +212,7 @@ def run_replica(k: int, args, base_problem) -> dict:
     mesh = base_problem.mesh
     f = base_problem.f
     if args.warp_1mm:
-        m = _warp_at_1mm(base_problem, cfg, u)
+        m = warp_at_1mm(base_problem.f, base_problem.mesh, base_problem.intensity_scale, cfg, u)
     else:
         m = warp_image(f, mesh, u, background=0.0, outside=cfg.synthetic.outside)
     truth = Truth(u, lam[mesh.tissue], mu[mesh.tissue], np.zeros(0, np.int64))
