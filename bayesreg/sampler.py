@@ -7,10 +7,11 @@ also carries the chain's interior FE solution, the warm start of the next solve.
 
 :func:`sample` is the driver: N chains inside one jitted ``lax.scan`` per chunk of thinned
 draws (vmapped on an accelerator, in parallel host threads on a CPU: :func:`_over_chains`);
-coordinates may be updated in blocks (Metropolis-within-Gibbs); a warm-up tunes each block's scale toward a target acceptance rate (Robbins-Monro on the log
-scale) and its marginal scales from the warm-up draws, then freezes them; sampling stops
-once the classic Gelman-Rubin R-hat is below a threshold for every estimand, or at a
-maximum number of draws.  Proposals are symmetric, so the acceptance probability is the
+coordinates may be updated in blocks (Metropolis-within-Gibbs); a warm-up tunes each
+block's scale toward a target acceptance rate (Robbins-Monro on the log scale) and its
+marginal scales from the warm-up draws, then freezes them; sampling stops once the classic
+Gelman-Rubin R-hat is below a threshold for every estimand, or at a maximum number of
+draws.  Proposals are symmetric, so the acceptance probability is the
 posterior ratio of Eq. 13.
 """
 
