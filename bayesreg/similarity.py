@@ -36,7 +36,7 @@ from bayesreg.images import Image, interpolate  # noqa: E402
 from bayesreg.mesh import signed_volumes  # noqa: E402
 
 __all__ = ["GAUSS_BARY", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
-           "ssd_residuals", "ssd"]
+           "moving_values", "ssd_residuals", "ssd"]
 
 _A = (5.0 + 3.0 * np.sqrt(5.0)) / 20.0
 _B = (5.0 - np.sqrt(5.0)) / 20.0
@@ -148,6 +148,20 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     )
 
 
+def moving_values(term: SSDTerm, u_e):
+    """``m(x_q + u(x_q))`` ``(M, Q)``: the moving image at the displaced quadrature points.
+
+    Parameters
+    ----------
+    term : SSDTerm
+    u_e : (M, 4, 3) array
+        Displacements of each element's nodes, mm (``u(x_q)`` is their FE interpolant).
+    """
+    # explicit multiply-and-sum: einsum over gathered values is slower on XLA:CPU
+    u_q = jnp.sum(term.bary[None, :, :, None] * u_e[:, None, :, :], axis=2)
+    return interpolate(term.m, term.m_inv_affine, term.points + u_q, term.cval)
+
+
 def ssd_residuals(term: SSDTerm, u_e):
     """Weighted residuals ``sqrt(w_q) (f(x_q) - m(x_q + u(x_q)))``, ``(M, Q)``.
 
@@ -157,10 +171,7 @@ def ssd_residuals(term: SSDTerm, u_e):
     u_e : (M, 4, 3) array
         Displacements of each element's nodes, mm.
     """
-    # explicit multiply-and-sum: einsum over gathered values is slower on XLA:CPU
-    u_q = jnp.sum(term.bary[None, :, :, None] * u_e[:, None, :, :], axis=2)
-    m_q = interpolate(term.m, term.m_inv_affine, term.points + u_q, term.cval)
-    return term.sqrt_w * (term.f_q - m_q)
+    return term.sqrt_w * (term.f_q - moving_values(term, u_e))
 
 
 def ssd(term: SSDTerm, u_e):

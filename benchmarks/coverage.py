@@ -32,8 +32,9 @@ the same, with ``mu_GM`` fixed at its true value (as the paper fixes it).
 sees ``f`` only through its values ``f_q`` at the fixed quadrature points ``x_q`` of the
 undeformed mesh, and reads them as independent Gaussian observations,
 ``f_q ~ N(m(x_q + u(x_q)), T_s / (2 w_q))`` with ``w_q`` the point's weight (mm^3) and ``m``
-trilinear (:func:`bayesreg.similarity.ssd_residuals`).  ``--noise`` replaces ``f_q`` by one
-draw of exactly that: ``m`` at the truth's displaced points plus that noise.  The data are
+trilinear (:func:`bayesreg.similarity.moving_values`, which ``ssd_residuals`` uses).
+``--noise`` replaces ``f_q`` by one draw of exactly that: ``m`` at the truth's displaced
+points plus that noise.  The data are
 then drawn from the model itself (prior, then likelihood), and every rank is uniform for a
 correct sampler.  Two departures remain, both small here: the truth has no rigid-body part
 (the prior is flat along those six modes, so no draw exists), and the prior's truncation by
@@ -76,9 +77,10 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg import pipeline  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
-from bayesreg.images import Image, interpolate, interpolate_numpy, mni152, to_reference_grid  # noqa: E402
+from bayesreg.images import Image, interpolate_numpy, mni152, to_reference_grid  # noqa: E402
 from bayesreg.mesh import signed_volumes  # noqa: E402
 from bayesreg.posterior import elastic_groups, full_displacement  # noqa: E402
+from bayesreg.similarity import moving_values  # noqa: E402
 from bayesreg.synthetic import Truth, warp_image  # noqa: E402
 
 import samplers  # noqa: E402  (benchmarks/samplers.py: the cached problem)
@@ -181,14 +183,13 @@ def with_likelihood_draw(rng, problem, u):
     problem : Problem
         A copy whose ``posterior.ssd.f_q`` ``(M, Q)`` is ``m(x_q + u(x_q)) + e_q``,
         ``e_q ~ N(0, T_s / (2 w_q))``: the observation model of ``exp(-E_s / T_s)``
-        (paper Eqs. 1 and 9), with ``m`` and ``u(x_q)`` evaluated exactly as the
-        log-density does.  ``problem.f`` (the image) is left as it was.
+        (paper Eqs. 1 and 9), with ``m(x_q + u(x_q))`` from
+        :func:`bayesreg.similarity.moving_values`, the log-density's own.  ``problem.f``
+        (the image) is left as it was.
     """
     post = problem.posterior
     term = post.ssd
-    u_e = jnp.asarray(u)[post.tets]  # (M, 4, 3)
-    u_q = jnp.einsum("qa,mad->mqd", term.bary, u_e)
-    m_q = np.asarray(interpolate(term.m, term.m_inv_affine, term.points + u_q, term.cval))
+    m_q = np.asarray(moving_values(term, jnp.asarray(u)[post.tets]))
     sd = np.sqrt(0.5 / float(post.inv_t_s)) / np.asarray(term.sqrt_w)
     f_q = m_q + sd * rng.standard_normal(m_q.shape)
     return problem._replace(posterior=post._replace(ssd=term._replace(f_q=jnp.asarray(f_q))))
@@ -197,12 +198,9 @@ def with_likelihood_draw(rng, problem, u):
 def run_replica(k: int, args, base_problem) -> dict:
     """Draw truth ``k`` (seed ``args.seed + k``), sample it, return the replica's record."""
     overrides = DEFAULTS + NORMALISERS[args.normaliser] + args.set
-    cfg0 = load_config(args.config, overrides=overrides)
     rng = np.random.default_rng([args.seed, k])
-    if args.normaliser == "paper":  # the same truths as under exact: drawn with every parameter free
-        cfg_draw = load_config(args.config, overrides=DEFAULTS + NORMALISERS["exact"] + args.set)
-    else:
-        cfg_draw = cfg0
+    # the truths are drawn with every parameter free (as under exact), for either normaliser
+    cfg_draw = load_config(args.config, overrides=DEFAULTS + NORMALISERS["exact"] + args.set)
     t0 = time.perf_counter()
     lam, mu, u, tries = draw_truth(rng, base_problem, cfg_draw)
     extra = _truth_overrides(lam, mu) + [f"seed={args.seed + k}"]
@@ -212,7 +210,7 @@ def run_replica(k: int, args, base_problem) -> dict:
     mesh = base_problem.mesh
     f = base_problem.f
     if args.warp_1mm:
-        m = warp_at_1mm(base_problem.f, base_problem.mesh, base_problem.intensity_scale, cfg, u)
+        m = warp_at_1mm(f, mesh, base_problem.intensity_scale, cfg, u)
     else:
         m = warp_image(f, mesh, u, background=0.0, outside=cfg.synthetic.outside)
     truth = Truth(u, lam[mesh.tissue], mu[mesh.tissue], np.zeros(0, np.int64))
