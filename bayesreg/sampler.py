@@ -6,20 +6,21 @@ step (:func:`blackjax.mcmc.proposal.static_binomial_sampling`) are BlackJAX's.  
 also carries the chain's interior FE solution, the warm start of the next solve.
 
 :func:`sample` is the driver: N chains inside one jitted ``lax.scan`` per chunk of thinned
-draws (vmapped on an accelerator, in parallel host threads on a CPU: :func:`_over_chains`);
-coordinates may be updated in blocks (Metropolis-within-Gibbs); a warm-up tunes each
-block's scale toward a target acceptance rate (Robbins-Monro on the log scale) and its
-marginal scales from the warm-up draws, then freezes them; sampling stops once the classic
-Gelman-Rubin R-hat is below a threshold for every estimand, or at a maximum number of
-draws.  Proposals are symmetric, so the acceptance probability is the
-posterior ratio of Eq. 13.
+draws (vmapped on an accelerator, in parallel host threads on a CPU, in pieces of chunks
+where the chains do not split evenly over the cores: :func:`_over_chains`); coordinates
+may be updated in blocks (Metropolis-within-Gibbs); a warm-up tunes each block's scale
+toward a target acceptance rate (Robbins-Monro on the log scale) and its marginal scales
+from the warm-up draws, then freezes them; sampling stops once the classic Gelman-Rubin
+R-hat is below a threshold for every estimand, or at a maximum number of draws.  Proposals
+are symmetric, so the acceptance probability is the posterior ratio of Eq. 13.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -241,21 +242,53 @@ class SamplerCheckpoint(NamedTuple):
 
 
 def _chain_threads(n_chains: int, n_cores: int | None = None) -> int:
-    """Number of host threads that run ``n_chains`` chains on a CPU (equal groups).
+    """Number of host threads that run ``n_chains`` whole chains on a CPU (equal groups).
 
     The smallest divisor of ``n_chains`` that is at least the number of cores available to
-    this process (``os.sched_getaffinity``), or ``n_chains`` when there are more cores than
-    chains: every thread runs the same number of chains, so one compiled shape serves all
-    threads, and every core has a thread.  3 chains on 2 cores: 3 threads of one chain.
+    this process (:func:`_cores`), or ``n_chains`` when there are more cores than chains:
+    every thread runs the same number of chains, so one compiled shape serves all threads,
+    and every core has a thread.  3 chains on 2 cores: 3 threads of one chain (when a chunk
+    cannot be cut into pieces: :func:`_chain_pieces`).
     """
     if n_chains < 1:
         raise ValueError(f"n_chains must be >= 1, got {n_chains}")
     if n_cores is None:
-        n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        n_cores = _cores()
     return next((d for d in range(max(1, n_cores), n_chains + 1) if n_chains % d == 0), n_chains)
 
 
-def _over_chains(one_chain, n_chains: int, params_per_chain: bool):
+def _cores() -> int:
+    """Cores available to this process (``os.sched_getaffinity`` where it exists)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _chain_pieces(n_chains: int, n_draws: int | None, n_cores: int | None = None) -> int:
+    """Pieces per chain of a chunk when the chains do not split evenly over the cores.
+
+    With more chains than cores and a number of chains that is not a multiple of the
+    number of cores (3 chains on 2 cores), whole chains cannot be shared out evenly: three
+    threads on two cores ran 107 steps/s per chain against 226 for two chains on two
+    threads (paper-size mesh; the oversubscribed threads preempt each other).  Cutting
+    each chain's chunk into pieces of equal length, a multiple of ``P = cores /
+    gcd(chains, cores)``, gives ``chains * P`` tasks or a multiple, a multiple of the
+    number of cores, which one worker per core can run without idling (a chain's pieces
+    in order: :func:`_over_chains`).  ``2 P`` pieces where ``n_draws`` allows (shorter
+    tasks leave less idle time at the end of a chunk when chains run at different
+    speeds), else ``P``; 1 when the chains already split evenly, when there are no more
+    chains than cores, or when ``n_draws`` is not a multiple of ``P`` (then
+    :func:`_chain_threads` applies).  Measured (``benchmarks/schedule.py``, 3 chains on 2
+    cores, paper-size mesh, two runs each): 4 pieces 1.25-1.27x and 1.27-1.29x the steps/s
+    of three threads (paper joint, blocked Laplace kernels), 2 pieces 1.20-1.28x and
+    1.21-1.24x: the finer cut costs nothing measurable.
+    """
+    n_cores = _cores() if n_cores is None else n_cores
+    if n_draws is None or n_chains <= n_cores or n_chains % n_cores == 0:
+        return 1
+    pieces = n_cores // math.gcd(n_chains, n_cores)
+    return next((k for k in (2 * pieces, pieces) if n_draws % k == 0), 1)
+
+
+def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None, n_draws: int | None = None):
     """Run ``one_chain(key, state, params)`` for every chain (leading axis); returns a callable.
 
     On an accelerator the chains are vmapped inside one jitted call, which is what it is
@@ -268,17 +301,32 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool):
     (JAX releases the GIL while a computation runs): on 2 cores two threads of CG
     mat-vecs ran 1.8x the throughput of one.  Each chain's arithmetic does not depend on
     the others, so neither choice changes the draws beyond round-off.
+
+    Where the chains do not split evenly over the cores and the chunk can be cut
+    (``piece`` and ``n_draws`` given, :func:`_chain_pieces` > 1), one worker thread per core
+    runs pieces of single chains instead, each chain's pieces in order, a chain's next
+    piece queued as soon as its previous one ends.  ``piece(draw_keys (m,), state,
+    params) -> (state, out)`` must continue a chain over the draws of ``draw_keys``, with
+    ``out`` stacked over them, such that ``one_chain(key, ...)`` equals the pieces run in
+    turn on ``jax.random.split(key, n_draws)``.
     """
     in_axes = (0, 0, 0 if params_per_chain else None)
     if jax.default_backend() != "cpu":
         return jax.jit(jax.vmap(one_chain, in_axes=in_axes))
 
-    @jax.jit
-    def mapped(keys, states, params):
-        if params_per_chain:
-            return jax.lax.map(lambda a: one_chain(*a), (keys, states, params))
-        return jax.lax.map(lambda a: one_chain(a[0], a[1], params), (keys, states))
+    def map_over(fn):
+        @jax.jit
+        def mapped(keys, states, params):
+            if params_per_chain:
+                return jax.lax.map(lambda a: fn(*a), (keys, states, params))
+            return jax.lax.map(lambda a: fn(a[0], a[1], params), (keys, states))
 
+        return mapped
+
+    mapped = map_over(one_chain)
+    n_pieces = _chain_pieces(n_chains, n_draws) if piece is not None else 1
+    if n_pieces > 1:
+        return _pieces_runner(map_over(piece), n_chains, n_draws, n_pieces, params_per_chain)
     n_threads = _chain_threads(n_chains)
     if n_threads == 1:
         return mapped
@@ -302,6 +350,56 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool):
     return threaded
 
 
+def _pieces_runner(mapped_piece, n_chains: int, n_draws: int, n_pieces: int, params_per_chain: bool):
+    """The piecewise schedule of :func:`_over_chains`: ``_cores()`` workers, tasks of one
+    chain and ``n_draws / n_pieces`` draws, each chain's next piece queued when its last
+    one ends (first in, first out: with ``chains * pieces`` a multiple of the workers no
+    worker idles while another has work)."""
+    m = n_draws // n_pieces
+    split_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, n_draws)))
+    compiled = False
+
+    def run(keys, states, params):
+        nonlocal compiled
+        draw_keys = split_keys(keys)  # (C, n_draws): the draws' keys of one_chain
+
+        def task(c, p, state):
+            take = lambda a: a[c:c + 1]  # noqa: E731
+            # blocking: the worker holds its core until the piece is done (async dispatch
+            # from worker threads that return at once ran no faster than three threads)
+            return jax.block_until_ready(mapped_piece(
+                draw_keys[c:c + 1, p * m:(p + 1) * m], state,
+                jax.tree.map(take, params) if params_per_chain else params))
+
+        outs = [[None] * n_pieces for _ in range(n_chains)]
+        finals = [None] * n_chains
+        start = [jax.tree.map(lambda a, c=c: a[c:c + 1], states) for c in range(n_chains)]
+        with ThreadPoolExecutor(_cores()) as pool:
+            pending = {}
+            for c in range(n_chains):
+                if not compiled:  # the first call compiles in this thread alone
+                    st, out = task(c, 0, start[c])
+                    compiled = True
+                    outs[c][0] = out
+                    pending[pool.submit(task, c, 1, st)] = (c, 1)
+                else:
+                    pending[pool.submit(task, c, 0, start[c])] = (c, 0)
+            while pending:
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    c, p = pending.pop(fut)
+                    st, outs[c][p] = fut.result()  # a worker's exception is raised here
+                    if p + 1 < n_pieces:
+                        pending[pool.submit(task, c, p + 1, st)] = (c, p + 1)
+                    else:
+                        finals[c] = st
+        per_chain = [jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=1), *o) for o in outs]
+        return (jax.tree.map(lambda *xs: jnp.concatenate(xs), *finals),
+                jax.tree.map(lambda *xs: jnp.concatenate(xs), *per_chain))
+
+    return run
+
+
 def _info_extras(info):
     """``(gradient evaluations, divergent)`` of a transition (zero for random walks)."""
     grads = getattr(info, "grad_evals", jnp.zeros((), jnp.int32))
@@ -309,14 +407,20 @@ def _info_extras(info):
     return grads, div
 
 
-def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int):
+def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool = True):
     """Jitted ``(keys (C,), states, params) -> (states, out)`` running ``n_draws`` thinned draws.
 
     ``kernel`` is ``(key, state, params) -> (state, info)``, or with a cache
     ``(key, state, params, cache) -> (state, info, cache)`` when it carries
     ``kernel.condensation`` (random walk) or ``kernel.init_cache`` (gradient kernels); the
     cache is rebuilt from the state at every chunk start, so a resumed run repeats the
-    same arithmetic.  ``kernel.per_chain_params``: ``params`` has a leading chain axis.
+    same arithmetic, and at every piece start where a CPU runs the chunk in pieces
+    (:func:`_chain_pieces`): both caches are functions of the elastic parameters, which
+    the state holds, so the pieces repeat the arithmetic of the whole chunk.
+    ``kernel.per_chain_params``: ``params`` has a leading chain axis.  ``pieces``: allow
+    the piecewise CPU schedule (:func:`_chain_pieces`; the random walks use it, the
+    gradient kernels do not: NUTS on the quickstart problem ran 2.2 transitions/s per
+    chain in pieces against 2.4 in three threads, one run each, identical draws).
     ``out`` is ``(positions, interior, logdensity, acceptance (B,), CG iterations per step,
     failed solves, gradient evaluations per step, divergences)`` per draw.
     """
@@ -327,7 +431,7 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int):
             return cond.build(state.position)
     per_chain = getattr(kernel, "per_chain_params", False)
 
-    def one_chain(key, state, params):
+    def piece(draw_keys, state, params):
         def draw(carry, key):
             def step(carry, key):
                 if init_cache is None:
@@ -350,10 +454,13 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int):
             )
 
         carry = state if init_cache is None else (state, init_cache(state))
-        carry, out = jax.lax.scan(draw, carry, jax.random.split(key, n_draws))
+        carry, out = jax.lax.scan(draw, carry, draw_keys)
         return (carry if init_cache is None else carry[0]), out
 
-    return _over_chains(one_chain, n_chains, per_chain)
+    def one_chain(key, state, params):
+        return piece(jax.random.split(key, n_draws), state, params)
+
+    return _over_chains(one_chain, n_chains, per_chain, piece=piece if pieces else None, n_draws=n_draws)
 
 
 def _scaled(sigmas, log_scales):
@@ -748,7 +855,7 @@ def sample_gradient(
     kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
                              jitter_integration_steps=jitter_integration_steps,
                              max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)
-    chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
+    chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains, pieces=False)
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = 1 + (target.n_free > 0)
     eta0 = np.asarray(eta_scale, np.float64)  # scales become a diagonal factor in ws_init

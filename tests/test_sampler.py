@@ -148,6 +148,37 @@ def test_chains_in_host_threads_equal_vmapped_chains(monkeypatch, per_chain):
     assert len(set(np.asarray(expect[1]).tolist())) > 1  # the chains' loops did differ in length
 
 
+def test_chunk_pieces_on_a_cpu_equal_whole_chunks(monkeypatch):
+    """3 chains on 2 cores: a chunk of 6 draws runs as 2 pieces per chain on 2 workers, and gives
+    the draws of the whole chunks run by vmap (per-chain states, warm starts and caches)."""
+    import bayesreg.sampler as smp
+
+    assert [smp._chain_pieces(c, 100, 2) for c in (1, 2, 3, 4, 5)] == [1, 1, 4, 1, 4]
+    assert [smp._chain_pieces(c, 100, 4) for c in (3, 6, 10, 8)] == [1, 4, 4, 1]
+    assert smp._chain_pieces(3, 50, 2) == 2  # 2 P pieces where the chunk allows, else P
+    assert smp._chain_pieces(3, 25, 2) == 1  # an odd chunk is not cut: whole chains in 3 threads
+    assert smp._chain_pieces(3, None, 2) == 1
+
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    kernel = smp.build_kernel(logdensity)
+    x0 = mean + 0.1 * np.random.default_rng(5).normal(size=(3, len(mean)))
+    states = jax.vmap(lambda x: smp.init(x, logdensity, jnp.zeros((n_i, 3))))(jnp.asarray(x0))
+    sig = (jnp.full(len(mean), 0.05),)
+    keys = jax.random.split(jax.random.key(3), 3)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the vmapped path, on any machine
+    expect = smp._build_chunk(kernel, 6, 3, 3)(keys, states, sig)
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    monkeypatch.setattr(smp, "_cores", lambda: 2)
+    chunk = smp._build_chunk(kernel, 6, 3, 3)
+    for _ in range(2):  # the first call compiles chain 0's first piece alone
+        got = chunk(keys, states, sig)
+        for g, e in zip(jax.tree.leaves(got), jax.tree.leaves(expect)):
+            assert g.shape == e.shape
+            np.testing.assert_allclose(np.asarray(g, float), np.asarray(e, float), rtol=1e-9, atol=1e-12)
+    acc = np.asarray(expect[1][3])
+    assert 0 < acc.mean() < 1  # some proposals were rejected, some accepted
+
+
 def test_sampler_rejects_bad_start():
     logdensity, mean, cov, n_i = _quadratic_problem()
 
