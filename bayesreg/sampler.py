@@ -277,9 +277,9 @@ def _chain_pieces(n_chains: int, n_draws: int | None, n_cores: int | None = None
     speeds), else ``P``; 1 when the chains already split evenly, when there are no more
     chains than cores, or when ``n_draws`` is not a multiple of ``P`` (then
     :func:`_chain_threads` applies).  Measured (``benchmarks/schedule.py``, 3 chains on 2
-    cores, paper-size mesh, two runs each): 4 pieces 1.25-1.27x and 1.27-1.29x the steps/s
-    of three threads (paper joint, blocked Laplace kernels), 2 pieces 1.20-1.28x and
-    1.21-1.24x: the finer cut costs nothing measurable.
+    cores, paper-size mesh, three runs each): 4 pieces 1.25-1.43x and 1.23-1.29x the
+    steps/s of three threads (paper joint, blocked Laplace kernels), 2 pieces 1.20-1.44x
+    and 1.21-1.24x: the finer cut costs nothing measurable.
     """
     n_cores = _cores() if n_cores is None else n_cores
     if n_draws is None or n_chains <= n_cores or n_chains % n_cores == 0:
@@ -419,8 +419,9 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
     the state holds, so the pieces repeat the arithmetic of the whole chunk.
     ``kernel.per_chain_params``: ``params`` has a leading chain axis.  ``pieces``: allow
     the piecewise CPU schedule (:func:`_chain_pieces`; the random walks use it, the
-    gradient kernels do not: NUTS on the quickstart problem ran 2.2 transitions/s per
-    chain in pieces against 2.4 in three threads, one run each, identical draws).
+    gradient kernels do not: NUTS on the quickstart problem ran 0.97x (0.82-0.99) the
+    transitions/s of three threads in pieces, ``benchmarks/schedule.py --kernel nuts``,
+    identical draws).
     ``out`` is ``(positions, interior, logdensity, acceptance (B,), CG iterations per step,
     failed solves, gradient evaluations per step, divergences)`` per draw.
     """

@@ -17,7 +17,14 @@ with the same keys (so every schedule does the same arithmetic):
 * ``threads``: whole chains, one host thread each (:func:`bayesreg.sampler._chain_threads`;
   the only schedule before the pieces).
 
-The first round compiles and is not counted.  A shared 2-core machine is noisy from one
+``--kernel nuts`` measures the gradient kernels' case instead, which keeps the threads: the
+quickstart problem (``benchmarks/samplers.py``'s cache, the paper's normaliser) is sampled
+whole by :func:`bayesreg.pipeline.sample_problem` (``--warmup`` transitions, then
+``--draws`` draws in chunks of ``--chunk-draws``), alternately with the sampling chunks
+cut into pieces (forced) and in threads (the default), ``--rounds`` times each; the rate
+is sampling draws per second per chain.
+
+The first round compiles and is not counted (random walks).  A shared 2-core machine is noisy from one
 round to the next (single runs of ``run.py`` gave 85-140 steps/s per chain for one
 setting), so the figure to read is the median over rounds of each schedule's rate divided
 by the ``threads`` rate of the same round.  Writes ``<out>/schedule-<kernel>-<C>.json`` and
@@ -51,7 +58,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--kernel", default="paper-joint", choices=sorted(bench.KERNELS))
+    p.add_argument("--kernel", default="paper-joint", choices=sorted(bench.KERNELS) + ["nuts"])
+    p.add_argument("--warmup", type=int, default=60, help="nuts: warm-up transitions per run")
+    p.add_argument("--draws", type=int, default=80, help="nuts: draws per chain per run")
     p.add_argument("--chains", type=int, default=3)
     p.add_argument("--chunk-draws", type=int, default=40, help="draws per chunk (thinning 10)")
     p.add_argument("--rounds", type=int, default=9, help="rounds, the first (compiling) not counted")
@@ -61,8 +70,41 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
+def nuts_rates(args) -> tuple[dict, dict]:
+    """``--kernel nuts``: whole quickstart runs, pieces (forced) and threads in turn."""
+    import samplers
+
+    cfg = samplers.load_config(samplers.CONFIG, overrides=[
+        "model.prior_normaliser=paper", f"sampler.warmup_steps={args.warmup}",
+        f"sampler.max_draws={args.draws}", f"sampler.min_draws={args.draws}",
+        f"sampler.chunk_draws={args.chunk_draws}", "output.progress=false"])
+    problem, _ = samplers.problem_for(cfg, args.cache)
+    init = pipeline.initialise(problem, cfg)
+    default = smp._build_chunk
+
+    def forced(*a, pieces=True, **k):
+        return default(*a, pieces=True, **k)
+
+    rates, last = {"pieces": [], "threads": []}, {}
+    for r in range(args.rounds):
+        for name in rates:
+            smp._build_chunk = forced if name == "pieces" else default
+            try:
+                result, _ = pipeline.sample_problem(problem, cfg, init)
+            finally:
+                smp._build_chunk = default
+            rates[name].append(args.draws / result.timings["sampling_s"])
+            last[name] = np.asarray(result.positions)
+            bench.log(f"round {r} {name}: {rates[name][-1]:.2f} transitions/s per chain")
+    info = {"nodes": len(problem.mesh.nodes), "same_draws": bool(np.allclose(last["pieces"], last["threads"]))}
+    return rates, info
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
+    if args.kernel == "nuts":
+        rates, info = nuts_rates(args)
+        return report(args, rates, info, unit="transitions/s", steps=f"{args.draws} draws")
     edge, res = bench.parse_mesh(args.mesh)
     opts = types.SimpleNamespace(truth="smooth", shift_mm=7.5, cache=args.cache, rebuild=False,
                                  laplace_max_gb=6.0)
@@ -97,19 +139,25 @@ def main(argv=None) -> dict:
             if r:
                 rates[name].append(rate)
             bench.log(f"round {r} {name}: {rate:.1f} steps/s per chain")
+    return report(args, rates, info, unit="steps/s", steps=f"{args.chunk_draws} draws x {bench.THINNING}")
+
+
+def report(args, rates: dict, info: dict, *, unit: str, steps: str) -> dict:
+    """Ratios to ``threads`` per round, JSON and Markdown."""
+    c = args.chains
     ratios = {k: (np.asarray(v) / np.asarray(rates["threads"])).tolist() for k, v in rates.items()
               if k != "threads"}
     result = {
         "machine": bench.machine_info(), "problem": info, "kernel": args.kernel, "chains": c,
-        "chunk_draws": args.chunk_draws, "thinning": bench.THINNING, "rounds_timed": args.rounds - 1,
-        "default_pieces": default(c, args.chunk_draws), "default_threads": smp._chain_threads(c),
-        "steps_per_s_per_chain": rates, "ratio_to_threads": ratios,
+        "chunk_draws": args.chunk_draws, "rounds_timed": len(rates["threads"]),
+        "default_pieces": smp._chain_pieces(c, args.chunk_draws), "default_threads": smp._chain_threads(c),
+        "rate_unit": f"{unit} per chain", "rates_per_chain": rates, "ratio_to_threads": ratios,
     }
     lines = [f"# CPU schedule of {c} chains ({args.kernel}, {info['nodes']} nodes, "
-             f"{args.chunk_draws} draws x {bench.THINNING} per chunk)", "",
+             f"{steps} per chunk)", "",
              f"{result['machine']['cpu_model']}, {result['machine']['cores_available']} cores, "
              f"commit {result['machine']['git_commit']}", "",
-             "| schedule | steps/s per chain, median (min-max) | / threads, median of rounds (min-max) |",
+             f"| schedule | {unit} per chain, median (min-max) | / threads, median of rounds (min-max) |",
              "|---|---|---|"]
     for name, v in rates.items():
         r_ = ratios.get(name)
