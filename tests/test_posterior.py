@@ -212,6 +212,36 @@ def test_condensed_kernel_samples_the_same_posterior():
     assert np.max(np.abs(rel)) < 5.0
 
 
+def test_condensed_chunk_in_pieces_equals_whole_chunks(monkeypatch):
+    """The condensed kernel's cache (``H`` at each chain's parameters) is rebuilt at every
+    piece start on a CPU with fewer cores than chains (:func:`bayesreg.sampler._chain_pieces`);
+    the draws equal those of whole chunks run by vmap, elastic moves accepted included."""
+    import bayesreg.sampler as smp
+    from bayesreg.posterior import condensation, log_density_condensed
+
+    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
+    mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
+    nb3 = 3 * len(mesh.boundary)
+    ld = lambda th, ui: log_density(post, th, ui, rtol=1e-10)  # noqa: E731
+    cond = smp.Condensation(lambda th, h: log_density_condensed(post, th, h),
+                            lambda th: condensation(post, th), 0, moves=2)
+    kernel = smp.build_kernel(ld, (np.arange(nb3), np.arange(nb3, post.dim)), cond)
+    x0 = np.tile(theta, (3, 1)) + 0.02 * np.random.default_rng(1).normal(size=(3, post.dim))
+    states = jax.vmap(lambda x: smp.init(x, ld, jnp.zeros((post.op.n_interior, 3))))(jnp.asarray(x0))
+    sig = (jnp.full(nb3, 0.02), jnp.abs(jnp.asarray(theta[nb3:])) * 0.05)
+    keys = jax.random.split(jax.random.key(5), 3)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # vmapped whole chunks
+    expect = smp._build_chunk(kernel, 8, 2, 3)(keys, states, sig)
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    monkeypatch.setattr(smp, "_cores", lambda: 2)
+    assert smp._chain_pieces(3, 8) == 4
+    got = smp._build_chunk(kernel, 8, 2, 3)(keys, states, sig)
+    for g, e in zip(jax.tree.leaves(got), jax.tree.leaves(expect)):
+        np.testing.assert_allclose(np.asarray(g, float), np.asarray(e, float), rtol=1e-8, atol=1e-10)
+    acc = np.asarray(expect[1][3])  # (C, draws, blocks)
+    assert acc[..., 1].max() > 0  # elastic moves were accepted (the cache was rebuilt)
+
+
 def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
     """The barrier adds -(w/d - 1)^2 for a node at distance d < w of the skull's voxel
     cubes (a wall at world x = 36.5 mm, where the nearest-voxel rule flips), with d the

@@ -150,7 +150,7 @@ def test_chains_in_host_threads_equal_vmapped_chains(monkeypatch, per_chain):
 
 def test_chunk_pieces_on_a_cpu_equal_whole_chunks(monkeypatch):
     """3 chains on 2 cores: a chunk of 6 draws runs as 2 pieces per chain on 2 workers, and gives
-    the draws of the whole chunks run by vmap (per-chain states, warm starts and caches)."""
+    the draws of the whole chunks run by vmap (per-chain states and warm starts)."""
     import bayesreg.sampler as smp
 
     assert [smp._chain_pieces(c, 100, 2) for c in (1, 2, 3, 4, 5)] == [1, 1, 4, 1, 4]
