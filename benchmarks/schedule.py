@@ -4,6 +4,7 @@ Run from the repository root (not part of the test suite)::
 
     python benchmarks/schedule.py                          # paper-joint, 3 chains, 9 rounds
     python benchmarks/schedule.py --kernel blocked-laplace --chunk-draws 20 --rounds 7
+    python benchmarks/schedule.py --kernel nuts --chunk-draws 20 --rounds 3
 
 On the paper-size problem of ``benchmarks/run.py`` (``--mesh``, from its cache), one chunk
 function of :func:`bayesreg.sampler._build_chunk` is built per schedule and the schedules
@@ -24,11 +25,11 @@ whole by :func:`bayesreg.pipeline.sample_problem` (``--warmup`` transitions, the
 cut into pieces (forced) and in threads (the default), ``--rounds`` times each; the rate
 is sampling draws per second per chain.
 
-The first round compiles and is not counted (random walks).  A shared 2-core machine is noisy from one
-round to the next (single runs of ``run.py`` gave 85-140 steps/s per chain for one
-setting), so the figure to read is the median over rounds of each schedule's rate divided
-by the ``threads`` rate of the same round.  Writes ``<out>/schedule-<kernel>-<C>.json`` and
-``.md``.
+With the random walks the first round compiles and is not counted.  A shared 2-core
+machine is noisy from one round to the next (single runs of ``run.py`` gave 85-140 steps/s
+per chain for one setting), so the figure to read is the median over rounds of each
+schedule's rate divided by the ``threads`` rate of the same round.  Writes
+``<out>/schedule-<kernel>-<C>.json`` and ``.md``.
 """
 
 from __future__ import annotations
@@ -77,7 +78,8 @@ def nuts_rates(args) -> tuple[dict, dict]:
     cfg = samplers.load_config(samplers.CONFIG, overrides=[
         "model.prior_normaliser=paper", f"sampler.warmup_steps={args.warmup}",
         f"sampler.max_draws={args.draws}", f"sampler.min_draws={args.draws}",
-        f"sampler.chunk_draws={args.chunk_draws}", "output.progress=false"])
+        f"sampler.chunk_draws={args.chunk_draws}", f"sampler.chains={args.chains}",
+        "output.progress=false"])
     problem, _ = samplers.problem_for(cfg, args.cache)
     init = pipeline.initialise(problem, cfg)
     default = smp._build_chunk
