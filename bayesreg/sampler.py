@@ -323,10 +323,10 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None
 
         return mapped
 
-    mapped = map_over(one_chain)
     n_pieces = _chain_pieces(n_chains, n_draws) if piece is not None else 1
     if n_pieces > 1:
         return _pieces_runner(map_over(piece), n_chains, n_draws, n_pieces, params_per_chain)
+    mapped = map_over(one_chain)
     n_threads = _chain_threads(n_chains)
     if n_threads == 1:
         return mapped
