@@ -52,7 +52,13 @@ from bayesreg.fem import (  # noqa: E402
 )
 from bayesreg.mesh import Mesh  # noqa: E402
 from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
-from bayesreg.solver import SolveInfo, interior_map_blocks, solve_interior_blocks  # noqa: E402
+from bayesreg.solver import (  # noqa: E402
+    DensePreconditioner,
+    SolveInfo,
+    dense_preconditioner,
+    interior_map_blocks,
+    solve_interior_blocks,
+)
 
 __all__ = [
     "Posterior",
@@ -65,6 +71,7 @@ __all__ = [
     "log_density",
     "log_density_condensed",
     "condensation",
+    "preconditioner",
     "split_position",
     "elastic_groups",
     "full_displacement",
@@ -490,8 +497,17 @@ def energies(post: Posterior, u, phi):
     return jnp.sum(r * r), e_r
 
 
-def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
+def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
+                precond: DensePreconditioner | None = None):
     """Unnormalised log posterior (paper Eqs. 9, 11, 12) and its by-products.
+
+    A parameter vector outside the prior support gives ``-inf`` without a solve: a
+    :func:`jax.lax.cond` skips it where one branch runs (a chain mapped or alone on a CPU);
+    under ``vmap`` both branches run, and the solve is made at :attr:`Posterior.phi_ref`
+    (``K_ii`` stays positive definite) with an iteration cap of 0, so that no batched CG
+    waits for it.  The skipped solve reports 0 iterations and is not a failure.  (The paper's
+    joint random walk proposes parameters outside the support often once its drift has
+    brought them near 0: 57% of the proposals on the paper-size mesh after 10,000 steps.)
 
     Parameters
     ----------
@@ -502,6 +518,9 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
         Warm start of the interior solve (mm).
     rtol, maxiter
         CG tolerance (relative residual) and iteration cap.
+    precond : DensePreconditioner, optional
+        CG preconditioner (:func:`preconditioner`, at any parameters); default block
+        Jacobi.  It changes the CG's iterations, not the tolerance it meets.
 
     Returns
     -------
@@ -512,10 +531,19 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000):
     u_b, phi = split_position(post, theta)
     log_prior, in_support = _log_prior(post, phi)
     phi_solve = jnp.where(in_support, phi, post.phi_ref)
-    lam_g, mu_g = elastic_groups(post, phi_solve)
-    u_i, info = solve_interior_blocks(
-        post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter
-    )
+
+    def solve(_):
+        lam_g, mu_g = elastic_groups(post, phi_solve)
+        u_i, info = solve_interior_blocks(
+            post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol,
+            maxiter=jnp.where(in_support, maxiter, 0), precond=precond)
+        return u_i, SolveInfo(info.iterations, info.residual, info.converged | ~in_support)
+
+    def skip(_):
+        return (jax.lax.stop_gradient(jnp.asarray(u_i0, u_b.dtype)),
+                SolveInfo(jnp.asarray(0), jnp.zeros((), u_b.dtype), jnp.asarray(True)))
+
+    u_i, info = jax.lax.cond(in_support, solve, skip, None)
     return _finish(post, u_b, u_i, info, phi_solve, in_support, log_prior)
 
 
@@ -547,6 +575,17 @@ def condensation(post: Posterior, theta):
     _, in_support = _log_prior(post, phi)
     lam_g, mu_g = elastic_groups(post, jnp.where(in_support, phi, post.phi_ref))
     return interior_map_blocks(post.op, *stiffness_blocks(post, lam_g, mu_g), post.n_boundary)
+
+
+def preconditioner(post: Posterior, theta) -> DensePreconditioner:
+    """Dense CG preconditioner ``K_ii(phi)^-1`` (float32) at the parameters of ``theta``
+    (:func:`bayesreg.solver.dense_preconditioner`; :attr:`Posterior.phi_ref` when they leave
+    the prior support).  Built once per chain and reused while its parameters move: the
+    preconditioner of :func:`log_density` (``precond``) at any nearby parameters."""
+    _, phi = split_position(post, theta)
+    _, in_support = _log_prior(post, phi)
+    lam_g, mu_g = elastic_groups(post, jnp.where(in_support, phi, post.phi_ref))
+    return dense_preconditioner(post.op, stiffness_blocks(post, lam_g, mu_g)[0])
 
 
 def log_density_condensed(post: Posterior, theta, h):

@@ -36,8 +36,8 @@ from blackjax.mcmc.random_walk import normal as normal_jumping_kernel  # noqa: E
 from bayesreg.diagnostics import gelman_rubin  # noqa: E402
 
 __all__ = [
-    "RWMHState", "RWMHInfo", "Condensation", "init", "build_kernel", "SamplerResult", "SamplerCheckpoint",
-    "sample", "sample_gradient",
+    "RWMHState", "RWMHInfo", "Condensation", "Preconditioner", "KernelCache", "init", "build_kernel",
+    "SamplerResult", "SamplerCheckpoint", "sample", "sample_gradient",
 ]
 
 
@@ -103,7 +103,37 @@ class Condensation(NamedTuple):
     moves: int = 1
 
 
-def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensation | None = None) -> Callable:
+class Preconditioner(NamedTuple):
+    """A CG preconditioner cached per chain (see :func:`build_kernel`).
+
+    Attributes
+    ----------
+    logdensity_fn : callable
+        ``(position, interior_guess, pre) -> (logp, aux)``: the log-density with its interior
+        solve preconditioned by ``pre``.  For any ``pre`` it is the same function of the
+        position as the kernel's own ``logdensity_fn`` (the CG meets the same tolerance; the
+        preconditioner changes how many iterations that takes), so the target is unchanged.
+    build : callable
+        ``position -> pre`` at the position's elastic parameters
+        (:func:`bayesreg.posterior.preconditioner`).
+    """
+
+    logdensity_fn: Callable
+    build: Callable
+
+
+class KernelCache(NamedTuple):
+    """What a random-walk kernel carries from step to step besides the state: the
+    condensation's cache and the preconditioner (``None`` where not used).  Rebuilt from the
+    state at every chunk start (:func:`_build_chunk`), so a resumed run repeats the same
+    arithmetic."""
+
+    condensed: object = None
+    precond: object = None
+
+
+def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensation | None = None,
+                 preconditioner: Preconditioner | None = None) -> Callable:
     """RW-MH kernel ``(rng_key, state, sigmas) -> (state, info)`` for a fixed log-density.
 
     Parameters
@@ -119,15 +149,24 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
         Moves of ``condensation.block`` evaluate ``condensation.logdensity_fn`` with the
         cache instead of ``logdensity_fn`` (for the boundary block: the interior from a
         cached ``u_i = H u_b``, no CG solve), ``condensation.moves`` times per step; after an
-        accepted move of another block the cache is rebuilt (``lax.cond``).  The kernel is
-        then ``(rng_key, state, sigmas, cache) -> (state, info, cache)``.  Both
+        accepted move of another block the cache is rebuilt (``lax.cond``).  Both
         log-densities are the same function of the position, so the target is unchanged.
+    preconditioner : Preconditioner, optional
+        The moves that solve (every move without a condensation) evaluate
+        ``preconditioner.logdensity_fn`` with the chain's cached preconditioner, built at
+        the chain's position when the chunk starts (:func:`_build_chunk`) and kept through
+        the chunk: the random walk moves the parameters little per chunk, and the
+        preconditioner only has to stay near ``K_ii^-1``.
 
     Notes
     -----
     ``sigmas[b]`` is block ``b``'s jumping-kernel scale: a vector (independent scales) or a
     matrix ``L`` (proposal covariance ``L L^T``), as in
     :func:`blackjax.mcmc.random_walk.normal`.
+
+    With a condensation or a preconditioner the kernel is ``(rng_key, state, sigmas, cache)
+    -> (state, info, cache)`` with ``cache`` a :class:`KernelCache`, and ``kernel.init_cache
+    (state) -> KernelCache`` builds it.
     """
 
     def update(rng_key, state: RWMHState, idx, sigma, density):
@@ -142,18 +181,21 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
         state, (accepted, p_accept, _) = static_binomial_sampling(key_acc, log_ratio, state, new)
         return state, (p_accept, accepted, aux.solve.iterations, ~aux.solve.converged)
 
-    def full(proposal, state):
-        return logdensity_fn(proposal, state.interior)
-
-    def kernel(rng_key, state: RWMHState, sigmas, cache=None):
+    def kernel(rng_key, state: RWMHState, sigmas, cache: KernelCache | None = None):
         idxs = blocks if blocks is not None else [jnp.arange(state.position.shape[0])]
         keys = jax.random.split(rng_key, len(idxs))
+
+        def full(proposal, state):
+            if preconditioner is None:
+                return logdensity_fn(proposal, state.interior)
+            return preconditioner.logdensity_fn(proposal, state.interior, cache.precond)
+
         out = []
         for b, idx in enumerate(idxs):
             idx = jnp.asarray(idx)
             if condensation is not None and b == condensation.block:
-                def cached(proposal, _state, cache=cache):
-                    return condensation.logdensity_fn(proposal, cache)
+                def cached(proposal, _state, h=cache.condensed):
+                    return condensation.logdensity_fn(proposal, h)
 
                 def one(st, key, idx=idx, b=b, cached=cached):
                     st, o = update(key, st, idx, sigmas[b], cached)
@@ -164,7 +206,9 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
             else:
                 state, o = update(keys[b], state, idx, sigmas[b], full)
                 if condensation is not None:
-                    cache = jax.lax.cond(o[1], lambda: condensation.build(state.position), lambda: cache)
+                    condensed = jax.lax.cond(o[1], lambda: condensation.build(state.position),
+                                             lambda: cache.condensed)
+                    cache = cache._replace(condensed=condensed)
                 out.append(o)
         info = RWMHInfo(
             jnp.stack([o[0] for o in out]),
@@ -172,9 +216,17 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
             sum(o[2] for o in out),
             sum(o[3].astype(jnp.int32) for o in out),
         )
-        return (state, info) if condensation is None else (state, info, cache)
+        return (state, info) if cache is None else (state, info, cache)
 
     kernel.condensation = condensation
+    kernel.preconditioner = preconditioner
+    if condensation is not None or preconditioner is not None:
+        def init_cache(state: RWMHState) -> KernelCache:
+            return KernelCache(
+                None if condensation is None else condensation.build(state.position),
+                None if preconditioner is None else preconditioner.build(state.position))
+
+        kernel.init_cache = init_cache
     return kernel
 
 
@@ -288,7 +340,8 @@ def _chain_pieces(n_chains: int, n_draws: int | None, n_cores: int | None = None
     return next((k for k in (2 * pieces, pieces) if n_draws % k == 0), 1)
 
 
-def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None, n_draws: int | None = None):
+def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None, start=None,
+                 n_draws: int | None = None):
     """Run ``one_chain(key, state, params)`` for every chain (leading axis); returns a callable.
 
     On an accelerator the chains are vmapped inside one jitted call, which is what it is
@@ -305,10 +358,12 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None
     Where the chains do not split evenly over the cores and the chunk can be cut
     (``piece`` and ``n_draws`` given, :func:`_chain_pieces` > 1), one worker thread per core
     runs pieces of single chains instead, each chain's pieces in order, a chain's next
-    piece queued as soon as its previous one ends.  ``piece(draw_keys (m,), state,
-    params) -> (state, out)`` must continue a chain over the draws of ``draw_keys``, with
-    ``out`` stacked over them, such that ``one_chain(key, ...)`` equals the pieces run in
-    turn on ``jax.random.split(key, n_draws)``.
+    piece queued as soon as its previous one ends.  ``start(state) -> carry`` begins a
+    chain's chunk (``None``: the carry is the state), ``piece(draw_keys (m,), carry,
+    params) -> (carry, out)`` continues it over the draws of ``draw_keys``, with ``out``
+    stacked over them, and ``carry[0]`` is the state, such that ``one_chain(key, ...)``
+    equals ``start`` and then the pieces run in turn on ``jax.random.split(key, n_draws)``
+    (the carry, with any cache of the kernel, passes from one piece to the next).
     """
     in_axes = (0, 0, 0 if params_per_chain else None)
     if jax.default_backend() != "cpu":
@@ -325,7 +380,8 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None
 
     n_pieces = _chain_pieces(n_chains, n_draws) if piece is not None else 1
     if n_pieces > 1:
-        return _pieces_runner(map_over(piece), n_chains, n_draws, n_pieces, params_per_chain)
+        begin = None if start is None else jax.jit(lambda states: jax.lax.map(start, states))
+        return _pieces_runner(map_over(piece), begin, n_chains, n_draws, n_pieces, params_per_chain)
     mapped = map_over(one_chain)
     n_threads = _chain_threads(n_chains)
     if n_threads == 1:
@@ -350,11 +406,13 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None
     return threaded
 
 
-def _pieces_runner(mapped_piece, n_chains: int, n_draws: int, n_pieces: int, params_per_chain: bool):
+def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: int,
+                   params_per_chain: bool):
     """The piecewise schedule of :func:`_over_chains`: ``_cores()`` workers, tasks of one
     chain and ``n_draws / n_pieces`` draws, each chain's next piece queued when its last
     one ends (first in, first out: with ``chains * pieces`` a multiple of the workers no
-    worker idles while another has work)."""
+    worker idles while another has work).  ``begin(states) -> carries`` (jitted, one chain
+    at a time) runs in the task of a chain's first piece; ``None``: the carry is the state."""
     m = n_draws // n_pieces
     split_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, n_draws)))
     compiled = False
@@ -363,36 +421,38 @@ def _pieces_runner(mapped_piece, n_chains: int, n_draws: int, n_pieces: int, par
         nonlocal compiled
         draw_keys = split_keys(keys)  # (C, n_draws): the draws' keys of one_chain
 
-        def task(c, p, state):
+        def task(c, p, carry):
             take = lambda a: a[c:c + 1]  # noqa: E731
+            if p == 0 and begin is not None:
+                carry = begin(carry)
             # blocking: the worker holds its core until the piece is done (async dispatch
             # from worker threads that return at once ran no faster than three threads)
             return jax.block_until_ready(mapped_piece(
-                draw_keys[c:c + 1, p * m:(p + 1) * m], state,
+                draw_keys[c:c + 1, p * m:(p + 1) * m], carry,
                 jax.tree.map(take, params) if params_per_chain else params))
 
         outs = [[None] * n_pieces for _ in range(n_chains)]
         finals = [None] * n_chains
-        start = [jax.tree.map(lambda a, c=c: a[c:c + 1], states) for c in range(n_chains)]
+        first = [jax.tree.map(lambda a, c=c: a[c:c + 1], states) for c in range(n_chains)]
         with ThreadPoolExecutor(_cores()) as pool:
             pending = {}
             for c in range(n_chains):
                 if not compiled:  # the first call compiles in this thread alone
-                    st, out = task(c, 0, start[c])
+                    carry, out = task(c, 0, first[c])
                     compiled = True
                     outs[c][0] = out
-                    pending[pool.submit(task, c, 1, st)] = (c, 1)
+                    pending[pool.submit(task, c, 1, carry)] = (c, 1)
                 else:
-                    pending[pool.submit(task, c, 0, start[c])] = (c, 0)
+                    pending[pool.submit(task, c, 0, first[c])] = (c, 0)
             while pending:
                 done, _ = wait(pending, return_when=FIRST_COMPLETED)
                 for fut in done:
                     c, p = pending.pop(fut)
-                    st, outs[c][p] = fut.result()  # a worker's exception is raised here
+                    carry, outs[c][p] = fut.result()  # a worker's exception is raised here
                     if p + 1 < n_pieces:
-                        pending[pool.submit(task, c, p + 1, st)] = (c, p + 1)
+                        pending[pool.submit(task, c, p + 1, carry)] = (c, p + 1)
                     else:
-                        finals[c] = st
+                        finals[c] = carry if begin is None else carry[0]
         per_chain = [jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=1), *o) for o in outs]
         return (jax.tree.map(lambda *xs: jnp.concatenate(xs), *finals),
                 jax.tree.map(lambda *xs: jnp.concatenate(xs), *per_chain))
@@ -411,12 +471,13 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
     """Jitted ``(keys (C,), states, params) -> (states, out)`` running ``n_draws`` thinned draws.
 
     ``kernel`` is ``(key, state, params) -> (state, info)``, or with a cache
-    ``(key, state, params, cache) -> (state, info, cache)`` when it carries
-    ``kernel.condensation`` (random walk) or ``kernel.init_cache`` (gradient kernels); the
-    cache is rebuilt from the state at every chunk start, so a resumed run repeats the
-    same arithmetic, and at every piece start where a CPU runs the chunk in pieces
-    (:func:`_chain_pieces`): both caches are functions of the elastic parameters, which
-    the state holds, so the pieces repeat the arithmetic of the whole chunk.
+    ``(key, state, params, cache) -> (state, info, cache)`` when it has
+    ``kernel.init_cache(state) -> cache`` (the random walks' condensation and
+    preconditioner, the gradient kernels' condensation and normaliser).  The cache is
+    built from the state at every chunk start, so a resumed run repeats the same
+    arithmetic, and carried through the chunk; where a CPU runs the chunk in pieces
+    (:func:`_chain_pieces`) it passes from one piece to the next, so the pieces repeat the
+    arithmetic of the whole chunk.
     ``kernel.per_chain_params``: ``params`` has a leading chain axis.  ``pieces``: allow
     the piecewise CPU schedule (:func:`_chain_pieces`; the random walks use it, the
     gradient kernels do not: NUTS on the quickstart problem ran 0.97x (0.82-0.99) the
@@ -425,14 +486,13 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
     ``out`` is ``(positions, interior, logdensity, acceptance (B,), CG iterations per step,
     failed solves, gradient evaluations per step, divergences)`` per draw.
     """
-    cond = getattr(kernel, "condensation", None)
     init_cache = getattr(kernel, "init_cache", None)
-    if cond is not None:
-        def init_cache(state):
-            return cond.build(state.position)
     per_chain = getattr(kernel, "per_chain_params", False)
 
-    def piece(draw_keys, state, params):
+    def start(state):
+        return state, init_cache(state)
+
+    def piece(draw_keys, carry, params):
         def draw(carry, key):
             def step(carry, key):
                 if init_cache is None:
@@ -454,14 +514,15 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
                 jnp.sum(div.astype(jnp.int32)),
             )
 
-        carry = state if init_cache is None else (state, init_cache(state))
-        carry, out = jax.lax.scan(draw, carry, draw_keys)
-        return (carry if init_cache is None else carry[0]), out
+        return jax.lax.scan(draw, carry, draw_keys)
 
     def one_chain(key, state, params):
-        return piece(jax.random.split(key, n_draws), state, params)
+        carry = state if init_cache is None else start(state)
+        carry, out = piece(jax.random.split(key, n_draws), carry, params)
+        return (carry if init_cache is None else carry[0]), out
 
-    return _over_chains(one_chain, n_chains, per_chain, piece=piece if pieces else None, n_draws=n_draws)
+    return _over_chains(one_chain, n_chains, per_chain, piece=piece if pieces else None,
+                        start=None if init_cache is None else start, n_draws=n_draws)
 
 
 def _scaled(sigmas, log_scales):
@@ -554,6 +615,7 @@ def sample(
     resume: SamplerCheckpoint | None = None,
     resume_draws: tuple | None = None,
     condensation: Condensation | None = None,
+    preconditioner: Preconditioner | None = None,
 ) -> SamplerResult:
     """Run parallel RW-MH chains with warm-up, thinning and R-hat stopping.
 
@@ -616,6 +678,9 @@ def sample(
         with ``resume``.
     condensation : Condensation, optional
         Cached moves of one block (see :func:`build_kernel`); needs ``blocks``.
+    preconditioner : Preconditioner, optional
+        A per-chain CG preconditioner, rebuilt at every chunk start (see
+        :func:`build_kernel`); the draws equal those without it to the CG tolerance.
 
     Returns
     -------
@@ -640,7 +705,7 @@ def sample(
                    and len(ix) <= DENSE_MAX else s_ for s_, ix, a_ in zip(sigmas, idxs, adapt))
     if condensation is not None and blocks is None:
         raise ValueError("condensation needs coordinate blocks")
-    kernel = build_kernel(logdensity_fn, None if blocks is None else idxs, condensation)
+    kernel = build_kernel(logdensity_fn, None if blocks is None else idxs, condensation, preconditioner)
     chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
     key_warm, key_samp = jax.random.split(rng_key)
 

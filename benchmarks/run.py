@@ -334,7 +334,8 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     if surrogate:
         kernel_overrides = [o.replace("proposal=laplace", "proposal=isotropic") for o in kernel_overrides]
     cfg = load_config(PAPER_CONFIG, overrides=base_overrides + kernel_overrides
-                      + [f"sampler.chains={max(2, n_chains)}"])
+                      + [f"sampler.chains={max(2, n_chains)}",
+                         f"solver.preconditioner={args.preconditioner}"])
     t = time.perf_counter()
     init = pipeline.initialise(problem, cfg)
     sigma = tuple(np.asarray(s) for s in init.sigma)
@@ -346,8 +347,11 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     condensation = None
     if init.blocked and cfg.sampler.use_condensed:  # as bayesreg.pipeline.sample_problem builds it
         condensation = pipeline._condensed_rw(problem, cfg)
+    dense = pipeline.dense_preconditioning(problem, cfg, n_chains=max(args.chain_counts))
+    preconditioner = pipeline._preconditioner_rw(problem, cfg) if dense else None
     return {"cfg": cfg, "x0": np.asarray(init.x0), "sigma": sigma, "blocks": blocks,
-            "condensation": condensation,
+            "condensation": condensation, "preconditioner": preconditioner,
+            "cg_preconditioner": "dense" if dense else "block-jacobi",
             "n_blocks": 1 if blocks is None else len(blocks), "surrogate_factor": surrogate,
             # CG solves per step: one per block, but condensed u_b moves take no CG solve
             "cg_solves": (1 if blocks is None else len(blocks)) - (condensation is not None),
@@ -466,31 +470,30 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
 # 3. MH steps
 # ---------------------------------------------------------------------------------------------
 
-def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None):
+def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
+               preconditioner=None):
     """The sampler's kernel (:func:`bayesreg.sampler.build_kernel`) in a plain jitted ``scan``.
 
     Used for one chain (``sample`` needs two or more, for R-hat): the chain is not vmapped,
     as ``sample`` runs one chain per device.  With ``C > 1`` the chains are vmapped on one
-    device (the layout ``sample`` replaces by sharding).
+    device (the layout ``sample`` replaces by sharding).  A kernel with a cache (condensation,
+    preconditioner) builds it at each chunk start, as ``sample`` does.
     """
     from bayesreg.sampler import build_kernel, init
 
     sig = tuple(jnp.asarray(s) for s in sigma)
     steps = chunk_draws * THINNING
-    if condensation is None:
-        kernel = build_kernel(logdensity, blocks)
-
+    kernel = build_kernel(logdensity, blocks, condensation, preconditioner)
+    if not hasattr(kernel, "init_cache"):
         def one_chain(key, state):
             return jax.lax.scan(lambda st, k: kernel(k, st, sig), state, jax.random.split(key, steps))
     else:  # the kernel carries the cache: (key, state, sigmas, cache) -> (state, info, cache)
-        kernel = build_kernel(logdensity, blocks, condensation)
-
         def one_chain(key, state):
             def step(carry, k):
                 st, info, cache = kernel(k, carry[0], sig, carry[1])
                 return (st, cache), info
 
-            carry, info = jax.lax.scan(step, (state, condensation.build(state.position)),
+            carry, info = jax.lax.scan(step, (state, kernel.init_cache(state)),
                                        jax.random.split(key, steps))
             return carry[0], info
 
@@ -515,7 +518,8 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
     return stamps, np.mean(acc, axis=0), float(np.mean(cg)), int(np.sum(fail)), how
 
 
-def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None):
+def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
+                preconditioner=None):
     """``bayesreg.sampler.sample`` with a fixed number of draws; time stamps per chunk."""
     stamps: list[float] = []
 
@@ -528,6 +532,8 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
               rhat_threshold=1.2)
     if condensation is not None:
         kw["condensation"] = condensation
+    if preconditioner is not None:
+        kw["preconditioner"] = preconditioner
     try:
         res = sample(key, logdensity, x0, interior0, sigma, on_chunk=on_chunk, **kw)
         how = "sample(), on_chunk time stamps"
@@ -574,7 +580,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
             t0 = time.perf_counter()
             stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
                                                 chunk_draws, n_chunks, jax.random.key(4),
-                                                condensation=setup["condensation"])
+                                                condensation=setup["condensation"],
+                                                preconditioner=setup["preconditioner"])
             wall = time.perf_counter() - t0
             seconds = stamps[-1] - stamps[0]
             steps = args.timed_chunks * chunk_draws * THINNING
@@ -586,6 +593,7 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
                 "first_chunk_incl_compile_s": wall - seconds, "acceptance": acc.tolist(),
                 "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["cg_solves"],
                 "solve_failures": fail, "how": how, "surrogate_factor": setup["surrogate_factor"],
+                "cg_preconditioner": setup["cg_preconditioner"],
             })
             log(f"  {kernel} C={c} ({how}): {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
                 f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['cg_solves']:.0f} ({seconds:.1f} s timed)")
@@ -750,6 +758,7 @@ def markdown(res: dict) -> str:
     for r in meshes:
         for x in r.get("sampler", []):
             name = x["kernel"] + (" (surrogate factor)" if x.get("surrogate_factor") else "")
+            name += f", {x['cg_preconditioner']} CG" if x.get("cg_preconditioner") else ""
             if x.get("runner") == "plain" and x["chains"] > 1:
                 name += " (plain vmap, not sample)"
             if "error" in x:
@@ -832,6 +841,8 @@ def parse_args(argv=None):
     p.add_argument("--shift-mm", type=float, default=None,
                    help="synthetic shift (default 7.5 mm with the smooth truth, the config's 15 mm "
                         "with the constrained one: 15 mm smooth inverts elements of fine meshes)")
+    p.add_argument("--preconditioner", choices=("auto", "dense", "block-jacobi"), default="auto",
+                   help="solver.preconditioner of the sampler's solves (default auto, as the configs)")
     p.add_argument("--no-reference", action="store_true", help="skip the NumPy/SciPy reference")
     p.add_argument("--reference-max-nodes", type=int, default=10**9,
                    help="skip the reference on meshes with more nodes")
@@ -905,7 +916,8 @@ def main(argv=None) -> dict:
                 entry.setdefault("errors", []).append(f"setup {k}: {type(exc).__name__}: {exc}")
                 log(f"  setup {k}: {exc}")
         entry["kernels"] = {k: {"initialise_s": s["initialise_s"], "surrogate_factor": s["surrogate_factor"],
-                                "blocks": s["n_blocks"]} for k, s in setups.items()}
+                                "blocks": s["n_blocks"], "cg_preconditioner": s["cg_preconditioner"]}
+                            for k, s in setups.items()}
         res["memory"].append(memory_snapshot(f"initialise {p['nodes']} nodes"))
         joint = setups["paper-joint"]
         entry["logdensity"] = bench_logdensity(problem, cfg, joint["x0"], joint["sigma"][0],

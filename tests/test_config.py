@@ -120,3 +120,27 @@ def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
     resumed = Checkpoint(tmp_path).load_config().model
     assert resumed.skull_barrier_mm == 0.0 and resumed.quadrature_level == 0
     assert load_config(None).model.skull_barrier_mm == 1.0
+
+
+def test_preconditioner_choice_follows_size_and_memory():
+    """``solver.preconditioner: auto`` takes the dense preconditioner where its inverses fit
+    (``3 n_i <= 4096`` DOFs, at most 2 GiB for all chains), else block Jacobi; a bad value
+    names the key."""
+    from types import SimpleNamespace
+
+    from bayesreg.pipeline import dense_preconditioning
+
+    def problem(n_interior):
+        return SimpleNamespace(posterior=SimpleNamespace(op=SimpleNamespace(n_interior=n_interior)))
+
+    cfg = load_config("configs/paper_three_compartment.yaml")
+    assert cfg.solver.preconditioner == "auto"
+    assert dense_preconditioning(problem(457), cfg)  # the paper's size: 7.5 MB a chain
+    assert not dense_preconditioning(problem(2400), cfg)  # 7,200 DOFs
+    assert not dense_preconditioning(problem(457), cfg, n_chains=1024)  # 7.7 GB in all
+    forced = load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=dense"])
+    assert dense_preconditioning(problem(2400), forced)
+    off = load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=block-jacobi"])
+    assert not dense_preconditioning(problem(457), off)
+    with pytest.raises(ConfigError, match=r"solver\.preconditioner"):
+        load_config(None, overrides=["solver.preconditioner=ilu"])
