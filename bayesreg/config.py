@@ -149,9 +149,10 @@ class SolverConfig(_Strict):
     rtol: float = Field(1e-8, gt=0, lt=1)
     maxiter: int = Field(1000, ge=1)
     preconditioner: Literal["auto", "dense", "block-jacobi"] = Field(
-        "auto", description="CG preconditioner of the random walks' interior solves: dense "
-        "(K_ii^-1 in float32 at each chain's parameters, rebuilt at every chunk start: 2-3 CG "
-        "iterations instead of 60-180 at the paper's size), block-jacobi (3x3 blocks, no "
+        "auto", description="CG preconditioner of the samplers' interior solves (the random "
+        "walks' and the gradient kernels' elastic moves): dense (K_ii^-1 in float32 at each "
+        "chain's parameters, rebuilt at every chunk start: 2-3 CG iterations instead of 40-180 "
+        "at the paper's size), block-jacobi (3x3 blocks, no "
         "memory), or auto: dense where 3 n_i <= 4096 and the chains' inverses take at most "
         "2 GiB (4 (3 n_i)^2 bytes each), else block-jacobi.  Any choice meets the same "
         "tolerance (rtol): the posterior does not depend on it")

@@ -804,7 +804,8 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     if s.gradient:
         target = make_target(post, center_u=init.center[:nb3], factor=init.sigma[0],
                              exact=cfg.model.prior_normaliser == "exact", condensed=s.use_condensed,
-                             rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter)
+                             rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter,
+                             precondition=dense_preconditioning(problem, cfg))
         result = sample_gradient(
             jax.random.key(cfg.seed), target, init.x0, jnp.zeros((post.op.n_interior, 3)),
             kind=s.kind, step_size=s.step_size, eta_scale=init.sigma[1], dense_mass=s.dense_mass,

@@ -471,14 +471,17 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
 # ---------------------------------------------------------------------------------------------
 
 def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
-               preconditioner=None):
+               preconditioner=None, warmup_steps=0):
     """The sampler's kernel (:func:`bayesreg.sampler.build_kernel`) in a plain jitted ``scan``.
 
     Used for one chain (``sample`` needs two or more, for R-hat): the chain is not vmapped,
     as ``sample`` runs one chain per device.  With ``C > 1`` the chains are vmapped on one
     device (the layout ``sample`` replaces by sharding).  A kernel with a cache (condensation,
-    preconditioner) builds it at each chunk start, as ``sample`` does.
+    preconditioner) builds it at each chunk start, as ``sample`` does.  No warm-up: a
+    ``warmup_steps`` other than 0 is an error (``sample`` tunes the scales, this runner cannot).
     """
+    if warmup_steps:
+        raise ValueError("--warmup-steps needs sample(): two chains or more")
     from bayesreg.sampler import build_kernel, init
 
     sig = tuple(jnp.asarray(s) for s in sigma)
@@ -519,15 +522,16 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
 
 
 def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
-                preconditioner=None):
-    """``bayesreg.sampler.sample`` with a fixed number of draws; time stamps per chunk."""
+                preconditioner=None, warmup_steps=0):
+    """``bayesreg.sampler.sample`` with a fixed number of draws after ``warmup_steps`` (tuning
+    the scales, not timed); time stamps per chunk."""
     stamps: list[float] = []
 
     def on_chunk(_ckpt, out):
         if out is not None:
             stamps.append(time.perf_counter())
 
-    kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=0, max_draws=n_chunks * chunk_draws,
+    kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=warmup_steps, max_draws=n_chunks * chunk_draws,
               min_draws=n_chunks * chunk_draws, chunk_draws=chunk_draws, progress=False,
               rhat_threshold=1.2)
     if condensation is not None:
@@ -581,9 +585,11 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
             stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
                                                 chunk_draws, n_chunks, jax.random.key(4),
                                                 condensation=setup["condensation"],
-                                                preconditioner=setup["preconditioner"])
+                                                preconditioner=setup["preconditioner"],
+                                                warmup_steps=args.warmup_steps)
             wall = time.perf_counter() - t0
             seconds = stamps[-1] - stamps[0]
+            row["warmup_steps"] = args.warmup_steps
             steps = args.timed_chunks * chunk_draws * THINNING
             per_chain = steps / seconds
             row.update({
@@ -759,6 +765,7 @@ def markdown(res: dict) -> str:
         for x in r.get("sampler", []):
             name = x["kernel"] + (" (surrogate factor)" if x.get("surrogate_factor") else "")
             name += f", {x['cg_preconditioner']} CG" if x.get("cg_preconditioner") else ""
+            name += f", after {x['warmup_steps']:,} warm-up steps" if x.get("warmup_steps") else ""
             if x.get("runner") == "plain" and x["chains"] > 1:
                 name += " (plain vmap, not sample)"
             if "error" in x:
@@ -851,6 +858,10 @@ def parse_args(argv=None):
                         "uses a surrogate dense factor of the same shape")
     p.add_argument("--compare-vmap", action="store_true",
                    help="also time every chain count >= 2 vmapped on one device (not through sample)")
+    p.add_argument("--warmup-steps", type=int, default=0,
+                   help="steps per chain of sample()'s warm-up (scales tuned, not timed) before the "
+                        "timed chunks: the figures of a tuned chain (default 0: the starts' scales; "
+                        "two chains or more)")
     p.add_argument("--chunk-draws", type=int, default=None,
                    help="draws per sampler chunk for every chain count, instead of --chunk-seconds: "
                         "the timed steps then cover the same part of every chain (untuned chains "
