@@ -237,7 +237,8 @@ def _per_solve(cg_per_step, cfg, block_names):
     """Mean CG iterations per solve from the per-step count, or ``None`` when a step's
     counted solves are not a fixed number.
 
-    The random walk solves once per block and step.  A gradient-kernel transition counts
+    The random walk solves once per block and step (a proposal whose parameters leave the
+    prior support is rejected without a solve and counts 0).  A gradient-kernel transition counts
     the solves outside its trajectory: with the cached condensation (the default) the
     trajectory needs none, and the elastic block makes ``elastic_moves`` solves plus one
     evaluation before them; without it every gradient solves (uncounted) and the interior
@@ -288,6 +289,8 @@ def format_report(errors: dict | None, info: dict) -> str:
     per_solve = s.get("cg_iterations_per_solve_mean")
     cg = (f"CG iterations/solve mean {per_solve:.1f}" if per_solve is not None else
           f"CG iterations/step mean {s['cg_iterations_per_step_mean']:.1f} (outside the trajectories)")
+    if s.get("cg_preconditioner"):
+        cg += f" ({s['cg_preconditioner']} preconditioner)"
     lines.append(f"{cg}  failed solves {s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.1f}")
     if s.get("kind", "rwmh") != "rwmh":
         lines.append(f"{s['kind']}: gradients/step {s['gradient_evaluations_per_step_mean']:.1f}  "
@@ -407,6 +410,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
 
     from bayesreg.diagnostics import gelman_rubin, to_datatree
     from bayesreg.mesh import mesh_quality
+    from bayesreg.pipeline import dense_preconditioning
     from bayesreg.posterior import elastic_groups, solve_position
     from bayesreg.synthetic import grid_moments, interpolation_matrix, locate_grid
 
@@ -513,6 +517,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
             "kind": cfg.sampler.kind,
             "prior_normaliser": cfg.model.prior_normaliser,
             "condensed": cfg.sampler.use_condensed,
+            "cg_preconditioner": "dense" if dense_preconditioning(problem, cfg) else "block-jacobi",
             "gradient_evaluations_per_step_mean": float(result.grad_evals.mean()),
             "divergences": int(result.divergences.sum()),
             "adapted": _adapted(cfg, result),

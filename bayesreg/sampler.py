@@ -3,7 +3,9 @@
 Functional core in the BlackJAX style: :func:`init` and :func:`build_kernel` are pure; the
 Normal jumping kernel (:func:`blackjax.mcmc.random_walk.normal`) and the Metropolis accept
 step (:func:`blackjax.mcmc.proposal.static_binomial_sampling`) are BlackJAX's.  The state
-also carries the chain's interior FE solution, the warm start of the next solve.
+also carries the chain's interior FE solution, the warm start of the next solve; a
+:class:`KernelCache` (the condensation ``H``, the CG preconditioner ``K_ii^-1``) is built
+from the state at every chunk start and carried through the chunk.
 
 :func:`sample` is the driver: N chains inside one jitted ``lax.scan`` per chunk of thinned
 draws (vmapped on an accelerator, in parallel host threads on a CPU, in pieces of chunks
@@ -33,7 +35,7 @@ import jax.numpy as jnp  # noqa: E402
 from blackjax.mcmc.proposal import static_binomial_sampling  # noqa: E402
 from blackjax.mcmc.random_walk import normal as normal_jumping_kernel  # noqa: E402
 
-from bayesreg.diagnostics import gelman_rubin  # noqa: E402
+from bayesreg.diagnostics import RunningGelmanRubin  # noqa: E402
 
 __all__ = [
     "RWMHState", "RWMHInfo", "Condensation", "Preconditioner", "KernelCache", "init", "build_kernel",
@@ -658,8 +660,9 @@ def sample(
     rhat_split : bool
         Monitor the split-chain version (see :func:`bayesreg.diagnostics.gelman_rubin`).
     estimands : callable, optional
-        ``(draws (C, D, dim) ndarray) -> (C, D, K) ndarray`` of the scalars to monitor;
-        default: the position coordinates.
+        ``(draws (C, D, dim) ndarray) -> (C, D, K) ndarray`` of the scalars to monitor,
+        acting draw by draw (it is applied to each chunk as it arrives:
+        :class:`bayesreg.diagnostics.RunningGelmanRubin`); default: the position coordinates.
     progress : bool
         Show a tqdm progress bar with acceptance and the worst R-hat.
     on_chunk : callable, optional
@@ -797,6 +800,13 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
     spent = timings.get("sampling_s", 0.0)
     rhat = history[-1][1] if history else np.inf
     n_draws = k * chunk_draws
+    # R-hat from per-chunk moments (constant work per chunk), fed chunk by chunk as the run
+    # that wrote the checkpoint fed them, so a resumed run stops where it would have
+    monitor = RunningGelmanRubin(estimands)
+    acc_sum = np.zeros(n_blocks)
+    for j in range(k):
+        monitor.add(parts[0][0][:, j * chunk_draws:(j + 1) * chunk_draws])
+        acc_sum += parts[3][0][:, j * chunk_draws:(j + 1) * chunk_draws].reshape(-1, n_blocks).sum(axis=0)
 
     def done():
         return n_draws >= max_draws or (n_draws >= min_draws and rhat < rhat_threshold)
@@ -808,11 +818,12 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         for lst, o in zip(parts, out):
             lst.append(o)
         n_draws += chunk_draws
-        draws = np.concatenate(parts[0], axis=1)
+        monitor.add(out[0])
         if n_draws >= (4 if rhat_split else 2):  # split halves need 2 draws each
-            rhat = float(np.nanmax(gelman_rubin(estimands(draws), split=rhat_split)))
+            rhat = float(np.nanmax(monitor.rhat(split=rhat_split)))
         history.append((n_draws, rhat))
-        acc = np.concatenate(parts[3], axis=1).reshape(-1, n_blocks).mean(axis=0)
+        acc_sum += out[3].reshape(-1, n_blocks).sum(axis=0)
+        acc = acc_sum / (n_chains * n_draws)
         bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
         bar.update(1)
         timings["sampling_s"] = spent + time.perf_counter() - t1

@@ -160,7 +160,7 @@ def pcg(matvec, b, x0, precond, *, rtol=1e-8, maxiter=1000):
         ``r -> M^{-1} r`` with ``M`` SPD.
     rtol : float
         Stop when ``||r|| <= rtol ||b||``.
-    maxiter : int
+    maxiter : int or int array
         Iteration cap; reaching it leaves ``converged = False``.
 
     Returns
@@ -262,19 +262,19 @@ def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e
     def matvec(x):
         return ell_matvec(b_ii, op.cols_ii, x)
 
-    def jacobi(r):
-        diag = b_ii[jnp.arange(b_ii.shape[0]), op.self_slot]  # (n_i, 3, 3)
-        return jnp.einsum("rij,rj->ri", jnp.linalg.inv(diag), r)
+    def jacobi():
+        dinv = jnp.linalg.inv(b_ii[jnp.arange(b_ii.shape[0]), op.self_slot])  # (n_i, 3, 3)
+        return lambda r: jnp.einsum("rij,rj->ri", dinv, r)
 
     def solve(mv, rhs_):
         if precond is None:
-            return pcg(mv, rhs_, u_i0, jacobi, rtol=rtol, maxiter=maxiter)
+            return pcg(mv, rhs_, u_i0, jacobi(), rtol=rtol, maxiter=maxiter)
         x, info = pcg(mv, rhs_, u_i0, jax.lax.stop_gradient(precond).apply, rtol=rtol,
                       maxiter=jnp.minimum(maxiter, DENSE_MAX_ITERATIONS))
 
         def rescue(_):
             start = jnp.where(jnp.all(jnp.isfinite(x)), x, u_i0)
-            y, more = pcg(mv, rhs_, start, jacobi, rtol=rtol, maxiter=maxiter)
+            y, more = pcg(mv, rhs_, start, jacobi(), rtol=rtol, maxiter=maxiter)
             return y, SolveInfo(info.iterations + more.iterations, more.residual, more.converged)
 
         return jax.lax.cond(info.converged, lambda _: (x, info), rescue, None)

@@ -82,3 +82,27 @@ def test_exact_small_case():
 def test_invalid_input(draws, truth, levels):
     with pytest.raises(ValueError):
         coverage(draws, truth, levels)
+
+
+@pytest.mark.parametrize("split", [False, True])
+def test_running_rhat_equals_the_statistic_of_the_concatenated_draws(split):
+    """Chunks of different lengths (an odd total, halves that cut a chunk), estimands that
+    map draws to other scalars, a chain that never moves: the running statistic is the
+    direct one to rounding."""
+    from bayesreg.diagnostics import RunningGelmanRubin, gelman_rubin
+
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(3, 47, 4)) + np.arange(3)[:, None, None] * 0.3
+    x[:, :, 3] = 2.0  # identical everywhere: R-hat 1
+    est = lambda d: np.concatenate([d, d[..., :1] * d[..., 1:2]], axis=-1)  # noqa: E731
+    monitor = RunningGelmanRubin(est)
+    with pytest.raises(ValueError, match="draws"):
+        monitor.rhat(split=split)
+    start = 0
+    for n in (5, 1, 12, 7, 9, 13):
+        monitor.add(x[:, start:start + n])
+        start += n
+        if start >= 4:
+            np.testing.assert_allclose(monitor.rhat(split=split), gelman_rubin(est(x[:, :start]), split=split),
+                                       rtol=1e-12)
+    assert monitor.n_draws == 47 and monitor.rhat(split=split)[3] == 1.0

@@ -191,3 +191,22 @@ def test_brain_paper_truth(brain):
     assert info["max_violation_mm"] < 0
     assert info["n_active"] > 0 and info["energy"] > info["energy_unconstrained"]
     np.testing.assert_allclose(np.linalg.norm(truth.u[truth.pushed], axis=1), 15.0)
+
+
+def test_locate_voxels_equals_locate_at_the_voxel_centres():
+    """The grid search gives ``locate``'s elements and barycentric coordinates (bit for bit)
+    on an oblique, flipped grid whose voxels overhang the mesh."""
+    from bayesreg.images import Image
+    from bayesreg.synthetic import _grid_points, locate, locate_voxels
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    rot = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
+    affine = np.eye(4)
+    affine[:3, :3] = rot @ np.diag([2.0, -1.5, 2.5])
+    affine[:3, 3] = [15.0, 15.0, 15.0] - affine[:3, :3] @ [10.0, 12.0, 8.0]
+    grid = Image(np.zeros((21, 25, 17)), affine)
+    expect = locate(mesh.nodes, mesh.tets, _grid_points(grid))
+    got = locate_voxels(mesh.nodes, mesh.tets, grid.data.shape, grid.affine)
+    assert 0 < np.sum(expect[0] >= 0) < len(expect[0])  # some centres inside, some outside
+    np.testing.assert_array_equal(got[0], expect[0])
+    np.testing.assert_array_equal(got[1], expect[1])
