@@ -105,7 +105,9 @@ class Target(NamedTuple):
         cg_iterations, solve_ok)``: the joint log-density over ``(w, eta)`` (with the
         log-Jacobian and the normaliser ``log_norm``) and over the natural parameters
         ``(u_b, lam, mu)`` (with the normaliser, without the Jacobian), from a solve that
-        does not use the map ``H`` (preconditioned by ``precond`` if given).
+        does not use the map ``H`` (preconditioned by ``precond`` if given).  The kernel passes
+        ``precond`` only to targets with a ``build_precond``: a target without one may take
+        the first four arguments alone.
     log_norm : callable
         ``eta -> ()`` the normaliser term (0 for the paper's prior).
     build_cache : callable

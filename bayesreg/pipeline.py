@@ -369,7 +369,7 @@ def make_logdensity(problem: Problem, cfg: Config, *, preconditioned: bool = Fal
 
 
 def dense_preconditioning(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> bool:
-    """Whether the random walks' solves use the dense preconditioner (``solver.preconditioner``).
+    """Whether the samplers' CG solves use the dense preconditioner (``solver.preconditioner``).
 
     ``auto``: where ``3 n_i <= DENSE_MAX_DOFS`` (4096) and the chains' float32 inverses,
     ``4 (3 n_i)^2`` bytes each, take at most 2 GiB together (the paper's size: 7.5 MB a

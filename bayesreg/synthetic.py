@@ -124,28 +124,37 @@ def locate(nodes, tets, points, *, tol=1e-9):
     elem : (P,) int  (-1 where no element contains the point)
     bary : (P, 4)
     """
-    nodes = np.asarray(nodes, np.float64)
-    tets = np.asarray(tets)
     points = np.asarray(points, np.float64)
-    elem = np.full(len(points), -1, np.int64)
-    bary = np.zeros((len(points), 4))
-    x = nodes[tets]
-    lo, hi = x.min(1), x.max(1)
     # sort points along x for bounding-box range queries
     order = np.argsort(points[:, 0], kind="stable")
     px = points[order, 0]
-    t_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], -1))
-    for e in range(len(tets)):
-        a, b = np.searchsorted(px, [lo[e, 0] - tol, hi[e, 0] + tol])
-        if a == b:
-            continue
+
+    def candidates(e, lo, hi):
+        a, b = np.searchsorted(px, [lo[0] - tol, hi[0] + tol])
         cand = order[a:b]
         pc = points[cand]
-        inb = np.all((pc[:, 1:] >= lo[e, 1:] - tol) & (pc[:, 1:] <= hi[e, 1:] + tol), axis=1)
-        cand = cand[inb]
+        inb = np.all((pc[:, 1:] >= lo[1:] - tol) & (pc[:, 1:] <= hi[1:] + tol), axis=1)
+        return cand[inb], pc[inb]
+
+    return _rasterise(nodes, tets, len(points), candidates, tol)
+
+
+def _rasterise(nodes, tets, n_points, candidates, tol):
+    """The element search of :func:`locate` and :func:`locate_voxels`: each element tests the
+    points ``candidates(e, lo, hi) -> (indices, (k, 3) world mm)`` inside its bounding box
+    ``[lo, hi]`` (enlarged by ``tol``); the lowest element index wins a shared point."""
+    nodes = np.asarray(nodes, np.float64)
+    tets = np.asarray(tets)
+    elem = np.full(n_points, -1, np.int64)
+    bary = np.zeros((n_points, 4))
+    x = nodes[tets]
+    lo, hi = x.min(1), x.max(1)
+    t_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], -1))
+    for e in range(len(tets)):
+        cand, pc = candidates(e, lo[e], hi[e])
         if cand.size == 0:
             continue
-        lam = (points[cand] - x[e, 0]) @ t_inv[e].T
+        lam = (pc - x[e, 0]) @ t_inv[e].T
         bc = np.column_stack([1 - lam.sum(1), lam])
         hit = np.all(bc >= -tol, axis=1) & (elem[cand] < 0)
         elem[cand[hit]] = e
@@ -175,36 +184,25 @@ def locate_voxels(nodes, tets, shape, affine, *, tol=1e-9):
     elem : (I*J*K,) int  (-1 where no element contains the voxel centre)
     bary : (I*J*K, 4)
     """
-    nodes = np.asarray(nodes, np.float64)
-    tets = np.asarray(tets)
     affine = np.asarray(affine, np.float64)
     shape = np.asarray(shape[:3], np.int64)
-    elem = np.full(int(np.prod(shape)), -1, np.int64)
-    bary = np.zeros((len(elem), 4))
-    x = nodes[tets]
-    lo, hi = x.min(1), x.max(1)
-    t_inv = np.linalg.inv(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], -1))
     inv = np.linalg.inv(affine)
-    c = x @ inv[:3, :3].T + inv[:3, 3]  # (M, 4, 3) vertices in voxel coordinates
+    c = np.asarray(nodes, np.float64)[np.asarray(tets)] @ inv[:3, :3].T + inv[:3, 3]  # voxel coords
     c_lo = np.maximum(np.floor(c.min(1) - 1e-6), 0).astype(np.int64)
     c_hi = np.minimum(np.ceil(c.max(1) + 1e-6), shape - 1).astype(np.int64)
     strides = np.array([shape[1] * shape[2], shape[2], 1])
-    for e in range(len(tets)):
+    empty = (np.zeros(0, np.int64), np.zeros((0, 3)))
+
+    def candidates(e, lo, hi):
         if np.any(c_lo[e] > c_hi[e]):
-            continue
+            return empty
         axes = [np.arange(c_lo[e, k], c_hi[e, k] + 1) for k in range(3)]
         ijk = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         pc = ijk @ affine[:3, :3].T + affine[:3, 3]
-        inb = np.all((pc >= lo[e] - tol) & (pc <= hi[e] + tol), axis=1)
-        if not inb.any():
-            continue
-        flat, pc = ijk[inb] @ strides, pc[inb]
-        lam = (pc - x[e, 0]) @ t_inv[e].T
-        bc = np.column_stack([1 - lam.sum(1), lam])
-        hit = np.all(bc >= -tol, axis=1) & (elem[flat] < 0)
-        elem[flat[hit]] = e
-        bary[flat[hit]] = bc[hit]
-    return elem, bary
+        inb = np.all((pc >= lo - tol) & (pc <= hi + tol), axis=1)
+        return ijk[inb] @ strides, pc[inb]
+
+    return _rasterise(nodes, tets, int(np.prod(shape)), candidates, tol)
 
 
 def _grid_points(img: Image):
