@@ -148,13 +148,16 @@ class ModelConfig(_Strict):
 class SolverConfig(_Strict):
     rtol: float = Field(1e-8, gt=0, lt=1)
     maxiter: int = Field(1000, ge=1)
-    preconditioner: Literal["auto", "dense", "block-jacobi"] = Field(
-        "auto", description="CG preconditioner of the samplers' interior solves (the random "
-        "walks' and the gradient kernels' elastic moves): dense (K_ii^-1 in float32 at each "
-        "chain's parameters, rebuilt at every chunk start: 2-3 CG iterations instead of 40-180 "
-        "at the paper's size), block-jacobi (3x3 blocks, no "
-        "memory), or auto: dense where 3 n_i <= 4096 and the chains' inverses take at most "
-        "2 GiB (4 (3 n_i)^2 bytes each), else block-jacobi.  Any choice meets the same "
+    preconditioner: Literal["auto", "dense", "spectral", "block-jacobi"] = Field(
+        "auto", description="CG preconditioner of the interior solves (the random walks', "
+        "the gradient kernels' elastic moves', the mode search's): spectral (one parameter "
+        "group only, model.elastic: uniform: the generalised eigenvectors of the unit "
+        "stiffness blocks, K_ii^-1 exact at every lam, mu, one float32 basis for all chains: "
+        "one CG iteration per solve), dense (K_ii^-1 in float32 at each chain's parameters, "
+        "rebuilt at every chunk start: 2-3 CG iterations instead of 40-180 at the paper's "
+        "size), block-jacobi (3x3 blocks, no memory), or auto: spectral for one group and "
+        "dense for more where 3 n_i <= 4096 (and, for dense, the chains' inverses take at "
+        "most 2 GiB: 4 (3 n_i)^2 bytes each), else block-jacobi.  Any choice meets the same "
         "tolerance (rtol): the posterior does not depend on it")
 
 
@@ -296,6 +299,9 @@ class Config(_Strict):
                              "changes lam, mu at every step)")
         if self.sampler.u_moves > 1 and (not self.sampler.condensed or self.sampler.gradient):
             raise ValueError("sampler.u_moves > 1 needs sampler.condensed: true and kind: rwmh")
+        if self.solver.preconditioner == "spectral" and self.model.elastic != "uniform":
+            raise ValueError("solver.preconditioner: spectral needs one parameter group "
+                             f"(model.elastic: uniform), got model.elastic: {self.model.elastic}")
         for key in ("prior_lam", "prior_mu"):
             if isinstance(getattr(self.model, key), TissuePriors) and self.model.elastic != "tissue":
                 raise ValueError(f"model.{key}: per-tissue priors need elastic: tissue")

@@ -410,7 +410,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
 
     from bayesreg.diagnostics import gelman_rubin, to_datatree
     from bayesreg.mesh import mesh_quality
-    from bayesreg.pipeline import dense_preconditioning
+    from bayesreg.pipeline import cg_preconditioner
     from bayesreg.posterior import elastic_groups, solve_position
     from bayesreg.synthetic import grid_moments, interpolation_matrix, locate_grid
 
@@ -517,7 +517,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
             "kind": cfg.sampler.kind,
             "prior_normaliser": cfg.model.prior_normaliser,
             "condensed": cfg.sampler.use_condensed,
-            "cg_preconditioner": "dense" if dense_preconditioning(problem, cfg) else "block-jacobi",
+            "cg_preconditioner": cg_preconditioner(problem, cfg),
             "gradient_evaluations_per_step_mean": float(result.grad_evals.mean()),
             "divergences": int(result.divergences.sum()),
             "adapted": _adapted(cfg, result),

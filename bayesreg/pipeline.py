@@ -32,7 +32,7 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg.config import Config, load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
 from bayesreg.images import (  # noqa: E402
-    Image, check_same_frame, interpolate, interpolate_numpy, load_nifti, mni152, pad,
+    Image, check_same_frame, interpolate_numpy, load_nifti, mni152, pad,
     resample_to_spacing, to_reference_grid,
 )
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
@@ -47,13 +47,13 @@ from bayesreg.sampler import (  # noqa: E402
     Condensation, Preconditioner, SamplerResult, sample, sample_gradient,
 )
 from bayesreg.solver import DENSE_MAX_DOFS  # noqa: E402
-from bayesreg.similarity import build_ssd  # noqa: E402
+from bayesreg.similarity import build_ssd, sample_moving  # noqa: E402
 from bayesreg.synthetic import Truth, brain_shift, constrained_shift, warp_image  # noqa: E402
 
 __all__ = [
     "Problem", "make_data", "assemble", "prepare", "save_problem", "load_problem", "start_center",
     "find_mode", "laplace_precision", "initial_positions", "proposal_scale", "Initialisation",
-    "initialise", "dense_preconditioning", "sample_problem", "run",
+    "initialise", "dense_preconditioning", "cg_preconditioner", "sample_problem", "run",
 ]
 
 
@@ -279,11 +279,16 @@ def assemble(cfg: Config, data: dict) -> Problem:
         f_s, m_s = (Image(ndi.gaussian_filter(i.data, cfg.data.smoothing_mm / i.spacing), i.affine)
                     for i in (f, m))
     forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
+    # m kept over the box that nodes outside the skull can reach (the same values of E_s)
+    reach = Image((labels.data != L.SKULL).astype(np.uint8), labels.affine)
+    choice = cfg.solver.preconditioner  # spectral is validated to have one group (config)
     post = build_posterior(
-        mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s, quadrature_level=cfg.model.quadrature_level),
+        mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s, quadrature_level=cfg.model.quadrature_level,
+                        reach=reach),
         forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,
+        spectral=choice in ("auto", "spectral"),
     )
     return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init,
                    data["intensity_scale"], data["n_skull_carved"], dict(data["timings"]),
@@ -371,17 +376,27 @@ def make_logdensity(problem: Problem, cfg: Config, *, preconditioned: bool = Fal
 def dense_preconditioning(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> bool:
     """Whether the samplers' CG solves use the dense preconditioner (``solver.preconditioner``).
 
-    ``auto``: where ``3 n_i <= DENSE_MAX_DOFS`` (4096) and the chains' float32 inverses,
-    ``4 (3 n_i)^2`` bytes each, take at most 2 GiB together (the paper's size: 7.5 MB a
-    chain; the 3,400-node mesh, 7,200 interior DOFs, stays with block Jacobi).  ``n_chains``
-    defaults to ``sampler.chains``.
+    ``auto``: not where the posterior has the spectral one (one parameter group, see
+    :func:`cg_preconditioner`); else where ``3 n_i <= DENSE_MAX_DOFS`` (4096) and the
+    chains' float32 inverses, ``4 (3 n_i)^2`` bytes each, take at most 2 GiB together (the
+    paper's size: 7.5 MB a chain; the 3,400-node mesh, 7,200 interior DOFs, stays with
+    block Jacobi).  ``n_chains`` defaults to ``sampler.chains``.
     """
     choice = cfg.solver.preconditioner
     if choice != "auto":
         return choice == "dense"
+    if problem.posterior.spectral is not None:
+        return False
     n = 3 * problem.posterior.op.n_interior
     chains = cfg.sampler.chains if n_chains is None else n_chains
     return n <= DENSE_MAX_DOFS and chains * 4 * n * n <= 2 * 2**30
+
+
+def cg_preconditioner(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> str:
+    """Name of the samplers' CG preconditioner: ``spectral``, ``dense`` or ``block-jacobi``."""
+    if dense_preconditioning(problem, cfg, n_chains=n_chains):
+        return "dense"
+    return "spectral" if problem.posterior.spectral is not None else "block-jacobi"
 
 
 def _preconditioner_rw(problem: Problem, cfg: Config) -> Preconditioner:
@@ -676,7 +691,7 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
     nq = len(bary)
     u_q = np.einsum("qa,mad->mqd", bary, u[mesh.tets])
     y = np.asarray(term.points) + u_q
-    grad_m = jax.vmap(jax.grad(lambda p: interpolate(term.m, term.m_inv_affine, p, term.cval)))(
+    grad_m = jax.vmap(jax.grad(lambda p: sample_moving(term, p)))(
         jnp.asarray(y.reshape(-1, 3))
     )
     grad_m = np.asarray(grad_m).reshape(len(mesh.tets), nq, 3)

@@ -53,11 +53,14 @@ from bayesreg.fem import (  # noqa: E402
 from bayesreg.mesh import Mesh  # noqa: E402
 from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
 from bayesreg.solver import (  # noqa: E402
+    DENSE_MAX_DOFS,
     DensePreconditioner,
     SolveInfo,
+    SpectralPreconditioner,
     dense_preconditioner,
     interior_map_blocks,
     solve_interior_blocks,
+    spectral_preconditioner,
 )
 
 __all__ = [
@@ -162,6 +165,10 @@ class Posterior(NamedTuple):
         Per-group unit blocks of ``K_ii``, ``K_ib`` when there are at most
         ``MAX_GROUPED`` groups (uniform and tissue models), else ``None`` (per-element
         model: the blocks are assembled from the elements); see :func:`stiffness_blocks`.
+    spectral : SpectralPreconditioner or None
+        The exact CG preconditioner of a one-group model at every ``lam, mu``
+        (``build_posterior(spectral=True)``), shared by all chains; :func:`log_density`
+        uses it when no other preconditioner is given.
     """
 
     op: ElasticOperator
@@ -190,6 +197,7 @@ class Posterior(NamedTuple):
     barrier_offsets: jax.Array
     barrier_width: jax.Array
     unit_blocks: GroupBlocks | None = None
+    spectral: SpectralPreconditioner | None = None
 
     @property
     def n_boundary(self) -> int:
@@ -232,6 +240,7 @@ def build_posterior(
     prior: dict,
     phi_ref,
     barrier_mm: float = 0.0,
+    spectral: bool = False,
 ) -> Posterior:
     """Assemble :class:`Posterior` from a mesh, the SSD term and the parameter layout.
 
@@ -253,6 +262,9 @@ def build_posterior(
         A valid parameter vector (inside the prior support).
     barrier_mm : float
         Width (mm) of the optional smooth skull barrier (:func:`skull_barrier`); 0 = off.
+    spectral : bool
+        Build :attr:`Posterior.spectral` (one parameter group and ``3 n_i <=
+        DENSE_MAX_DOFS`` only; ignored otherwise).
 
     Raises
     ------
@@ -327,6 +339,9 @@ def build_posterior(
         barrier_width=jnp.asarray(0.0),
         unit_blocks=group_blocks(op, element_group, n_groups) if n_groups <= MAX_GROUPED else None,
     )
+    if spectral and n_groups == 1 and 3 * n_i <= DENSE_MAX_DOFS:
+        ub = post.unit_blocks
+        post = post._replace(spectral=spectral_preconditioner(op, ub.lam_ii[0], ub.mu_ii[0]))
     return with_skull_barrier(post, barrier_mm)
 
 
@@ -501,13 +516,15 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
                 precond: DensePreconditioner | None = None):
     """Unnormalised log posterior (paper Eqs. 9, 11, 12) and its by-products.
 
-    A parameter vector outside the prior support gives ``-inf`` without a solve: a
-    :func:`jax.lax.cond` skips it where one branch runs (a chain mapped or alone on a CPU);
-    under ``vmap`` both branches run, and the solve is made at :attr:`Posterior.phi_ref`
-    (``K_ii`` stays positive definite) with an iteration cap of 0, so that no batched CG
-    waits for it.  The skipped solve reports 0 iterations and is not a failure.  (The paper's
-    joint random walk proposes parameters outside the support often once its drift has
-    brought them near 0: 57% of the proposals on the paper-size mesh after 10,000 steps.)
+    A position that breaks a constraint known before the solve, a parameter outside the
+    prior support or a boundary node in the forbidden region, gives ``-inf`` at once: a
+    :func:`jax.lax.cond` skips the solve and the energies where one branch runs (a chain
+    mapped or alone on a CPU).  Under ``vmap`` both branches run, and the solve is made at
+    :attr:`Posterior.phi_ref` (``K_ii`` stays positive definite) with an iteration cap of 0,
+    so that no batched CG waits for it.  A skipped solve reports 0 iterations and is not a
+    failure.  (The paper's joint random walk proposes such positions often: once its drift
+    has brought parameters near 0, 57-68% of its proposals leave the support on the
+    paper-size mesh, and nodes sliding on the skull step into it.)
 
     Parameters
     ----------
@@ -519,32 +536,45 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
     rtol, maxiter
         CG tolerance (relative residual) and iteration cap.
     precond : DensePreconditioner, optional
-        CG preconditioner (:func:`preconditioner`, at any parameters); default block
-        Jacobi.  It changes the CG's iterations, not the tolerance it meets.
+        CG preconditioner (:func:`preconditioner`, at any parameters); default
+        :attr:`Posterior.spectral` at the position's parameters where the posterior has
+        one, else block Jacobi.  It changes the CG's iterations, not the tolerance it meets.
 
     Returns
     -------
     logp : ()
         ``-inf`` on a hard-constraint violation or a non-converged solve.
     aux : Aux
+        ``e_s`` and ``e_r`` are 0 where the energies were skipped.
     """
     u_b, phi = split_position(post, theta)
     log_prior, in_support = _log_prior(post, phi)
     phi_solve = jnp.where(in_support, phi, post.phi_ref)
+    allowed = in_support & ~jnp.any(_node_forbidden(post, post.nodes[post.boundary] + u_b))
 
-    def solve(_):
+    def evaluate(_):
         lam_g, mu_g = elastic_groups(post, phi_solve)
         u_i, info = solve_interior_blocks(
             post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol,
-            maxiter=jnp.where(in_support, maxiter, 0), precond=precond)
-        return u_i, SolveInfo(info.iterations, info.residual, info.converged | ~in_support)
+            maxiter=jnp.where(allowed, maxiter, 0), precond=_precond_at(post, precond, lam_g, mu_g))
+        info = SolveInfo(info.iterations, info.residual, info.converged | ~allowed)
+        return _finish(post, u_b, u_i, info, phi_solve, allowed, log_prior)
 
-    def skip(_):
-        return (jax.lax.stop_gradient(jnp.asarray(u_i0, u_b.dtype)),
-                SolveInfo(jnp.asarray(0), jnp.zeros((), u_b.dtype), jnp.asarray(True)))
+    def reject(_):
+        zero = jnp.zeros((), u_b.dtype)
+        info = SolveInfo(jnp.asarray(0), zero, jnp.asarray(True))
+        aux = Aux(jax.lax.stop_gradient(jnp.asarray(u_i0, u_b.dtype)), info, zero, zero)
+        return jnp.asarray(-jnp.inf, u_b.dtype), aux
 
-    u_i, info = jax.lax.cond(in_support, solve, skip, None)
-    return _finish(post, u_b, u_i, info, phi_solve, in_support, log_prior)
+    return jax.lax.cond(allowed, evaluate, reject, None)
+
+
+def _precond_at(post: Posterior, precond, lam_g, mu_g):
+    """The CG preconditioner of a solve at ``lam_g, mu_g``: ``precond`` if given, else the
+    posterior's spectral one at those parameters, else ``None`` (block Jacobi)."""
+    if precond is None and post.spectral is not None:
+        return post.spectral._replace(lam=lam_g[0], mu=mu_g[0])
+    return precond
 
 
 def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
@@ -622,8 +652,8 @@ def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000
     if u_i0 is None:
         u_i0 = jnp.zeros((post.op.n_interior, 3))
     u_i, info = solve_interior_blocks(
-        post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter
-    )
+        post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter,
+        precond=_precond_at(post, None, lam_g, mu_g))
     return full_displacement(post, u_b, u_i), info
 
 

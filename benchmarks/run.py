@@ -348,10 +348,11 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     if init.blocked and cfg.sampler.use_condensed:  # as bayesreg.pipeline.sample_problem builds it
         condensation = pipeline._condensed_rw(problem, cfg)
     dense = pipeline.dense_preconditioning(problem, cfg, n_chains=max(args.chain_counts))
+    cg_name = pipeline.cg_preconditioner(problem, cfg, n_chains=max(args.chain_counts))
     preconditioner = pipeline._preconditioner_rw(problem, cfg) if dense else None
     return {"cfg": cfg, "x0": np.asarray(init.x0), "sigma": sigma, "blocks": blocks,
             "condensation": condensation, "preconditioner": preconditioner,
-            "cg_preconditioner": "dense" if dense else "block-jacobi",
+            "cg_preconditioner": cg_name,
             "n_blocks": 1 if blocks is None else len(blocks), "surrogate_factor": surrogate,
             # CG solves per step: one per block, but condensed u_b moves take no CG solve
             "cg_solves": (1 if blocks is None else len(blocks)) - (condensation is not None),
@@ -848,7 +849,7 @@ def parse_args(argv=None):
     p.add_argument("--shift-mm", type=float, default=None,
                    help="synthetic shift (default 7.5 mm with the smooth truth, the config's 15 mm "
                         "with the constrained one: 15 mm smooth inverts elements of fine meshes)")
-    p.add_argument("--preconditioner", choices=("auto", "dense", "block-jacobi"), default="auto",
+    p.add_argument("--preconditioner", choices=("auto", "dense", "spectral", "block-jacobi"), default="auto",
                    help="solver.preconditioner of the sampler's solves (default auto, as the configs)")
     p.add_argument("--no-reference", action="store_true", help="skip the NumPy/SciPy reference")
     p.add_argument("--reference-max-nodes", type=int, default=10**9,

@@ -123,24 +123,31 @@ def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
 
 
 def test_preconditioner_choice_follows_size_and_memory():
-    """``solver.preconditioner: auto`` takes the dense preconditioner where its inverses fit
-    (``3 n_i <= 4096`` DOFs, at most 2 GiB for all chains), else block Jacobi; a bad value
-    names the key."""
+    """``solver.preconditioner: auto`` takes the spectral preconditioner where the posterior
+    has one (one parameter group), else the dense one where its inverses fit (``3 n_i <=
+    4096`` DOFs, at most 2 GiB for all chains), else block Jacobi; a bad value names the key."""
     from types import SimpleNamespace
 
-    from bayesreg.pipeline import dense_preconditioning
+    from bayesreg.pipeline import cg_preconditioner, dense_preconditioning
 
-    def problem(n_interior):
-        return SimpleNamespace(posterior=SimpleNamespace(op=SimpleNamespace(n_interior=n_interior)))
+    def problem(n_interior, spectral=None):
+        return SimpleNamespace(posterior=SimpleNamespace(op=SimpleNamespace(n_interior=n_interior),
+                                                         spectral=spectral))
 
     cfg = load_config("configs/paper_three_compartment.yaml")
     assert cfg.solver.preconditioner == "auto"
     assert dense_preconditioning(problem(457), cfg)  # the paper's size: 7.5 MB a chain
     assert not dense_preconditioning(problem(2400), cfg)  # 7,200 DOFs
     assert not dense_preconditioning(problem(457), cfg, n_chains=1024)  # 7.7 GB in all
+    assert cg_preconditioner(problem(2400), cfg) == "block-jacobi"
+    assert not dense_preconditioning(problem(457, spectral=True), cfg)
+    assert cg_preconditioner(problem(457, spectral=True), cfg) == "spectral"
     forced = load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=dense"])
     assert dense_preconditioning(problem(2400), forced)
     off = load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=block-jacobi"])
     assert not dense_preconditioning(problem(457), off)
     with pytest.raises(ConfigError, match=r"solver\.preconditioner"):
         load_config(None, overrides=["solver.preconditioner=ilu"])
+    with pytest.raises(ConfigError, match=r"spectral needs one parameter group"):
+        load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=spectral"])
+    load_config("configs/paper_uniform.yaml", overrides=["solver.preconditioner=spectral"])

@@ -507,3 +507,44 @@ def test_grouped_stiffness_blocks_give_the_element_assembled_log_density(small):
     g = jax.grad(lambda th: _lp(post, th)[0])(jnp.asarray(theta))
     g_e = jax.grad(lambda th: _lp(post._replace(unit_blocks=None), th)[0])(jnp.asarray(theta))
     np.testing.assert_allclose(np.asarray(g), np.asarray(g_e), rtol=1e-8, atol=1e-8 * float(jnp.max(jnp.abs(g_e))))
+
+
+def test_spectral_preconditioner_of_a_uniform_model_leaves_the_log_density_unchanged():
+    """One parameter group: ``build_posterior(spectral=True)`` keeps the exact spectral
+    preconditioner, which ``log_density`` uses by default: the same log-density and interior
+    as block Jacobi at several ``lam``, in at most 2 CG iterations from zeros."""
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    rng = np.random.default_rng(2)
+    affine = np.diag([1.0, 1.0, 1.0, 1.0])
+    affine[:3, 3] = -9.0
+    f = Image(ndi.gaussian_filter(rng.random((48, 48, 48)), 2.0) * 4, affine)
+    m = Image(np.roll(f.data, 1, axis=0), affine)
+    forbidden = Image(np.zeros((48, 48, 48), np.uint8), affine)
+    layout = ParamLayout(("all",), free=(("lam", 0),), fixed=(("mu", 0, 1.0),))
+    kw = dict(t_s=0.5, t_r=3.0, layout=layout, element_group=np.zeros(len(mesh.tets), int),
+              prior={"lam": (1.0, 1.0, 0.0, 1000.0), "mu": (1.0, 1.0, 0.0, 10.0)}, phi_ref=[5.0])
+    ssd_term = build_ssd(mesh.nodes, mesh.tets, f, m)
+    plain = build_posterior(mesh, ssd_term, forbidden, **kw)
+    spec = build_posterior(mesh, ssd_term, forbidden, spectral=True, **kw)
+    assert plain.spectral is None and spec.spectral is not None
+    zero = jnp.zeros((plain.op.n_interior, 3))
+    for lam in (0.5, 15.0, 900.0):
+        t = jnp.asarray(np.concatenate([0.3 * rng.normal(size=3 * len(mesh.boundary)), [lam]]))
+        lp, aux = log_density(plain, t, zero, rtol=1e-12)
+        lps, auxs = log_density(spec, t, zero, rtol=1e-12)
+        assert float(lps) == pytest.approx(float(lp), rel=1e-12)
+        np.testing.assert_allclose(np.asarray(auxs.interior), np.asarray(aux.interior), atol=1e-10)
+        assert int(auxs.solve.iterations) <= 2 < int(aux.solve.iterations)
+
+
+def test_a_boundary_node_in_the_skull_is_rejected_without_a_solve(small):
+    """The hard constraint on the boundary nodes is checked before the solve: no CG
+    iteration and no energy for such a proposal (the paper's joint walk proposes many while
+    nodes slide along the skull)."""
+    mesh, post, theta = small
+    warm = _lp(post, theta)[1].interior
+    t = theta.copy()
+    t[3 * int(np.argmax(mesh.nodes[mesh.boundary, 0]))] = 8.0  # into the skull (x > 36 mm)
+    lp, aux = log_density(post, jnp.asarray(t), warm)
+    assert float(lp) == -np.inf and int(aux.solve.iterations) == 0 and bool(aux.solve.converged)
+    assert float(aux.e_s) == 0.0 and float(aux.e_r) == 0.0
