@@ -16,7 +16,7 @@ the solve (one transposed solve, no unrolled iterations).  Two preconditioners:
 * :class:`SpectralPreconditioner`, for one parameter group (``K_ii = lam A + mu B``, the
   uniform model): the generalised eigenvectors of ``(A, B)`` give ``K_ii^-1`` exactly at
   every ``lam, mu`` (:func:`spectral_preconditioner`), so one float32 basis, built once and
-  shared by all chains, makes every solve converge in one iteration.
+  shared by all chains, makes every solve converge in one or two iterations.
 
 The solve is never silently accepted: :class:`SolveInfo` carries the iteration count, the
 relative residual and a ``converged`` flag which the log-density turns into an explicit
@@ -161,9 +161,10 @@ class SpectralPreconditioner(NamedTuple):
     ``A``, the volumetric part, semi-definite), ``K_ii = V^-T diag(lam w + mu) V^-1``, so
     ``K_ii^-1 = V diag(1 / (lam w + mu)) V^T``: exact for every parameter value, where
     :class:`DensePreconditioner` holds one value's inverse.  ``V`` is stored in float32 (the
-    CG iterates in float64 to its own tolerance; the float32 rounding only leaves one
-    iteration to do: measured 1 iteration per solve to 1e-8 against 3.5-4.8 with the
-    chunk-start dense inverse in the paper's uniform model) and is the same for every chain.
+    CG iterates in float64 to its own tolerance; the float32 rounding leaves one or two
+    iterations to do: measured 1.0 per proposal to 1e-8 from the paper's uniform config's
+    starts and 1.8 after its warm-up, against 3.2-3.5 with each chain's chunk-start dense
+    inverse, ``benchmarks/steps.py``) and is the same for every chain.
 
     Attributes
     ----------

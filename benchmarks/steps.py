@@ -1,0 +1,130 @@
+"""MH steps per second of the paper's random walk in ``bayesreg.sampler.sample``, before/after.
+
+Run from the repository root of each checkout to compare (not part of the test suite)::
+
+    python benchmarks/steps.py --model three_compartment            # tuned states (below)
+    python benchmarks/steps.py --model uniform
+    python benchmarks/steps.py --model three_compartment --from-starts
+
+The machine this project runs on changes speed by up to 2x within minutes, which swamps a
+20% change in any single run (``run.py`` times 2 chunks of one run).  This script is the
+unit of an interleaved comparison: run it alternately from two checkouts (a worktree of
+the older commit and this one), several rounds, and read the ratios of adjacent runs::
+
+    git worktree add /tmp/before <commit>
+    for r in 1 2 3; do for d in /tmp/before .; do
+        (cd $d && python benchmarks/steps.py --model uniform); done; done
+
+Both checkouts sample the same problem from the same states with the same keys, so their
+chains are the same (the line prints acceptance and CG iterations to show it):
+
+* the problem: ``configs/paper_<model>.yaml`` on ``run.py``'s cached 16 mm mesh (its
+  ``benchmarks/.cache/paper-e16-r2-smooth-*.npz``; built by ``run.py --meshes 16`` if
+  missing), with the paper's joint isotropic proposal;
+* the states: by default the chains after the config's 5,000 warm-up steps, saved once in
+  ``benchmarks/.cache/steps-<model>.npz`` by whichever checkout runs first (``--rebuild``
+  makes them again): for the three-compartment model the paper's drift has by then taken
+  ``lam_CSF``, ``mu_CSF`` and ``mu_WM`` near 0 (most proposals leave the support), for the
+  uniform model every proposal is solved; ``--from-starts``: the config's starts and scales
+  (untuned, as ``run.py``);
+* ``--problem RUN/checkpoint/problem.npz``: a real run's problem instead (the config as it
+  is: the paper's constrained truth, where the tuned chains accept about a quarter of
+  their proposals and solve nearly all of them);
+* the timing: 3 chains x ``--chunks`` chunks of 100 draws (thinning 10, the configs'
+  chunk), the first chunk (compilation) excluded, between ``on_chunk`` time stamps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import sys
+import time
+from pathlib import Path
+
+from bayesreg import _xla
+
+_xla.configure()
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bayesreg import pipeline  # noqa: E402
+from bayesreg.config import load_config  # noqa: E402
+from bayesreg.sampler import sample  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+CACHE = REPO / "benchmarks" / ".cache"
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", choices=("three_compartment", "uniform"), default="three_compartment")
+    p.add_argument("--from-starts", action="store_true", help="the config's starts and scales, untuned")
+    p.add_argument("--chunks", type=int, default=3, help="chunks of 100 draws (the first is not timed)")
+    p.add_argument("--rebuild", action="store_true", help="make the tuned states again")
+    p.add_argument("--problem", help="a run's checkpoint/problem.npz instead of the cached 16 mm "
+                   "problem, sampled with the config unchanged (its own truth and kernel); tuned "
+                   "states cached beside the others as steps-<model>-<name of the run>.npz")
+    args = p.parse_args(argv)
+    if args.chunks < 2:
+        p.error("--chunks must be >= 2 (the first chunk compiles and is not timed)")
+
+    if args.problem:
+        cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml")
+        found = [args.problem]
+        tag = f"-{Path(args.problem).resolve().parents[1].name}"
+    else:
+        cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml",
+                          overrides=["mesh.edge_length_mm=16", "data.resolution_mm=2", "synthetic.truth=smooth",
+                                     "sampler.blocked=false", "sampler.proposal=isotropic"])
+        found = sorted(glob.glob(str(CACHE / "paper-e16-r2-smooth-*.npz")))
+        tag = ""
+    if not found:
+        sys.exit("no cached 16 mm problem: run `python benchmarks/run.py --meshes 16 --chains 3` first")
+    problem = pipeline.load_problem(found[0], cfg)
+    n_i = problem.posterior.op.n_interior
+    logdensity = pipeline.make_logdensity(problem, cfg)
+    pre = (pipeline._preconditioner_rw(problem, cfg)
+           if pipeline.dense_preconditioning(problem, cfg) else None)
+    init = pipeline.initialise(problem, cfg)
+    x0, sigma, interior0 = np.asarray(init.x0), tuple(np.asarray(s) for s in init.sigma), np.zeros((n_i, 3))
+    states = CACHE / f"steps-{args.model}{tag}.npz"
+    if not args.from_starts:
+        if args.rebuild or not states.is_file():
+            print(f"warm-up of {cfg.sampler.warmup_steps} steps per chain for {states.name}", flush=True)
+            warm = sample(jax.random.key(1), logdensity, x0, jnp.zeros((n_i, 3)), sigma,
+                          thinning=10, warmup_steps=cfg.sampler.warmup_steps, max_draws=100,
+                          min_draws=100, chunk_draws=100, progress=False, preconditioner=pre)
+            np.savez(states, position=np.asarray(warm.final_states.position),
+                     interior=np.asarray(warm.final_states.interior),
+                     **{f"sigma{k}": np.asarray(s) for k, s in enumerate(warm.sigma)})
+        z = np.load(states)
+        x0, interior0 = z["position"], z["interior"][0]
+        sigma = tuple(z[f"sigma{k}"] for k in range(len([f for f in z.files if f.startswith("sigma")])))
+
+    stamps: list[float] = []
+
+    def on_chunk(_ckpt, out):
+        if out is not None:
+            stamps.append(time.perf_counter())
+
+    res = sample(jax.random.key(3), logdensity, x0, jnp.asarray(interior0), sigma, thinning=10,
+                 warmup_steps=0, max_draws=100 * args.chunks, min_draws=100 * args.chunks,
+                 chunk_draws=100, progress=False, preconditioner=pre, on_chunk=on_chunk)
+    steps = 1000 * (args.chunks - 1)  # per chain
+    rate = steps / (stamps[-1] - stamps[0])
+    out = {"model": args.model, "states": "starts" if args.from_starts else "tuned",
+           "steps_per_s_per_chain": rate, "acceptance": float(res.acceptance[:, 100:].mean()),
+           "cg_iterations_per_step": float(res.cg_iterations[:, 100:].mean()),
+           # (a checkout older than cg_preconditioner knew only dense and block Jacobi)
+           "cg_preconditioner": (pipeline.cg_preconditioner(problem, cfg) if hasattr(pipeline, "cg_preconditioner")
+                                 else "dense" if pre is not None else "block-jacobi")}
+    print(f"{REPO.name} {args.model} ({out['states']}): {rate:.1f} MH steps/s per chain "
+          f"({3 * rate:.0f} in total), acceptance {out['acceptance']:.3f}, "
+          f"CG iterations per step {out['cg_iterations_per_step']:.2f} ({out['cg_preconditioner']})")
+    return out
+
+
+if __name__ == "__main__":
+    main()
