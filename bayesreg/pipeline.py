@@ -556,10 +556,9 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
             raise ValueError("the central start violates a hard constraint (skull, inverted element)")
         state = solver.init(x)
         # optax's initial state holds weakly typed scalars that its update returns strongly
-        # typed: cast them to the update's types so that `step` compiles once, not twice
+        # typed (same dtypes): made strong here so that `step` compiles once, not twice
         # (5-6 s a compilation at the quickstart's size, three searches per run)
-        state = jax.tree.map(lambda a, t: jnp.asarray(a, dtype=t.dtype), state,
-                             jax.eval_shape(step, x, state)[1])
+        state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), state)
         best_x, best_f, message, nit = x, -start, f"reached {maxiter} iterations", 0
         for nit in range(1, maxiter + 1):
             x_new, state, v, g = step(x, state)

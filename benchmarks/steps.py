@@ -87,9 +87,10 @@ def main(argv=None) -> dict:
     logdensity = pipeline.make_logdensity(problem, cfg)
     pre = (pipeline._preconditioner_rw(problem, cfg)
            if pipeline.dense_preconditioning(problem, cfg) else None)
-    init = pipeline.initialise(problem, cfg)
-    x0, sigma, interior0 = np.asarray(init.x0), tuple(np.asarray(s) for s in init.sigma), np.zeros((n_i, 3))
     states = CACHE / f"steps-{args.model}{tag}.npz"
+    if args.from_starts or args.rebuild or not states.is_file():  # the config's starts and scales
+        init = pipeline.initialise(problem, cfg)
+        x0, sigma, interior0 = np.asarray(init.x0), tuple(np.asarray(s) for s in init.sigma), np.zeros((n_i, 3))
     if not args.from_starts:
         if args.rebuild or not states.is_file():
             print(f"warm-up of {cfg.sampler.warmup_steps} steps per chain for {states.name}", flush=True)
