@@ -202,7 +202,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
         for k, name in enumerate(problem.layout.group_names):
             ratios[name]["true"] = float(np.median(true_ratio[mesh.tissue == k]))
     u_true_b = truth.u[mesh.boundary]
-    mean_b = result.positions[..., :nb3].reshape(-1, post.n_boundary, 3).mean(0)
+    mean_b = result.positions[..., :nb3].mean(axis=(0, 1)).reshape(post.n_boundary, 3)
     init_b = np.asarray(u_init)[mesh.boundary]
 
     def stats(err):
@@ -210,7 +210,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
                 "max": float(err.max())}
 
     if u_mean is None:
-        u_mean = _full_draws(problem, result).mean(axis=0)
+        u_mean = _nodal_mean(problem, result)
     return {
         "boundary_initial_mm": stats(np.linalg.norm(init_b - u_true_b, axis=1)),
         "boundary_posterior_mean_mm": stats(np.linalg.norm(mean_b - u_true_b, axis=1)),
@@ -218,19 +218,68 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
         "mse_all_nodes_mm2": float(np.mean(np.sum((u_mean - truth.u) ** 2, axis=1))),
         "mse_all_nodes_initial_mm2": float(np.mean(np.sum((u_init - truth.u) ** 2, axis=1))),
         "coverage_boundary": {str(k): float(v) for k, v in coverage(
-            result.positions[..., :nb3].reshape(-1, nb3), u_true_b.ravel()).items()},
+            result.positions[..., :nb3], u_true_b.ravel()).items()},
         "ratio": ratios,
     }
 
 
-def _full_draws(problem, result):
-    """Nodal displacement draws ``(C*D, N, 3)``."""
+_CHUNK = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
+
+
+def _nodal_draws(problem, result, rows):
+    """Nodal displacement draws ``(S, N, 3)`` mm in mesh node order for ``rows`` (a slice or
+    indices) of the pooled ``(C*D)`` draws: sampled boundary and solved interior nodes
+    written straight to their places (no copy of all draws)."""
     post = problem.posterior
     nb = post.n_boundary
-    ub = result.positions[..., : 3 * nb].reshape(-1, nb, 3)
-    ui = result.interior.reshape(-1, result.interior.shape[-2], 3)
-    full = np.concatenate([ub, ui], axis=1)
-    return full[:, np.asarray(post.perm)]
+    perm = np.asarray(post.perm)  # full[:, j] = [u_b, u_i][:, perm[j]]
+    node = np.empty_like(perm)
+    node[perm] = np.arange(len(perm))
+    n_chains, n_draws = result.positions.shape[:2]
+    chain, draw = np.divmod(np.arange(n_chains * n_draws)[rows], n_draws)
+    pos, ui = result.positions[chain, draw], result.interior[chain, draw]
+    out = np.empty((len(pos), len(perm), 3))
+    out[:, node[:nb]] = pos[:, : 3 * nb].reshape(len(pos), nb, 3)
+    out[:, node[nb:]] = ui
+    return out
+
+
+def _chunks(result):
+    n, chunk = result.positions.shape[0] * result.positions.shape[1], _CHUNK
+    return [slice(a, min(a + chunk, n)) for a in range(0, n, chunk)]
+
+
+def _nodal_mean(problem, result) -> np.ndarray:
+    """Posterior mean nodal displacement ``(N, 3)`` mm, accumulated over chunks of draws."""
+    total = sum(_nodal_draws(problem, result, r).sum(axis=0) for r in _chunks(result))
+    return total / (result.positions.shape[0] * result.positions.shape[1])
+
+
+def _nodal_spread(problem, result, mean, *, block=128):
+    """Per-node spread of the draws about ``mean``, over chunks of draws.
+
+    Returns ``cov (3, N, N)`` (covariance per axis, mm^2), ``sd (N, 3)``, and the sd and
+    inter-quartile range of ``|u|`` per node ``(N,)`` (mm).  Memory: the ``(C*D, N)``
+    norms and one chunk, not the ``(C*D, N, 3)`` draws.
+    """
+    n_nodes = mean.shape[0]
+    cov = np.zeros((3, n_nodes, n_nodes))
+    norm = np.empty((result.positions.shape[0] * result.positions.shape[1], n_nodes))
+    for r in _chunks(result):
+        x = _nodal_draws(problem, result, r)
+        norm[r] = np.linalg.norm(x, axis=2)
+        x -= mean
+        for c in range(3):
+            cov[c] += x[:, :, c].T @ x[:, :, c]
+    cov /= len(norm)
+    sd = np.sqrt(np.maximum(np.stack([np.diag(cov[c]) for c in range(3)], axis=1), 0.0))
+    norm_sd, norm_iqr = np.empty(n_nodes), np.empty(n_nodes)
+    for a in range(0, n_nodes, block):
+        nb_ = norm[:, a:a + block]
+        norm_sd[a:a + block] = nb_.std(axis=0)
+        q75, q25 = np.quantile(nb_, [0.75, 0.25], axis=0)
+        norm_iqr[a:a + block] = q75 - q25
+    return cov, sd, norm_sd, norm_iqr
 
 
 def _per_solve(cg_per_step, cfg, block_names):
@@ -349,7 +398,10 @@ def _plots(run_dir: RunDirectory, tree, names, truth_ratio):
     plt.close(fig)
 
 
-def _voxel_norm_spread(w, draws, max_draws=400, block=8192):
+_VOXEL_DRAWS = 400  # evenly spaced draws behind the voxel-wise spread of |u|
+
+
+def _voxel_norm_spread(w, draws, max_draws=_VOXEL_DRAWS, block=8192):
     """Per-voxel sd and inter-quartile range of ``|u|`` from FE-interpolated draws.
 
     ``w`` is the ``(P, N)`` interpolation matrix, ``draws`` ``(S, N, 3)``; at most
@@ -408,11 +460,11 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     import arviz as az
     import meshio
 
-    from bayesreg.diagnostics import gelman_rubin, to_datatree
+    from bayesreg.diagnostics import arviz_fast_ess, gelman_rubin, to_datatree
     from bayesreg.mesh import mesh_quality
     from bayesreg.pipeline import cg_preconditioner
     from bayesreg.posterior import elastic_groups, solve_position
-    from bayesreg.synthetic import grid_moments, interpolation_matrix, locate_grid
+    from bayesreg.synthetic import grid_moments_from, interpolation_matrix, locate_grid
 
     post, mesh, layout = problem.posterior, problem.mesh, problem.layout
     nb = post.n_boundary
@@ -446,7 +498,8 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     var_names = ["lam", "mu", "ratio", "u_b"]
     with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
-        summary = az.summary(tree, var_names=var_names, ci_prob=0.9, ci_kind="eti")
+        with arviz_fast_ess():  # ArviZ's numbers, without its Python loop over lags
+            summary = az.summary(tree, var_names=var_names, ci_prob=0.9, ci_kind="eti")
         classic, split = [], []
         for v in var_names:
             x = np.asarray(tree.posterior[v].values)
@@ -461,14 +514,13 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     os.replace(tmp, run_dir.file("summary.csv"))
 
     # displacement maps: on the mesh and on the image grid (FE interpolation)
-    draws = _full_draws(problem, result)
-    u_mean, u_sd = draws.mean(0), draws.std(0)
+    # the nodal statistics over chunks of draws: never all (C*D, N, 3) draws at once
+    u_mean = _nodal_mean(problem, result)
+    cov, u_sd, norm_sd_n, norm_iqr_n = _nodal_spread(problem, result, u_mean)
     u_init = np.asarray(solve_position(post, init.center, rtol=cfg.solver.rtol,
                                        maxiter=cfg.solver.maxiter)[0])
-    norm = np.linalg.norm(draws, axis=2)
-    point_data = {"u_mean": u_mean, "u_sd": u_sd, "u_norm_sd": norm.std(0),
-                  "u_norm_iqr": np.subtract(*np.quantile(norm, [0.75, 0.25], axis=0)),
-                  "u_init": u_init}
+    point_data = {"u_mean": u_mean, "u_sd": u_sd, "u_norm_sd": norm_sd_n,
+                  "u_norm_iqr": norm_iqr_n, "u_init": u_init}
     if problem.truth is not None:
         point_data["u_true"] = problem.truth.u
         point_data["u_error"] = u_mean - problem.truth.u
@@ -480,8 +532,11 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     located = locate_grid(mesh, problem.f)
     w, in_mesh = interpolation_matrix(mesh, problem.f, located=located)
     grid = problem.f.data.shape[:3]
-    mean_img, sd_img = grid_moments(mesh, problem.f, draws, located=located)
-    norm_sd, norm_iqr = _voxel_norm_spread(w, draws)
+    mean_img, sd_img = grid_moments_from(mesh, problem.f, u_mean, cov, located=located)
+    del cov
+    n_draws = c * d
+    norm_sd, norm_iqr = _voxel_norm_spread(
+        w, _nodal_draws(problem, result, slice(None, None, max(1, n_draws // _VOXEL_DRAWS))))
     aff = problem.f.affine
     vol = {"displacement_mean": mean_img, "displacement_sd": sd_img,
            "displacement_norm_sd": norm_sd.reshape(grid), "displacement_norm_iqr": norm_iqr.reshape(grid),

@@ -30,7 +30,8 @@ from bayesreg.images import Image, interpolate_numpy
 from bayesreg.mesh import Mesh, signed_volumes
 
 __all__ = [
-    "Truth", "brain_shift", "locate", "interpolation_matrix", "grid_moments", "warp_image",
+    "Truth", "brain_shift", "locate", "interpolation_matrix", "grid_moments",
+    "grid_moments_from", "warp_image",
     "solve_dirichlet", "constrained_shift", "locate_grid", "locate_voxels",
 ]
 
@@ -257,18 +258,49 @@ def grid_moments(mesh: Mesh, grid: Image, draws, *, located=None):
     mean, sd : (I, J, K, 3) ndarray  mm; zero outside the mesh
     """
     draws = np.asarray(draws, np.float64)
+    mean_n = draws.mean(0)
+    centred = draws - mean_n
+    cov = np.stack([centred[:, :, c].T @ centred[:, :, c] for c in range(3)]) / len(draws)
+    return grid_moments_from(mesh, grid, mean_n, cov, located=located)
+
+
+def grid_moments_from(mesh: Mesh, grid: Image, mean, cov, *, located=None):
+    """:func:`grid_moments` from the nodal posterior mean and per-axis covariances.
+
+    For draws that are never held at once (``bayesreg.outputs`` accumulates the moments
+    over chunks of draws).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    grid : Image  (only its shape and affine are used)
+    mean : (N, 3) array  posterior mean of the nodal displacement, mm
+    cov : (3, N, N) array  posterior covariance of the nodal displacement per axis, mm^2
+    located : tuple, optional  :func:`locate_grid` of ``(mesh, grid)``, if already computed
+
+    Returns
+    -------
+    mean, sd : (I, J, K, 3) ndarray  mm; zero outside the mesh
+
+    Raises
+    ------
+    ValueError
+        If ``mean`` is not ``(N, 3)`` or ``cov`` not ``(3, N, N)`` for the mesh's ``N`` nodes.
+    """
+    n = len(mesh.nodes)
+    mean_n, cov = np.asarray(mean, np.float64), np.asarray(cov, np.float64)
+    if mean_n.shape != (n, 3) or cov.shape != (3, n, n):
+        raise ValueError(f"mean (N, 3) and cov (3, N, N) with N = {n} expected, "
+                         f"got {mean_n.shape} and {cov.shape}")
     elem, bary = located if located is not None else locate_grid(mesh, grid)
     inside = np.flatnonzero(elem >= 0)
     idx = mesh.tets[elem[inside]]  # (P, 4)
     w = bary[inside]
-    mean_n = draws.mean(0)
-    centred = draws - mean_n
     mean = np.zeros((len(elem), 3))
     sd = np.zeros((len(elem), 3))
     mean[inside] = np.einsum("pa,pac->pc", w, mean_n[idx])
     for c in range(3):
-        cov = centred[:, :, c].T @ centred[:, :, c] / len(draws)
-        var = np.einsum("pa,pb,pab->p", w, w, cov[idx[:, :, None], idx[:, None, :]])
+        var = np.einsum("pa,pb,pab->p", w, w, cov[c][idx[:, :, None], idx[:, None, :]])
         sd[inside, c] = np.sqrt(np.maximum(var, 0.0))
     shape = grid.data.shape[:3]
     return mean.reshape(*shape, 3), sd.reshape(*shape, 3)

@@ -1,4 +1,4 @@
-"""Credible-interval coverage (bayesreg.diagnostics.coverage)."""
+"""Diagnostics: credible-interval coverage, the running R-hat, ArviZ's ESS vectorised."""
 
 from __future__ import annotations
 
@@ -106,3 +106,74 @@ def test_running_rhat_equals_the_statistic_of_the_concatenated_draws(split):
             np.testing.assert_allclose(monitor.rhat(split=split), gelman_rubin(est(x[:, :start]), split=split),
                                        rtol=1e-12)
     assert monitor.n_draws == 47 and monitor.rhat(split=split)[3] == 1.0
+
+
+def _ar1(rng, c, d, phi):
+    e = rng.normal(size=(c, d))
+    x = np.empty_like(e)
+    x[:, 0] = e[:, 0]
+    for t in range(1, d):
+        x[:, t] = phi * x[:, t - 1] + e[:, t]
+    return x
+
+
+def test_vectorised_geyer_ess_equals_arviz_lag_loop():
+    """The ESS of ``arviz_fast_ess`` is ArviZ's own ``_ess`` to round-off on every kind of
+    input its loop distinguishes: positive and negative autocorrelation, sequences ended by
+    a non-positive pair or by the number of draws, binary (quantile-indicator) draws,
+    chains with different means, constant and non-finite draws."""
+    from arviz_stats.base.array import BaseArray
+
+    from bayesreg.diagnostics import _fast_backend
+
+    fast, base = _fast_backend().array_stats, BaseArray()
+    rng = np.random.default_rng(5)
+    worst, nan_cases = 0.0, 0
+    for trial in range(600):
+        c, d = int(rng.integers(1, 6)), int(rng.integers(8, 80))
+        x = _ar1(rng, c, d, rng.uniform(-0.95, 0.999))
+        if trial % 5 == 0:
+            x = (x > rng.normal()).astype(float)
+        if trial % 7 == 0:
+            x += np.arange(c)[:, None] * rng.uniform(0.0, 5.0)
+        if trial % 97 == 0:
+            x[0, 3] = np.nan
+        if trial % 89 == 0:
+            x[:] = 2.5
+        for rel in (False, True):
+            with np.errstate(all="ignore"):
+                a, b = base._ess(x, relative=rel), fast._ess(x, relative=rel)
+            if np.isnan(a):
+                assert np.isnan(b)
+                nan_cases += 1
+                continue
+            worst = max(worst, abs(a - b) / abs(a))
+    assert nan_cases > 0
+    assert worst < 1e-12
+
+
+def test_arviz_fast_ess_summary_equals_arviz_and_restores_settings():
+    import arviz as az
+    from arviz_base import rc_context, rcParams
+
+    from bayesreg.diagnostics import arviz_fast_ess
+
+    rng = np.random.default_rng(2)
+    x = np.stack([_ar1(rng, 3, 3000, 0.995) for _ in range(6)], axis=-1)  # slow mixing: long loop
+    x[..., 0] = x[..., 0] > 0
+    tree = az.from_dict({"posterior": {"u": x}})
+    ref = az.summary(tree, ci_prob=0.9, ci_kind="eti")
+    with arviz_fast_ess():
+        assert rcParams["stats.module"] != "base"
+        got = az.summary(tree, ci_prob=0.9, ci_kind="eti")
+    assert rcParams["stats.module"] == "base"
+    assert list(got.columns) == list(ref.columns) and list(got.index) == list(ref.index)
+    np.testing.assert_allclose(got.to_numpy(float), ref.to_numpy(float), rtol=1e-12)
+    assert (ref["ess_bulk"] < 200).all()  # the case the loop is slow on
+    from arviz_stats.base import dataarray_stats
+
+    with rc_context({"stats.module": dataarray_stats}), arviz_fast_ess():
+        assert rcParams["stats.module"] is dataarray_stats  # a user's own backend is kept
+    with pytest.raises(RuntimeError), arviz_fast_ess():
+        raise RuntimeError
+    assert rcParams["stats.module"] == "base"

@@ -1,0 +1,97 @@
+"""The output stage's statistics over chunks of draws (bayesreg.outputs, bayesreg.synthetic).
+
+A run of the paper's size stores 3 x 25,000 draws; the displacement statistics are
+accumulated chunk by chunk and must equal those of all draws held at once.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bayesreg import outputs
+from bayesreg.diagnostics import coverage, gelman_rubin
+from bayesreg.images import Image
+from bayesreg.synthetic import grid_moments, grid_moments_from, interpolation_matrix
+from conftest import box_mesh
+
+
+def _fake_run(seed=0, c=3, d=23):
+    """A mesh, a problem stand-in (boundary first, interior after, ``perm`` to node order)
+    and a sampler result with correlated draws."""
+    rng = np.random.default_rng(seed)
+    mesh = box_mesh(n=(2, 2, 2), size=(20.0, 20.0, 20.0))
+    n = len(mesh.nodes)
+    boundary = np.asarray(mesh.boundary)
+    interior = np.setdiff1d(np.arange(n), boundary)
+    order = np.concatenate([boundary, interior])  # [u_b, u_i][:, k] is node order[k]
+    perm = np.argsort(order)  # full[:, j] = [u_b, u_i][:, perm[j]]
+    nb = len(boundary)
+    base = rng.normal(0.0, 2.0, (n, 3))
+    draws = base + rng.normal(0.0, 0.3, (c, d, n, 3)) * rng.uniform(0.2, 1.0, (n, 1))
+    n_par = 2
+    positions = np.concatenate([draws[:, :, boundary].reshape(c, d, 3 * nb),
+                                rng.uniform(1, 2, (c, d, n_par))], axis=-1)
+    problem = SimpleNamespace(mesh=mesh, posterior=SimpleNamespace(n_boundary=nb, perm=perm))
+    result = SimpleNamespace(positions=positions, interior=draws[:, :, interior])
+    return mesh, problem, result, draws.reshape(c * d, n, 3)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 4096])
+def test_nodal_statistics_over_chunks_equal_all_draws(monkeypatch, chunk):
+    mesh, problem, result, draws = _fake_run()
+    monkeypatch.setattr(outputs, "_CHUNK", chunk)
+    np.testing.assert_array_equal(outputs._nodal_draws(problem, result, slice(None)), draws)
+    np.testing.assert_array_equal(outputs._nodal_draws(problem, result, slice(5, None, 9)),
+                                  draws[5::9])
+    mean = outputs._nodal_mean(problem, result)
+    np.testing.assert_allclose(mean, draws.mean(0), rtol=1e-13, atol=1e-13)
+    cov, sd, norm_sd, norm_iqr = outputs._nodal_spread(problem, result, mean, block=5)
+    centred = draws - draws.mean(0)
+    for a in range(3):
+        np.testing.assert_allclose(cov[a], centred[:, :, a].T @ centred[:, :, a] / len(draws),
+                                   rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(sd, draws.std(0), rtol=1e-12)
+    norm = np.linalg.norm(draws, axis=2)
+    np.testing.assert_allclose(norm_sd, norm.std(0), rtol=1e-12)
+    np.testing.assert_allclose(norm_iqr, np.subtract(*np.quantile(norm, [0.75, 0.25], axis=0)),
+                               rtol=1e-12)
+
+
+def test_grid_moments_equal_the_moments_of_interpolated_draws():
+    """``w^T Cov w`` per voxel is the variance of the FE-interpolated draws (linearity)."""
+    mesh, _, _, draws = _fake_run(seed=1)
+    affine = np.array([[2.5, 0, 0, -1.0], [0, 2.6, 0, -0.5], [0, 0, 3.1, 0.3], [0, 0, 0, 1]])
+    grid = Image(np.zeros((9, 8, 7)), affine)  # voxels in and outside the 20 mm box
+    w, inside = interpolation_matrix(mesh, grid)
+    assert inside.sum() > 100
+    fields = np.stack([w @ x for x in draws])  # (S, voxels, 3)
+    mean, sd = grid_moments(mesh, grid, draws)
+    np.testing.assert_allclose(mean.reshape(-1, 3), fields.mean(0), atol=1e-12)
+    np.testing.assert_allclose(sd.reshape(-1, 3), fields.std(0), rtol=1e-9, atol=1e-12)
+    assert np.all(sd.reshape(-1, 3)[~inside.ravel()] == 0.0)
+    centred = draws - draws.mean(0)
+    cov = np.stack([centred[:, :, a].T @ centred[:, :, a] for a in range(3)]) / len(draws)
+    m2, s2 = grid_moments_from(mesh, grid, draws.mean(0), cov)
+    np.testing.assert_array_equal(m2, mean)
+    np.testing.assert_array_equal(s2, sd)
+    with pytest.raises(ValueError, match="cov"):
+        grid_moments_from(mesh, grid, draws.mean(0), cov[:2])
+
+
+@pytest.mark.parametrize("block", [1, 3, 1000])
+def test_blocked_coverage_and_rhat_equal_whole(block):
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(3, 200, 40)) + rng.normal(0.0, 0.3, (3, 1, 40))
+    view = np.concatenate([x, rng.normal(size=(3, 200, 5))], axis=-1)[..., :40]  # strided
+    truth = rng.normal(0.0, 1.2, 40)
+    ref = coverage(x.reshape(-1, 40), truth, block=10**6)
+    assert coverage(view, truth, block=block) == ref
+    for split in (False, True):  # equal up to the order of summation
+        np.testing.assert_allclose(gelman_rubin(view, split=split, block=block),
+                                   gelman_rubin(x, split=split, block=10**6), rtol=1e-14)
+    two = gelman_rubin(x.reshape(3, 200, 8, 5), block=block)
+    assert two.shape == (8, 5)
+    np.testing.assert_allclose(two.ravel(), gelman_rubin(x, block=block), rtol=1e-14)
