@@ -275,9 +275,9 @@ def _nodal_spread(problem, result, mean, *, block=128):
     sd = np.sqrt(np.maximum(np.stack([np.diag(cov[c]) for c in range(3)], axis=1), 0.0))
     norm_sd, norm_iqr = np.empty(n_nodes), np.empty(n_nodes)
     for a in range(0, n_nodes, block):
-        nb_ = norm[:, a:a + block]
-        norm_sd[a:a + block] = nb_.std(axis=0)
-        q75, q25 = np.quantile(nb_, [0.75, 0.25], axis=0)
+        cols = norm[:, a:a + block]
+        norm_sd[a:a + block] = cols.std(axis=0)
+        q75, q25 = np.quantile(cols, [0.75, 0.25], axis=0)
         norm_iqr[a:a + block] = q75 - q25
     return cov, sd, norm_sd, norm_iqr
 
