@@ -230,14 +230,14 @@ def geyer_ess(rho, n_chain: int, n_draw: int, *, relative: bool = False) -> floa
     """Effective sample size from the combined autocorrelations by Geyer's initial monotone
     sequence, vectorised over the lags.
 
-    The estimator of Vehtari et al. (2021, Eqs. 10-11) exactly as ArviZ's ``_ess`` computes
-    it (``arviz_stats.base.diagnostics``), lag by lag in a Python loop: the first pair sum
-    ``rho_2k + rho_2k+1`` that is not positive ends the initial positive sequence, the pair
-    sums before it are made non-increasing (running minimum), and
+    The estimator of Geyer (1992) as Vehtari et al. (2021) use it, exactly as ArviZ's
+    ``_ess`` computes it (``arviz_stats.base.diagnostics``) lag by lag in a Python loop:
+    the first pair sum ``rho_2k + rho_2k+1`` that is not positive ends the initial positive
+    sequence, the pair sums before it are made non-increasing (running minimum), and
     ``tau = -1 + 2 sum(pairs) + rho_2K``, floored at ``1 / log10(C D)``.  Here the end of
     the sequence is found with one search over all pair sums, so the cost no longer grows
-    with the autocorrelation time (a boundary coordinate of a paper-kernel run: about 2,000
-    lags, 0.05 s per call in the loop).
+    with the autocorrelation time (in ArviZ's loop, at 2,500 draws per chain of a
+    paper-kernel run: about 1,200 lags and 12 ms per call, profiled).
 
     Parameters
     ----------
