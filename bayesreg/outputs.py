@@ -226,21 +226,27 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
 _CHUNK = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
 
 
+def _node_slots(problem):
+    """Mesh node indices of the sampled boundary nodes and of the solved interior nodes, in
+    the order of ``u_b`` and ``u_i`` (the inverse of ``posterior.perm``)."""
+    post = problem.posterior
+    perm = np.asarray(post.perm)  # full[:, j] = [u_b, u_i][:, perm[j]]
+    node = np.empty_like(perm)
+    node[perm] = np.arange(len(perm))
+    return node[:post.n_boundary], node[post.n_boundary:]
+
+
 def _nodal_draws(problem, result, rows):
     """Nodal displacement draws ``(S, N, 3)`` mm in mesh node order for ``rows`` (a slice or
     indices) of the pooled ``(C*D)`` draws: sampled boundary and solved interior nodes
     written straight to their places (no copy of all draws)."""
-    post = problem.posterior
-    nb = post.n_boundary
-    perm = np.asarray(post.perm)  # full[:, j] = [u_b, u_i][:, perm[j]]
-    node = np.empty_like(perm)
-    node[perm] = np.arange(len(perm))
+    b, i = _node_slots(problem)
     n_chains, n_draws = result.positions.shape[:2]
     chain, draw = np.divmod(np.arange(n_chains * n_draws)[rows], n_draws)
     pos, ui = result.positions[chain, draw], result.interior[chain, draw]
-    out = np.empty((len(pos), len(perm), 3))
-    out[:, node[:nb]] = pos[:, : 3 * nb].reshape(len(pos), nb, 3)
-    out[:, node[nb:]] = ui
+    out = np.empty((len(pos), len(b) + len(i), 3))
+    out[:, b] = pos[:, : 3 * len(b)].reshape(len(pos), len(b), 3)
+    out[:, i] = ui
     return out
 
 
@@ -250,9 +256,13 @@ def _chunks(result):
 
 
 def _nodal_mean(problem, result) -> np.ndarray:
-    """Posterior mean nodal displacement ``(N, 3)`` mm, accumulated over chunks of draws."""
-    total = sum(_nodal_draws(problem, result, r).sum(axis=0) for r in _chunks(result))
-    return total / (result.positions.shape[0] * result.positions.shape[1])
+    """Posterior mean nodal displacement ``(N, 3)`` mm: the means of the stored ``u_b`` and
+    ``u_i`` draws put in mesh node order (no nodal draws assembled)."""
+    b, i = _node_slots(problem)
+    mean = np.empty((len(b) + len(i), 3))
+    mean[b] = result.positions[..., : 3 * len(b)].mean(axis=(0, 1)).reshape(len(b), 3)
+    mean[i] = result.interior.mean(axis=(0, 1))
+    return mean
 
 
 def _nodal_spread(problem, result, mean, *, block=128):
