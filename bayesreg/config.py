@@ -54,9 +54,17 @@ class DataConfig(_Strict):
 
 
 class MeshConfig(_Strict):
-    edge_length_mm: float = Field(16.0, gt=0)
+    edge_length_mm: float = Field(16.0, gt=0, description="fTetWild's target edge length (mm); "
+                                  "with target_nodes, that of the first attempt")
     smoothing_sigma_mm: float = Field(4.0, ge=0)
     epsilon: float = Field(2e-2, gt=0)
+    target_nodes: int | None = Field(
+        None, ge=20, description="re-mesh, scaling the edge length, until the node count is within "
+        "target_tolerance of this (fTetWild's count at one edge length scatters by about 7% between "
+        "runs); None: one mesh at edge_length_mm (bayesreg.mesh.mesh_brain_sized)")
+    target_tolerance: float = Field(0.05, gt=0, lt=1, description="relative tolerance on target_nodes")
+    max_attempts: int = Field(12, ge=1, description="meshes tried at most for target_nodes (the "
+                              "closest is kept, with a warning, when none is within the tolerance)")
 
 
 class SyntheticConfig(_Strict):

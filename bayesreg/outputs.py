@@ -574,7 +574,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
         "config": cfg.model_dump(mode="json"),
         "versions": _versions(),
         "timings_s": {k: round(float(v), 3) for k, v in timings.items()},
-        "mesh": mesh_quality(mesh),
+        "mesh": {**mesh_quality(mesh), **({"meshing": problem.mesh_info} if problem.mesh_info else {})},
         "intensity_scale": problem.intensity_scale,
         "parameters": {"free": layout.free_names,
                        "fixed": [f"{p}_{names[g]}={v}" for p, g, v in layout.fixed]},

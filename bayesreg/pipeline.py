@@ -35,7 +35,7 @@ from bayesreg.images import (  # noqa: E402
     Image, check_same_frame, interpolate_numpy, load_nifti, mni152, pad,
     resample_to_spacing, to_reference_grid,
 )
-from bayesreg.mesh import Mesh, carve_skull, mesh_brain, signed_volumes  # noqa: E402
+from bayesreg.mesh import Mesh, carve_skull, mesh_brain, mesh_brain_sized, signed_volumes  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
     ParamLayout, Posterior, build_posterior, elastic_groups, log_density, log_density_condensed,
     add_normaliser, log_normaliser, split_position, with_skull_barrier,
@@ -75,6 +75,8 @@ class Problem(NamedTuple):
     n_skull_carved : int  skull voxels freed next to the mesh (:func:`bayesreg.mesh.carve_skull`)
     timings : dict
     truth_info : dict or None  how the truth was made (constrained minimiser figures)
+    mesh_info : dict or None  how the mesh was made: its edge length (mm) and, with
+        ``mesh.target_nodes``, the attempts of :func:`bayesreg.mesh.mesh_brain_sized`
     """
 
     f: Image
@@ -91,6 +93,7 @@ class Problem(NamedTuple):
     n_skull_carved: int
     timings: dict
     truth_info: dict | None = None
+    mesh_info: dict | None = None
 
 
 def _load_data(cfg: Config):
@@ -209,7 +212,8 @@ def make_data(cfg: Config) -> dict:
     Returns
     -------
     dict with ``f, m, labels`` (Image), ``mesh``, ``truth`` (Truth or None),
-    ``truth_info`` (dict or None), ``intensity_scale``, ``n_skull_carved``, ``timings``.
+    ``truth_info`` (dict or None), ``intensity_scale``, ``n_skull_carved``, ``timings``,
+    ``mesh_info`` (dict: the edge length and, with ``mesh.target_nodes``, the attempts).
     """
     timings = {}
     t = time.perf_counter()
@@ -224,12 +228,15 @@ def make_data(cfg: Config) -> dict:
     timings["data_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    mesh = mesh_brain(
-        labels,
-        edge_length_mm=cfg.mesh.edge_length_mm,
-        smoothing_sigma_mm=cfg.mesh.smoothing_sigma_mm,
-        epsilon=cfg.mesh.epsilon,
-    )
+    mc = cfg.mesh
+    mesh_kw = {"smoothing_sigma_mm": mc.smoothing_sigma_mm, "epsilon": mc.epsilon}
+    if mc.target_nodes is None:
+        mesh = mesh_brain(labels, edge_length_mm=mc.edge_length_mm, **mesh_kw)
+        mesh_info = {"edge_length_mm": mc.edge_length_mm}
+    else:
+        mesh, mesh_info = mesh_brain_sized(
+            labels, mc.target_nodes, tolerance=mc.target_tolerance, max_attempts=mc.max_attempts,
+            edge_length_mm=mc.edge_length_mm, **mesh_kw)
     labels, n_carved = carve_skull(labels, mesh)
     timings["mesh_s"] = time.perf_counter() - t
     empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
@@ -246,7 +253,7 @@ def make_data(cfg: Config) -> dict:
     timings["synthetic_s"] = time.perf_counter() - t
     return {"f": f, "m": m, "labels": labels, "mesh": mesh, "truth": truth,
             "truth_info": truth_info, "intensity_scale": scale, "n_skull_carved": n_carved,
-            "timings": timings}
+            "timings": timings, "mesh_info": mesh_info}
 
 
 def assemble(cfg: Config, data: dict) -> Problem:
@@ -292,7 +299,7 @@ def assemble(cfg: Config, data: dict) -> Problem:
     )
     return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init,
                    data["intensity_scale"], data["n_skull_carved"], dict(data["timings"]),
-                   data.get("truth_info"))
+                   data.get("truth_info"), data.get("mesh_info"))
 
 
 def prepare(cfg: Config) -> Problem:
@@ -322,6 +329,7 @@ def save_problem(problem: Problem, path) -> None:
         "meta": np.array(json.dumps({
             "intensity_scale": problem.intensity_scale, "n_skull_carved": problem.n_skull_carved,
             "timings": problem.timings, "truth_info": problem.truth_info,
+            "mesh_info": problem.mesh_info,
         })),
     }
     if problem.truth is not None:
@@ -345,7 +353,7 @@ def load_problem(path, cfg: Config) -> Problem:
         "mesh": Mesh(z["nodes"], z["tets"], z["tissue"], z["boundary"]),
         "truth": truth, "truth_info": meta["truth_info"],
         "intensity_scale": meta["intensity_scale"], "n_skull_carved": meta["n_skull_carved"],
-        "timings": meta["timings"],
+        "timings": meta["timings"], "mesh_info": meta.get("mesh_info"),  # (older checkpoints: none)
     }
     return assemble(cfg, data)
 

@@ -195,9 +195,17 @@ def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, c
     # a 26 mm mesh has a few elements across the brain: a 15 mm push can invert one of them
     # (the truth is then refused, rightly); 6 mm keeps every element valid on any meshing
     tiny = TINY_RW + ["init.start=registration", "synthetic.shift_mm=6"]
+    # the paper configs mesh to 801 nodes; here to the 26 mm mesh's own 270-310 (3 mm images)
+    tiny += ["mesh.target_nodes=290", "mesh.target_tolerance=0.5"]
     overrides = sum((["--set", s] for s in tiny), [])
     assert main(["reproduce", "--out", str(paper), "--no-progress"] + overrides) == 0
     assert "report in" in capsys.readouterr().out
+    for model in ("uniform", "three_compartment"):
+        run = json.loads((paper / model / "run.json").read_text())
+        meshing = run["mesh"]["meshing"]
+        assert meshing["target_nodes"] == 290 and meshing["within_tolerance"]
+        assert meshing["attempts"][-1]["n_nodes"] == run["mesh"]["n_nodes"]
+        assert abs(run["mesh"]["n_nodes"] - 290) <= 145
     for name in REPORT_FILES:
         assert (paper / "report" / name).is_file(), name
     md = (paper / "report" / "report.md").read_text()

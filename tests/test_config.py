@@ -151,3 +151,15 @@ def test_preconditioner_choice_follows_size_and_memory():
     with pytest.raises(ConfigError, match=r"spectral needs one parameter group"):
         load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=spectral"])
     load_config("configs/paper_uniform.yaml", overrides=["solver.preconditioner=spectral"])
+
+
+def test_paper_configs_mesh_to_the_papers_node_count():
+    for model in ("uniform", "three_compartment"):
+        cfg = load_config(f"configs/paper_{model}.yaml")
+        assert cfg.mesh.target_nodes == 801 and cfg.mesh.target_tolerance == 0.05
+    assert load_config("configs/quickstart.yaml").mesh.target_nodes is None
+    for bad, key in (("mesh.target_nodes=10", r"mesh\.target_nodes"),
+                     ("mesh.target_tolerance=1.5", r"mesh\.target_tolerance"),
+                     ("mesh.max_attempts=0", r"mesh\.max_attempts")):
+        with pytest.raises(ConfigError, match=key):
+            load_config("configs/quickstart.yaml", overrides=[bad])
