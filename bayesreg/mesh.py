@@ -7,6 +7,7 @@ so that the element labels follow the tissue boundaries at the resolution of the
 in the paper's Fig. 2c).
 
 Meshing is not bit-reproducible (fTetWild); store the mesh with a run's outputs.
+:func:`mesh_brain_sized` re-meshes until the node count is near a target (the paper's 801).
 """
 
 from __future__ import annotations
@@ -222,8 +223,8 @@ def mesh_brain(
 
 NODES_EXPONENT = 4.0
 """``p`` of the node count ``n = A h^-p`` of fTetWild meshes at edge length ``h``
-(:func:`mesh_brain_sized`): 3.9 from the mean counts of the MNI152 brain at 2 mm, 897, 691
-and 569 nodes at 16, 17 and 18 mm (12, 6 and 2 meshes)."""
+(:func:`mesh_brain_sized`): 4, rounded from 3.9, the slope of the mean counts of the MNI152
+brain at 2 mm, 897, 691 and 569 nodes at 16, 17 and 18 mm (12, 6 and 2 meshes)."""
 
 
 def mesh_brain_sized(

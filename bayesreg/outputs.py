@@ -334,6 +334,16 @@ def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
 def format_report(errors: dict | None, info: dict) -> str:
     """The short table the run prints (error vs truth, ratio posteriors, sampler figures)."""
     lines = []
+    mesh = info.get("mesh") or {}
+    if "n_nodes" in mesh:
+        line = (f"mesh {mesh['n_nodes']} nodes ({mesh.get('n_boundary_nodes', '?')} boundary), "
+                f"{mesh.get('n_tets', '?')} tets")
+        meshing = mesh.get("meshing") or {}
+        if meshing.get("target_nodes"):
+            line += (f"; target {meshing['target_nodes']} within {meshing['tolerance']:.0%}: "
+                     f"{'met' if meshing['within_tolerance'] else 'NOT met (closest kept)'} in "
+                     f"{len(meshing['attempts'])} attempt(s), edge {meshing['edge_length_mm']:.3g} mm")
+        lines.append(line)
     s = info["sampler"]
     acc = ", ".join(f"{b} {a:.3f}" for b, a in zip(s["blocks"], s["acceptance"]))
     lines.append(

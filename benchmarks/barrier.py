@@ -38,7 +38,7 @@ from bayesreg.posterior import _node_forbidden  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "paper_three_compartment_nuts.yaml"
-DEFAULTS = ["mesh.edge_length_mm=24", "sampler.warmup_steps=300", "sampler.max_draws=400",
+DEFAULTS = ["mesh.edge_length_mm=24", "mesh.target_nodes=null", "sampler.warmup_steps=300", "sampler.max_draws=400",
             "sampler.min_draws=400", "sampler.chunk_draws=50", "output.progress=false"]
 
 

@@ -43,7 +43,7 @@ from bayesreg.posterior import elastic_groups  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "paper_three_compartment.yaml"
-DEFAULTS = ["mesh.edge_length_mm=24", "sampler.blocked=true", "sampler.proposal=laplace",
+DEFAULTS = ["mesh.edge_length_mm=24", "mesh.target_nodes=null", "sampler.blocked=true", "sampler.proposal=laplace",
             "sampler.condensed=true", "init.method=mode", "sampler.warmup_steps=3000",
             "sampler.max_draws=1000", "sampler.chunk_draws=100", "output.progress=false"]
 # exact: every parameter free, and the uniform priors widened (the paper's are uniform on

@@ -61,7 +61,7 @@ from samplers import problem_for  # noqa: E402  (benchmarks/ is on the path of a
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "paper_three_compartment.yaml"
 # the normaliser benchmark's dataset and model (its q1 rerun), every parameter free
-DEFAULTS = ["mesh.edge_length_mm=24", "model.quadrature_level=1", "model.skull_barrier_mm=1.0",
+DEFAULTS = ["mesh.edge_length_mm=24", "mesh.target_nodes=null", "model.quadrature_level=1", "model.skull_barrier_mm=1.0",
             "model.prior_normaliser=exact", "model.fixed=null", "model.prior_lam.r2=1.0e6",
             "model.prior_mu.r2=1.0e5", "output.progress=false"]
 FACTORS = np.exp(np.linspace(np.log(1 / 3), np.log(3), 41))  # r_g / r_g*, for GM and WM

@@ -50,14 +50,24 @@ KINDS = {
 }
 
 
+def cache_tag(cfg) -> str:
+    """8 hex digits of a hash of the config's data, mesh and synthetic sections: the key of a
+    cached problem.  Without ``mesh.target_nodes`` the keys that came with it are left out,
+    so problems cached before it existed keep their names."""
+    sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
+    if sections["mesh"].get("target_nodes") is None:
+        for key in ("target_nodes", "target_tolerance", "max_attempts"):
+            sections["mesh"].pop(key, None)
+    return hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
+
+
 def problem_for(cfg, cache: Path, prefix: str = "quickstart"):
     """The problem of ``cfg`` from ``cache`` or built (and cached), and whether it was cached.
 
-    The file name carries ``prefix`` and a hash of the data, mesh and synthetic sections,
-    so a change there builds a new one (meshing is not reproducible: the cache keeps one
-    mesh for every run that compares on it)."""
-    sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
-    tag = hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
+    The file name carries ``prefix`` and a hash of the data, mesh and synthetic sections
+    (:func:`cache_tag`), so a change there builds a new one (meshing is not reproducible:
+    the cache keeps one mesh for every run that compares on it)."""
+    tag = cache_tag(cfg)
     path = cache / f"{prefix}-e{cfg.mesh.edge_length_mm:g}-r{cfg.data.resolution_mm:g}-{tag}.npz"
     if path.is_file():
         return pipeline.load_problem(path, cfg), True

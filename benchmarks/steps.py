@@ -30,8 +30,8 @@ chains are the same (the line prints acceptance and CG iterations to show it):
 * ``--problem RUN/checkpoint/problem.npz``: a real run's problem instead (the config as it
   is: the paper's constrained truth, where the tuned chains accept about a quarter of
   their proposals and solve nearly all of them);
-* the timing: 3 chains x ``--chunks`` chunks of 100 draws (thinning 10, the configs'
-  chunk), the first chunk (compilation) excluded, between ``on_chunk`` time stamps.
+* the timing: 3 chains (``--chains``) x ``--chunks`` chunks of 100 draws (thinning 10, the
+  configs' chunk), the first chunk (compilation) excluded, between ``on_chunk`` time stamps.
 """
 
 from __future__ import annotations
@@ -62,6 +62,8 @@ def main(argv=None) -> dict:
     p.add_argument("--model", choices=("three_compartment", "uniform"), default="three_compartment")
     p.add_argument("--from-starts", action="store_true", help="the config's starts and scales, untuned")
     p.add_argument("--chunks", type=int, default=3, help="chunks of 100 draws (the first is not timed)")
+    p.add_argument("--chains", type=int, default=3, help="chains (>= 2; the cached states' 3 "
+                   "repeated or cut)")
     p.add_argument("--rebuild", action="store_true", help="make the tuned states again")
     p.add_argument("--problem", help="a run's checkpoint/problem.npz instead of the cached 16 mm "
                    "problem, sampled with the config unchanged (its own truth and kernel); tuned "
@@ -69,6 +71,8 @@ def main(argv=None) -> dict:
     args = p.parse_args(argv)
     if args.chunks < 2:
         p.error("--chunks must be >= 2 (the first chunk compiles and is not timed)")
+    if args.chains < 2:
+        p.error("--chains must be >= 2 (sample() needs two chains for R-hat)")
 
     if args.problem:
         cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml")
@@ -76,7 +80,7 @@ def main(argv=None) -> dict:
         tag = f"-{Path(args.problem).resolve().parents[1].name}"
     else:
         cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml",
-                          overrides=["mesh.edge_length_mm=16", "data.resolution_mm=2", "synthetic.truth=smooth",
+                          overrides=["mesh.edge_length_mm=16", "mesh.target_nodes=null", "data.resolution_mm=2", "synthetic.truth=smooth",
                                      "sampler.blocked=false", "sampler.proposal=isotropic"])
         found = sorted(glob.glob(str(CACHE / "paper-e16-r2-smooth-*.npz")))
         tag = ""
@@ -104,6 +108,7 @@ def main(argv=None) -> dict:
         x0, interior0 = z["position"], z["interior"][0]
         sigma = tuple(z[f"sigma{k}"] for k in range(len([f for f in z.files if f.startswith("sigma")])))
 
+    x0 = np.resize(np.asarray(x0), (args.chains, np.shape(x0)[-1]))  # chain c: start c mod 3
     stamps: list[float] = []
 
     def on_chunk(_ckpt, out):
@@ -121,8 +126,9 @@ def main(argv=None) -> dict:
            # (a checkout older than cg_preconditioner knew only dense and block Jacobi)
            "cg_preconditioner": (pipeline.cg_preconditioner(problem, cfg) if hasattr(pipeline, "cg_preconditioner")
                                  else "dense" if pre is not None else "block-jacobi")}
-    print(f"{REPO.name} {args.model} ({out['states']}): {rate:.1f} MH steps/s per chain "
-          f"({3 * rate:.0f} in total), acceptance {out['acceptance']:.3f}, "
+    out["chains"] = args.chains
+    print(f"{REPO.name} {args.model} ({out['states']}, {args.chains} chains): {rate:.1f} MH steps/s "
+          f"per chain ({args.chains * rate:.0f} in total), acceptance {out['acceptance']:.3f}, "
           f"CG iterations per step {out['cg_iterations_per_step']:.2f} ({out['cg_preconditioner']})")
     return out
 
