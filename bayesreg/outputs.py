@@ -603,7 +603,9 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
             "steps_per_chain": int(d * cfg.sampler.thinning + cfg.sampler.warmup_steps),
             "blocks": block_names,
             "acceptance": [float(a) for a in result.acceptance.reshape(-1, len(block_names)).mean(0)],
-            "warmup_acceptance": [float(a) for a in result.warmup_acceptance],
+            # None without a warm-up (the paper's fixed kernel), not NaN (not JSON)
+            "warmup_acceptance": ([float(a) for a in result.warmup_acceptance]
+                                  if np.all(np.isfinite(result.warmup_acceptance)) else None),
             "rhat_classic_max": float(summary["rhat_classic"].max()),
             "rhat_classic_split_max": float(summary["rhat_classic_split"].max()),
             "rhat_split_monitored": cfg.sampler.rhat_split,
