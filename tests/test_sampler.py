@@ -224,6 +224,20 @@ def test_split_rhat_detects_a_common_drift():
     assert abs(gelman_rubin(rng.normal(size=(3, 1000)), split=True) - 1) < 0.01
 
 
+def test_without_warmup_the_given_kernel_samples_unchanged():
+    """``warmup_steps=0`` (the paper's fixed kernel): the scale is the one given, no warm-up
+    acceptance (NaN, written as null in run.json), and every step is stored."""
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    d = len(mean)
+    sig = 2.38 / np.sqrt(d) * sla.cholesky(cov, lower=True)
+    x0 = mean + np.random.default_rng(5).normal(size=(2, d)) @ sig.T
+    res = sample(jax.random.key(4), logdensity, x0, jnp.zeros((n_i, 3)), sig, thinning=2,
+                 warmup_steps=0, max_draws=40, min_draws=40, chunk_draws=20, progress=False)
+    np.testing.assert_array_equal(res.sigma[0], sig)
+    assert np.all(np.isnan(res.warmup_acceptance))
+    assert res.positions.shape == (2, 40, d) and 0.05 < res.acceptance.mean() < 0.6
+
+
 def test_split_rhat_monitor_waits_for_enough_draws():
     logdensity, mean, cov, n_i = _quadratic_problem()
     x0 = np.tile(mean, (2, 1)) + 0.01
