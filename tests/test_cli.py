@@ -33,7 +33,9 @@ OUTPUTS = [
 ]
 
 
-@pytest.fixture(scope="module")
+# session scope: under pytest-xdist a worker may run other modules' tests between the two
+# tests of the group "tiny_run", and a module fixture would then be built twice
+@pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
     """The quickstart through the CLI on tiny settings (4 chunks of 10 draws per chain), with
     a copy of its run directory as it stood after chunk 2 (a run killed there).
@@ -67,6 +69,7 @@ def tiny_run(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tiny_run")  # one worker computes the fixture for both
 def test_cli_tiny_run_writes_every_output(tiny_run, capsys):
     out, _, args, printed = tiny_run
     assert "error vs truth" in printed and "lam/mu posterior" in printed
@@ -144,6 +147,7 @@ def test_resume_needs_an_unfinished_run(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tiny_run")
 def test_killed_run_resumes_to_the_uninterrupted_result(tiny_run):
     """A run killed after its second chunk, resumed, gives the draws of the run never killed."""
     import arviz as az
