@@ -390,10 +390,11 @@ def group_blocks(op: ElasticOperator, group, n_groups: int) -> GroupBlocks:
         raise ValueError(f"group must have shape ({m},) with values in [0, {n_groups}), "
                          f"got shape {group.shape}{span}")
     zero = jnp.zeros(m, op.klam.dtype)
+    blocks = jax.jit(lambda o, lam_e, mu_e: o.blocks(lam_e, mu_e))  # one program for all 2G
     lam_ii, mu_ii, lam_ib, mu_ib = [], [], [], []
     for g in range(n_groups):
         ind = jnp.asarray(group == g, op.klam.dtype)
-        (a_ii, a_ib), (b_ii, b_ib) = op.blocks(ind, zero), op.blocks(zero, ind)
+        (a_ii, a_ib), (b_ii, b_ib) = blocks(op, ind, zero), blocks(op, zero, ind)
         lam_ii.append(a_ii), lam_ib.append(a_ib), mu_ii.append(b_ii), mu_ib.append(b_ib)
     return GroupBlocks(jnp.stack(lam_ii), jnp.stack(mu_ii), jnp.stack(lam_ib), jnp.stack(mu_ib))
 

@@ -31,6 +31,7 @@ Sec. 3.3), which biases the elastic parameters toward zero.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
@@ -440,8 +441,10 @@ def split_position(post: Posterior, theta):
     return theta[:nb3].reshape(-1, 3), theta[nb3:]
 
 
+@jax.jit
 def elastic_groups(post: Posterior, phi):
-    """Lamé parameters per group from the free parameters.
+    """Lamé parameters per group from the free parameters (jitted: called on the host on
+    batches of draws, and inlined where it is traced).
 
     Parameters
     ----------
@@ -646,11 +649,19 @@ def log_density_condensed(post: Posterior, theta, h):
 
 
 def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000):
-    """Full nodal displacement ``(N, 3)`` for a position (host convenience, jitted inside)."""
-    u_b, phi = split_position(post, jnp.asarray(theta))
-    lam_g, mu_g = elastic_groups(post, phi)
+    """Full nodal displacement ``(N, 3)`` mm for a position ``(dim,)``, and the solve's
+    :class:`~bayesreg.solver.SolveInfo` (host convenience: one jitted program per mesh
+    size and tolerance, where running it op by op compiled about 60 small programs)."""
     if u_i0 is None:
         u_i0 = jnp.zeros((post.op.n_interior, 3))
+    return _solve_position(post, jnp.asarray(theta), jnp.asarray(u_i0), rtol=float(rtol),
+                           maxiter=int(maxiter))
+
+
+@partial(jax.jit, static_argnames=("rtol", "maxiter"))
+def _solve_position(post: Posterior, theta, u_i0, *, rtol, maxiter):
+    u_b, phi = split_position(post, theta)
+    lam_g, mu_g = elastic_groups(post, phi)
     u_i, info = solve_interior_blocks(
         post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter,
         precond=_precond_at(post, None, lam_g, mu_g))

@@ -389,12 +389,17 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None
     if n_threads == 1:
         return mapped
     size = n_chains // n_threads
+    # the groups' slices and the concatenation of their outputs each in one jitted program
+    # (sliced and joined leaf by leaf, op by op, they compiled about 20 small programs)
+    split = jax.jit(lambda tree: [jax.tree.map(lambda a, j=j: a[j * size:(j + 1) * size], tree)
+                                  for j in range(n_threads)])
+    join = jax.jit(lambda outs: jax.tree.map(lambda *xs: jnp.concatenate(xs), *outs))
 
     def threaded(keys, states, params):
+        parts = split((keys, states, params) if params_per_chain else (keys, states))
+
         def group(j):
-            take = lambda a: a[j * size:(j + 1) * size]  # noqa: E731
-            return mapped(take(keys), jax.tree.map(take, states),
-                          jax.tree.map(take, params) if params_per_chain else params)
+            return mapped(*parts[j][:2], parts[j][2] if params_per_chain else params)
 
         # the first call compiles in this thread alone (no concurrent traces of one shape)
         nonlocal compiled
@@ -402,7 +407,7 @@ def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None
         compiled = True
         with ThreadPoolExecutor(n_threads) as pool:
             outs = first + list(pool.map(group, range(len(first), n_threads)))
-        return jax.tree.map(lambda *xs: jnp.concatenate(xs), *outs)
+        return join(outs)
 
     compiled = False
     return threaded
@@ -416,26 +421,39 @@ def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: i
     worker idles while another has work).  ``begin(states) -> carries`` (jitted, one chain
     at a time) runs in the task of a chain's first piece; ``None``: the carry is the state."""
     m = n_draws // n_pieces
-    split_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, n_draws)))
+    # the keys, states and parameters cut per chain and piece, and the outputs joined, each
+    # in one jitted program (op by op, leaf by leaf, they compiled dozens of small programs)
+
+    @jax.jit
+    def split(keys, states, params):
+        draw_keys = jax.vmap(lambda k: jax.random.split(k, n_draws))(keys)  # one_chain's keys
+        one = lambda tree, c: jax.tree.map(lambda a: a[c:c + 1], tree)  # noqa: E731
+        return ([[draw_keys[c:c + 1, p * m:(p + 1) * m] for p in range(n_pieces)] for c in range(n_chains)],
+                [one(states, c) for c in range(n_chains)],
+                [one(params, c) for c in range(n_chains)] if params_per_chain else None)
+
+    @jax.jit
+    def join(finals, outs):
+        per_chain = [jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=1), *o) for o in outs]
+        return (jax.tree.map(lambda *xs: jnp.concatenate(xs), *finals),
+                jax.tree.map(lambda *xs: jnp.concatenate(xs), *per_chain))
+
     compiled = False
 
     def run(keys, states, params):
         nonlocal compiled
-        draw_keys = split_keys(keys)  # (C, n_draws): the draws' keys of one_chain
+        draw_keys, first, chain_params = split(keys, states, params if params_per_chain else None)
 
         def task(c, p, carry):
-            take = lambda a: a[c:c + 1]  # noqa: E731
             if p == 0 and begin is not None:
                 carry = begin(carry)
             # blocking: the worker holds its core until the piece is done (async dispatch
             # from worker threads that return at once ran no faster than three threads)
             return jax.block_until_ready(mapped_piece(
-                draw_keys[c:c + 1, p * m:(p + 1) * m], carry,
-                jax.tree.map(take, params) if params_per_chain else params))
+                draw_keys[c][p], carry, chain_params[c] if params_per_chain else params))
 
         outs = [[None] * n_pieces for _ in range(n_chains)]
         finals = [None] * n_chains
-        first = [jax.tree.map(lambda a, c=c: a[c:c + 1], states) for c in range(n_chains)]
         with ThreadPoolExecutor(_cores()) as pool:
             pending = {}
             for c in range(n_chains):
@@ -455,9 +473,7 @@ def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: i
                         pending[pool.submit(task, c, p + 1, carry)] = (c, p + 1)
                     else:
                         finals[c] = carry if begin is None else carry[0]
-        per_chain = [jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=1), *o) for o in outs]
-        return (jax.tree.map(lambda *xs: jnp.concatenate(xs), *finals),
-                jax.tree.map(lambda *xs: jnp.concatenate(xs), *per_chain))
+        return join(finals, outs)
 
     return run
 
@@ -948,7 +964,13 @@ def sample_gradient(
         ws_init, ws_step, ws_final = gk.build_warmup_step(
             kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
         dim_u = states.u.position.shape[1]
-        ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
+        ws = jax.jit(jax.vmap(lambda _: ws_init(dim_u, step_size, eta0)))(jnp.arange(n_chains))
+        # BlackJAX's initial adaptation states hold weakly typed floats (python 0.0) that
+        # the warm-up step returns strongly typed: made strong here, so that the warm-up
+        # chunk compiles once, not twice (9-10 s a compilation at the quickstart's size);
+        # the integer counters stay weak in and out
+        ws = jax.tree.map(lambda a: jnp.asarray(a, a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
+                          else a, ws)
         per_chunk = chunk_draws * thinning
         n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
         stages = gk.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
@@ -987,7 +1009,7 @@ def sample_gradient(
                             grads=f"{float(np.mean(grads)):.0f}", div=int(np.sum(div)))
             bar.update(1)
         bar.close()
-        frozen = jax.vmap(ws_final)(ws)
+        frozen = jax.jit(jax.vmap(ws_final))(ws)
         return states, tuple(np.asarray(f_) for f_ in frozen), warm_acc, timings
 
     return _drive(chunk, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=n_blocks,

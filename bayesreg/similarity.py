@@ -205,7 +205,8 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     bary, _ = quadrature_rule(quadrature_level)
     pts, w = gauss_points(nodes, tets, quadrature_level)
     f_inv = jnp.asarray(np.linalg.inv(f.affine))
-    f_q = interpolate(jnp.asarray(f.data, dtype=jnp.float64), f_inv, jnp.asarray(pts), cval)
+    f_q = jax.jit(interpolate)(jnp.asarray(f.data, dtype=jnp.float64), f_inv, jnp.asarray(pts),
+                               float(cval))  # one program, not one per op
     box = None if reach is None else reach_box(reach)
     m_arr, m_inv = _moving_array(m, float(cval), box)
     return SSDTerm(

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import logging
+import re
 
 import numpy as np
 import pytest
@@ -55,3 +58,29 @@ def brain():
     mesh = mesh_brain(labels, edge_length_mm=20.0)
     labels, _ = carve_skull(labels, mesh)
     return t1, labels, mesh
+
+
+@contextlib.contextmanager
+def compilations():
+    """Count XLA compilations by program name inside the block: ``{"jit(step)": 1, ...}``
+    (from JAX's ``jax_log_compiles`` messages)."""
+    import jax
+
+    counts: dict[str, int] = {}
+
+    class _Count(logging.Handler):
+        def emit(self, record):
+            m = re.match(r"Finished XLA compilation of (\S+) in", record.getMessage())
+            if m:
+                counts[m.group(1)] = counts.get(m.group(1), 0) + 1
+
+    handler, logger = _Count(level=logging.DEBUG), logging.getLogger("jax")
+    old_level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    try:
+        with jax.log_compiles(True):
+            yield counts
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old_level)

@@ -154,6 +154,20 @@ def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
     np.testing.assert_array_equal(resumed.grad_evals, full.grad_evals)
 
 
+def test_warmup_and_sampling_chunks_each_compile_once():
+    """Four warm-up chunks and three sampling chunks: two chunk programs compiled (BlackJAX's
+    weakly typed initial adaptation state would otherwise give the warm-up a second one)."""
+    from conftest import compilations
+
+    rng = np.random.default_rng(3)
+    x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
+    with compilations() as compiled:
+        sample_gradient(jax.random.key(8), toy_target(), x0, jnp.zeros((1, 3)), kind="nuts",
+                        warmup_steps=80, max_draws=30, min_draws=30, chunk_draws=10, thinning=2,
+                        progress=False)
+    assert compiled.get("jit(mapped)") == 2, compiled
+
+
 def gaussian_target(dim: int) -> gk.Target:
     """``u ~ N(0, I)``, no elastic parameters (``n_free = 0``)."""
 

@@ -9,7 +9,7 @@ import scipy.ndimage as ndi
 from bayesreg.images import Image
 from bayesreg.posterior import ParamLayout, build_posterior, log_density, split_position
 from bayesreg.similarity import build_ssd
-from conftest import box_mesh
+from conftest import box_mesh, compilations
 
 
 def _box_posterior(prior, t_r, phi, *, quadrature_level=0):
@@ -447,7 +447,9 @@ def test_find_mode_reaches_a_stationary_point_from_a_far_start():
                       1.0, 0, {})
     cfg = Config.model_validate({"model": {"prior_normaliser": "paper"},
                                  "init": {"optimizer_iterations": 600}})
-    mode, info = find_mode(problem, cfg, theta)
+    with compilations() as compiled:
+        mode, info = find_mode(problem, cfg, theta)
+    assert compiled.get("jit(step)") == 1  # both stages (u_b alone, then joint) share one program
     nb3 = 3 * len(mesh.boundary)
 
     def grad_search(th):  # gradient in (u_b, log phi): d/d log phi = phi d/d phi
