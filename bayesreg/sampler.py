@@ -543,6 +543,48 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
                         start=None if init_cache is None else start, n_draws=n_draws)
 
 
+def _build_adaptive_chunk(kernel, ws_step, n_draws: int, thin: int, n_chains: int):
+    """One chunk program for the gradient kernels' warm-up and sampling (one compilation).
+
+    ``mapped(keys (C, n_draws, thin), states, (ws, stages (C, n_draws, thin, 2), adapt (C,)))
+    -> ((states, ws, (acceptance (C, B), divergences (C,), gradients (C,))), out)``: each
+    transition is ``ws_step`` (:func:`bayesreg.kernels.build_warmup_step`: the kernel at the
+    parameters the warm-up state ``ws`` holds, then the adaptation of ``ws`` at the
+    ``stages`` row), whose new ``ws`` is kept where ``adapt`` and discarded elsewhere; ``out``
+    is :func:`_build_chunk`'s.  The warm-up runs it with ``adapt`` and Stan's windows, the
+    sampling without, from a ``ws`` holding the frozen parameters: the same kernel
+    arithmetic as a chunk of :func:`_build_chunk` at those parameters (the draws are equal),
+    and one program where the two had compiled one each (7-10 s each at the quickstart's
+    size; the discarded adaptation costs next to nothing beside a NUTS trajectory).
+    """
+
+    def one_chain(keys, state, params):
+        ws, stages, adapt = params
+
+        def step(carry, xs):
+            st, w_, cache = carry
+            st, w_new, cache, info = ws_step(xs[0], st, w_, cache, xs[1])
+            w_ = jax.tree.map(lambda a, b: jnp.where(adapt, a, b), w_new, w_)
+            return (st, w_, cache), info
+
+        def draw(carry, xs):
+            carry, info = jax.lax.scan(step, carry, xs)
+            st = carry[0]
+            grads, div = _info_extras(info)
+            out = (st.position, st.interior, st.logdensity, jnp.mean(info.acceptance_rate, axis=0),
+                   jnp.mean(info.cg_iterations.astype(jnp.float64)), jnp.sum(info.solve_failed),
+                   jnp.mean(grads.astype(jnp.float64)), jnp.sum(div.astype(jnp.int32)))
+            return carry, (out, (info.acceptance_rate, div, grads))
+
+        carry = (state, ws, kernel.init_cache(state))
+        (state, ws, _), (out, (acc, div, grads)) = jax.lax.scan(draw, carry, (keys, stages))
+        stats = (jnp.mean(acc.reshape(-1, acc.shape[-1]), axis=0), jnp.sum(div),
+                 jnp.mean(grads.astype(jnp.float64)))
+        return (state, ws, stats), out
+
+    return _over_chains(one_chain, n_chains, True)
+
+
 def _scaled(sigmas, log_scales):
     return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
 
@@ -948,11 +990,45 @@ def sample_gradient(
     kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
                              jitter_integration_steps=jitter_integration_steps,
                              max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)
-    chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains, pieces=False)
+    ws_init, ws_step, ws_final = gk.build_warmup_step(
+        kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = 1 + (target.n_free > 0)
     eta0 = np.asarray(eta_scale, np.float64)  # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
+    dim_u = x0.shape[1] - target.n_free  # the preconditioned u_b coordinates w
+    mapped = _build_adaptive_chunk(kernel, ws_step, chunk_draws, thinning, n_chains)
+
+    @jax.jit
+    def ws_start():
+        ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
+        # BlackJAX's initial adaptation states hold weakly typed floats (python 0.0) that
+        # the warm-up step returns strongly typed: made strong here, so that the chunk
+        # program compiles once, not twice (9-10 s a compilation at the quickstart's size);
+        # the integer counters stay weak in and out
+        return jax.tree.map(lambda a: jnp.asarray(a, a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
+                            else a, ws)
+
+    @jax.jit
+    def ws_frozen(ws, frozen):
+        # a warm-up state whose kernel parameters are exactly ``frozen`` (eta_scale * exp(0))
+        return ws._replace(step_size=frozen.step_size, inverse_mass=frozen.inverse_mass,
+                           eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale))
+
+    # the draws' keys as the chunks of :func:`_build_chunk` and the former warm-up took them
+    samp_keys = jax.jit(jax.vmap(lambda k: jax.vmap(lambda kd: jax.random.split(kd, thinning))(
+        jax.random.split(k, chunk_draws))))
+    warm_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, chunk_draws * thinning).reshape(
+        chunk_draws, thinning)))
+    no_stage = np.zeros((n_chains, chunk_draws, thinning, 2), np.int32)
+    template = []
+
+    def chunk(keys, states, frozen):
+        if not template:
+            template.append(ws_start())
+        ws = ws_frozen(template[0], frozen)
+        (states, _, _), out = mapped(samp_keys(keys), states, (ws, no_stage, np.zeros(n_chains, bool)))
+        return states, out
 
     def init_states():
         return jax.vmap(lambda x: gk.init(target, x, interior0)[0])(x0)
@@ -961,36 +1037,11 @@ def sample_gradient(
         t0 = time.perf_counter()
         states = jax.jit(init_states)()
         _check_finite(states)
-        ws_init, ws_step, ws_final = gk.build_warmup_step(
-            kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
-        dim_u = states.u.position.shape[1]
-        ws = jax.jit(jax.vmap(lambda _: ws_init(dim_u, step_size, eta0)))(jnp.arange(n_chains))
-        # BlackJAX's initial adaptation states hold weakly typed floats (python 0.0) that
-        # the warm-up step returns strongly typed: made strong here, so that the warm-up
-        # chunk compiles once, not twice (9-10 s a compilation at the quickstart's size);
-        # the integer counters stay weak in and out
-        ws = jax.tree.map(lambda a: jnp.asarray(a, a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
-                          else a, ws)
+        ws = ws_start()
         per_chunk = chunk_draws * thinning
         n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
         stages = gk.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
-
-        def one_chain(key, state, ws, stage):
-            def step(carry, xs):
-                st, w_, cache = carry
-                st, w_, cache, info = ws_step(xs[0], st, w_, cache, xs[1])
-                return (st, w_, cache), (info.acceptance_rate, info.divergent, info.grad_evals)
-
-            carry = (state, ws, kernel.init_cache(state))
-            (state, ws, _), (acc, div, grads) = jax.lax.scan(
-                step, carry, (jax.random.split(key, stage.shape[0]), stage))
-            return state, ws, (jnp.mean(acc, axis=0), jnp.sum(div), jnp.mean(grads.astype(jnp.float64)))
-
-        mapped = _over_chains(lambda k_, s_, p_: one_chain(k_, s_, p_[0], p_[1]), n_chains, True)
-
-        def warm_chunk(keys, states, ws, stage):
-            stage_c = jnp.broadcast_to(stage, (n_chains,) + stage.shape)
-            return mapped(keys, states, (ws, stage_c))
+        adapt = np.ones(n_chains, bool)
 
         from tqdm.auto import tqdm
 
@@ -999,8 +1050,9 @@ def sample_gradient(
         bar = tqdm(total=n_warm, disable=not progress or n_warm == 0, desc="warm-up", unit="chunk")
         for k in range(n_warm):
             keys = jax.random.split(jax.random.fold_in(key_warm, k), n_chains)
-            states, ws, (acc, div, grads) = warm_chunk(
-                keys, states, ws, jnp.asarray(stages[k * per_chunk:(k + 1) * per_chunk]))
+            stage = stages[k * per_chunk:(k + 1) * per_chunk].reshape(chunk_draws, thinning, 2)
+            (states, ws, (acc, div, grads)), _ = mapped(
+                warm_keys(keys), states, (ws, np.broadcast_to(stage, (n_chains,) + stage.shape), adapt))
             if k == 0:
                 timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
             warm_acc = np.asarray(acc).mean(axis=0)
