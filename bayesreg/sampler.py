@@ -491,7 +491,8 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
     ``kernel`` is ``(key, state, params) -> (state, info)``, or with a cache
     ``(key, state, params, cache) -> (state, info, cache)`` when it has
     ``kernel.init_cache(state) -> cache`` (the random walks' condensation and
-    preconditioner, the gradient kernels' condensation and normaliser).  The cache is
+    preconditioner, the gradient kernels' condensation and normaliser; :func:`sample_gradient`
+    runs those through :func:`_build_adaptive_chunk`, the same draws).  The cache is
     built from the state at every chunk start, so a resumed run repeats the same
     arithmetic, and carried through the chunk; where a CPU runs the chunk in pieces
     (:func:`_chain_pieces`) it passes from one piece to the next, so the pieces repeat the
