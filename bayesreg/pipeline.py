@@ -534,7 +534,7 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     joint = cfg.init.optimize_parameters
     free = slice(0, post.dim if joint else nb3)
 
-    steps = {}  # one jitted L-BFGS step per objective, shared by its searches
+    steps = {}  # one jitted L-BFGS step (and its solver) per objective, shared by its searches
 
     def maximise(logdensity, theta, sl, maxiter):
         """L-BFGS (optax, zoom line search) over ``theta[sl]``, the rest of ``theta`` held.
@@ -551,8 +551,9 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
         step still gained 3,000."""
         import optax
 
-        solver = optax.lbfgs()
         if logdensity not in steps:
+            solver = optax.lbfgs()
+
             @jax.jit
             def step(x, state, mask):
                 def neg(y):
@@ -562,10 +563,11 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
                 upd, state = solver.update(g, state, x, value=v, grad=g, value_fn=neg)
                 return optax.apply_updates(x, upd), state, v, g
 
-            steps[logdensity] = step
+            steps[logdensity] = step, solver
+        step, solver = steps[logdensity]
         mask = np.zeros(len(theta), bool)
         mask[sl] = True
-        step = partial(steps[logdensity], mask=jnp.asarray(mask))
+        step = partial(step, mask=jnp.asarray(mask))
 
         x = jnp.asarray(theta)
         state = solver.init(x)

@@ -485,6 +485,16 @@ def _info_extras(info):
     return grads, div
 
 
+def _draw_out(state, info):
+    """A draw's stored outputs from the state after its ``thin`` transitions and their infos
+    (stacked): ``(position, interior, logdensity, acceptance (B,), CG iterations per step,
+    failed solves, gradient evaluations per step, divergences)``."""
+    grads, div = _info_extras(info)
+    return (state.position, state.interior, state.logdensity, jnp.mean(info.acceptance_rate, axis=0),
+            jnp.mean(info.cg_iterations.astype(jnp.float64)), jnp.sum(info.solve_failed),
+            jnp.mean(grads.astype(jnp.float64)), jnp.sum(div.astype(jnp.int32)))
+
+
 def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool = True):
     """Jitted ``(keys (C,), states, params) -> (states, out)`` running ``n_draws`` thinned draws.
 
@@ -520,18 +530,7 @@ def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool
                 return (st, cache), info
 
             carry, info = jax.lax.scan(step, carry, jax.random.split(key, thin))
-            state = carry if init_cache is None else carry[0]
-            grads, div = _info_extras(info)
-            return carry, (
-                state.position,
-                state.interior,
-                state.logdensity,
-                jnp.mean(info.acceptance_rate, axis=0),
-                jnp.mean(info.cg_iterations.astype(jnp.float64)),
-                jnp.sum(info.solve_failed),
-                jnp.mean(grads.astype(jnp.float64)),
-                jnp.sum(div.astype(jnp.int32)),
-            )
+            return carry, _draw_out(carry if init_cache is None else carry[0], info)
 
         return jax.lax.scan(draw, carry, draw_keys)
 
@@ -570,12 +569,8 @@ def _build_adaptive_chunk(kernel, ws_step, n_draws: int, thin: int, n_chains: in
 
         def draw(carry, xs):
             carry, info = jax.lax.scan(step, carry, xs)
-            st = carry[0]
             grads, div = _info_extras(info)
-            out = (st.position, st.interior, st.logdensity, jnp.mean(info.acceptance_rate, axis=0),
-                   jnp.mean(info.cg_iterations.astype(jnp.float64)), jnp.sum(info.solve_failed),
-                   jnp.mean(grads.astype(jnp.float64)), jnp.sum(div.astype(jnp.int32)))
-            return carry, (out, (info.acceptance_rate, div, grads))
+            return carry, (_draw_out(carry[0], info), (info.acceptance_rate, div, grads))
 
         carry = (state, ws, kernel.init_cache(state))
         (state, ws, _), (out, (acc, div, grads)) = jax.lax.scan(draw, carry, (keys, stages))
@@ -1011,8 +1006,9 @@ def sample_gradient(
                             else a, ws)
 
     @jax.jit
-    def ws_frozen(ws, frozen):
+    def ws_frozen(frozen):
         # a warm-up state whose kernel parameters are exactly ``frozen`` (eta_scale * exp(0))
+        ws = ws_start()
         return ws._replace(step_size=frozen.step_size, inverse_mass=frozen.inverse_mass,
                            eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale))
 
@@ -1021,14 +1017,10 @@ def sample_gradient(
         jax.random.split(k, chunk_draws))))
     warm_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, chunk_draws * thinning).reshape(
         chunk_draws, thinning)))
-    no_stage = np.zeros((n_chains, chunk_draws, thinning, 2), np.int32)
-    template = []
+    no_stage, no_adapt = np.zeros((n_chains, chunk_draws, thinning, 2), np.int32), np.zeros(n_chains, bool)
 
     def chunk(keys, states, frozen):
-        if not template:
-            template.append(ws_start())
-        ws = ws_frozen(template[0], frozen)
-        (states, _, _), out = mapped(samp_keys(keys), states, (ws, no_stage, np.zeros(n_chains, bool)))
+        (states, _, _), out = mapped(samp_keys(keys), states, (ws_frozen(frozen), no_stage, no_adapt))
         return states, out
 
     def init_states():
