@@ -342,7 +342,7 @@ def build_posterior(
     )
     if spectral and n_groups == 1 and 3 * n_i <= DENSE_MAX_DOFS:
         ub = post.unit_blocks
-        post = post._replace(spectral=spectral_preconditioner(op, ub.lam_ii[0], ub.mu_ii[0]))
+        post = post._replace(spectral=spectral_preconditioner(op, *ub.group(0)))
     return with_skull_barrier(post, barrier_mm)
 
 

@@ -36,7 +36,7 @@ _xla.configure()
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from bayesreg.fem import ElasticOperator, ell_matvec  # noqa: E402
+from bayesreg.fem import ElasticOperator, ell_dense, ell_diagonal, ell_matvec  # noqa: E402
 
 __all__ = [
     "SolveInfo",
@@ -121,9 +121,9 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
     Parameters
     ----------
     op : ElasticOperator
-    b_ii : (n_i, S_i, 3, 3) array
-        Blocks of ``K_ii`` at the reference parameters (:func:`bayesreg.posterior.
-        stiffness_blocks`).
+    b_ii : tuple of (R_k, S_k, 3, 3) arrays
+        Sliced ELL blocks of ``K_ii`` at the reference parameters
+        (:func:`bayesreg.posterior.stiffness_blocks`).
 
     Returns
     -------
@@ -133,7 +133,7 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
         (non-positive parameters, or a conditioning beyond float32).
     """
     n = 3 * op.n_interior
-    k = jax.lax.stop_gradient(_dense(b_ii, op.cols_ii, op.n_interior))
+    k = jax.lax.stop_gradient(ell_dense(b_ii, op.cols_ii, op.row_ii, op.n_interior))
     d = 1.0 / jnp.sqrt(jnp.abs(jnp.diag(k)))
     s = (k * d[:, None] * d[None, :]).astype(jnp.float32)
     chol = jnp.linalg.cholesky(0.5 * (s + s.T))
@@ -143,7 +143,7 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
     ok = jnp.all(jnp.isfinite(inv))
     # fallback: the 3x3 block Jacobi where its blocks are positive definite, else the
     # inverse of |diag K_ii| (positive definite whatever the parameters)
-    diag = jax.lax.stop_gradient(b_ii[jnp.arange(b_ii.shape[0]), op.self_slot])  # (n_i, 3, 3)
+    diag = jax.lax.stop_gradient(ell_diagonal(b_ii, op.row_ii))  # (n_i, 3, 3)
     spd = jnp.all(jnp.isfinite(jnp.linalg.cholesky(diag)))
     point = jnp.eye(3) / jnp.maximum(jnp.abs(jnp.diagonal(diag, axis1=1, axis2=2)), 1e-300)[:, :, None]
     blocks = jnp.where(spd, jnp.linalg.inv(diag), point).astype(jnp.float32)
@@ -200,9 +200,9 @@ def spectral_preconditioner(op: ElasticOperator, lam_ii, mu_ii) -> SpectralPreco
     Parameters
     ----------
     op : ElasticOperator
-    lam_ii, mu_ii : (n_i, S_i, 3, 3) arrays
-        ELL blocks of ``K_ii`` for ``lam = 1, mu = 0`` and ``lam = 0, mu = 1``
-        (:class:`bayesreg.fem.GroupBlocks` of a single group).
+    lam_ii, mu_ii : tuples of (R_k, S_k, 3, 3) arrays
+        Sliced ELL blocks of ``K_ii`` for ``lam = 1, mu = 0`` and ``lam = 0, mu = 1``
+        (:meth:`bayesreg.fem.GroupBlocks.group` of a single group).
 
     Returns
     -------
@@ -218,8 +218,8 @@ def spectral_preconditioner(op: ElasticOperator, lam_ii, mu_ii) -> SpectralPreco
     import scipy.linalg as sla
 
     n = op.n_interior
-    a = np.asarray(_dense(jnp.asarray(lam_ii), op.cols_ii, n), np.float64)
-    b = np.asarray(_dense(jnp.asarray(mu_ii), op.cols_ii, n), np.float64)
+    a = np.asarray(ell_dense(lam_ii, op.cols_ii, op.row_ii, n), np.float64)
+    b = np.asarray(ell_dense(mu_ii, op.cols_ii, op.row_ii, n), np.float64)
     try:
         w, v = sla.eigh(0.5 * (a + a.T), 0.5 * (b + b.T))
     except np.linalg.LinAlgError as exc:
@@ -321,10 +321,9 @@ def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e
     Parameters
     ----------
     op : ElasticOperator
-        Supplies the column layout (``cols_ii``, ``cols_ib``, ``self_slot``).
-    b_ii : (n_i, S_i, 3, 3) array
-    b_ib : (n_i, S_b, 3, 3) array
-        From :meth:`bayesreg.fem.ElasticOperator.blocks` or
+        Supplies the sliced ELL layout (``cols_ii``, ``row_ii``, ``cols_ib``, ``row_ib``).
+    b_ii, b_ib : tuples of (R_k, S_k, 3, 3) arrays
+        Sliced ELL blocks of ``K_ii``, ``K_ib``, from :meth:`bayesreg.fem.ElasticOperator.blocks` or
         :meth:`bayesreg.fem.GroupBlocks.combine`.
     u_b, u_i0, rtol, maxiter
         As :func:`solve_interior`.
@@ -343,14 +342,14 @@ def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e
         Differentiable in ``u_b`` and the blocks.
     info : SolveInfo
     """
-    rhs = -ell_matvec(b_ib, op.cols_ib, u_b)
+    rhs = -ell_matvec(b_ib, op.cols_ib, op.row_ib, u_b)
     u_i0 = jax.lax.stop_gradient(u_i0)
 
     def matvec(x):
-        return ell_matvec(b_ii, op.cols_ii, x)
+        return ell_matvec(b_ii, op.cols_ii, op.row_ii, x)
 
     def jacobi():
-        dinv = jnp.linalg.inv(b_ii[jnp.arange(b_ii.shape[0]), op.self_slot])  # (n_i, 3, 3)
+        dinv = jnp.linalg.inv(ell_diagonal(b_ii, op.row_ii))  # (n_i, 3, 3)
         return lambda r: jnp.einsum("rij,rj->ri", dinv, r)
 
     def solve(mv, rhs_):
@@ -370,14 +369,6 @@ def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e
     # only an initial guess there, the tolerance is the same.
     u_i, info = jax.lax.custom_linear_solve(matvec, rhs, solve, symmetric=True, has_aux=True)
     return u_i, jax.lax.stop_gradient(info)
-
-
-def _dense(blocks, cols, n_cols):
-    """Dense ``(3R, 3 n_cols)`` matrix of ELL 3x3 blocks (padding column ``n_cols`` dropped)."""
-    r, s_ = cols.shape
-    dense = jnp.zeros((r, n_cols + 1, 3, 3), blocks.dtype)
-    dense = dense.at[jnp.arange(r)[:, None], cols].add(blocks)[:, :n_cols]
-    return dense.transpose(0, 2, 1, 3).reshape(3 * r, 3 * n_cols)
 
 
 def interior_map(op: ElasticOperator, lam_e, mu_e, n_boundary: int):
@@ -409,7 +400,7 @@ def interior_map_blocks(op: ElasticOperator, b_ii, b_ib, n_boundary: int):
     """:func:`interior_map` with ``K_ii``, ``K_ib`` given as ELL blocks (shapes as in
     :func:`solve_interior_blocks`); returns ``H`` ``(3 n_i, 3 n_b)``, all NaN on a failed
     factorisation."""
-    k_ii = _dense(b_ii, op.cols_ii, op.n_interior)
-    k_ib = _dense(b_ib, op.cols_ib, n_boundary)
+    k_ii = ell_dense(b_ii, op.cols_ii, op.row_ii, op.n_interior)
+    k_ib = ell_dense(b_ib, op.cols_ib, op.row_ib, n_boundary)
     chol = jnp.linalg.cholesky(0.5 * (k_ii + k_ii.T))
     return -jax.scipy.linalg.cho_solve((chol, True), k_ib)

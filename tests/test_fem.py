@@ -96,31 +96,67 @@ def test_ell_operator_matches_scipy_blocks():
     k = fem.stiffness_matrix(m.nodes, m.tets, lam, mu)
     idf = (3 * interior[:, None] + np.arange(3)).ravel()
     bd = (3 * m.boundary[:, None] + np.arange(3)).ravel()
+    k_ii, k_ib = k[idf][:, idf].toarray(), k[idf][:, bd].toarray()
     b_ii, b_ib = op.blocks(jnp.asarray(lam), jnp.asarray(mu))
     rng = np.random.default_rng(1)
     xi = rng.normal(size=(len(interior), 3))
     xb = rng.normal(size=(len(m.boundary), 3))
     np.testing.assert_allclose(
-        np.asarray(fem.ell_matvec(b_ii, op.cols_ii, jnp.asarray(xi))).ravel(),
-        k[idf][:, idf] @ xi.ravel(), rtol=1e-12, atol=1e-10)
+        np.asarray(fem.ell_matvec(b_ii, op.cols_ii, op.row_ii, jnp.asarray(xi))).ravel(),
+        k_ii @ xi.ravel(), rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(
-        np.asarray(fem.ell_matvec(b_ib, op.cols_ib, jnp.asarray(xb))).ravel(),
-        k[idf][:, bd] @ xb.ravel(), rtol=1e-12, atol=1e-10)
+        np.asarray(fem.ell_matvec(b_ib, op.cols_ib, op.row_ib, jnp.asarray(xb))).ravel(),
+        k_ib @ xb.ravel(), rtol=1e-12, atol=1e-10)
+    # the dense forms and the diagonal blocks of the sliced layout
+    np.testing.assert_allclose(np.asarray(fem.ell_dense(b_ii, op.cols_ii, op.row_ii, len(interior))),
+                               k_ii, rtol=0, atol=1e-12 * np.abs(k_ii).max())
+    np.testing.assert_allclose(np.asarray(fem.ell_dense(b_ib, op.cols_ib, op.row_ib, len(m.boundary))),
+                               k_ib, rtol=0, atol=1e-12 * np.abs(k_ib).max())
+    diag = np.stack([k_ii[3 * r:3 * r + 3, 3 * r:3 * r + 3] for r in range(len(interior))])
+    np.testing.assert_allclose(np.asarray(fem.ell_diagonal(b_ii, op.row_ii)), diag, rtol=1e-14)
+
+
+def test_sliced_ell_layout_stores_every_block_once_and_little_padding():
+    """Every nonzero 3x3 block of K_ii and K_ib has one slot; rows sorted by degree into
+    ELL_SLICES slices, each as wide as its widest row; row_ii, row_ib are permutations."""
+    m = box_mesh((4, 3, 3))
+    op, interior = fem.build_operator(m.nodes, m.tets, m.boundary)
+    n_i, n_b = len(interior), len(m.boundary)
+    k = fem.stiffness_matrix(m.nodes, m.tets, 1.0, 1.0)
+    pattern = (abs(k) > 0).astype(int)
+    blk = np.zeros((len(m.nodes), len(m.nodes)), bool)
+    for a in range(3):
+        for b in range(3):
+            blk |= pattern[a::3, b::3].toarray() > 0
+    for cols, rows, other, n_col in ((op.cols_ii, op.row_ii, interior, n_i),
+                                     (op.cols_ib, op.row_ib, np.asarray(m.boundary), n_b)):
+        assert len(cols) == fem.ELL_SLICES
+        np.testing.assert_array_equal(np.sort(np.asarray(rows)), np.arange(n_i))
+        c = [np.asarray(x) for x in cols]
+        degree = np.concatenate([(x < n_col).sum(1) for x in c])
+        assert np.all(np.diff(degree) <= 0)                      # sorted, decreasing
+        assert all(x.shape[1] == max(1, (x < n_col).sum(1).max()) for x in c)
+        want = blk[np.ix_(interior, other)].sum(1)               # blocks per interior row
+        np.testing.assert_array_equal(degree[np.asarray(rows)], want)
+    # the diagonal block in slot 0 of every K_ii row
+    first = np.concatenate([np.asarray(x)[:, 0] for x in op.cols_ii])[np.asarray(op.row_ii)]
+    np.testing.assert_array_equal(first, np.arange(n_i))
 
 
 def test_group_blocks_combine_to_the_element_assembly():
+    import jax
     import jax.numpy as jnp
 
     m = box_mesh((3, 3, 3))
     op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
     group = np.arange(len(m.tets)) % 3
     gb = fem.group_blocks(op, group, 3)
-    assert gb.lam_ii.shape == (3,) + op.cols_ii.shape + (3, 3)
-    assert gb.mu_ib.shape == (3,) + op.cols_ib.shape + (3, 3)
+    assert [a.shape for a in gb.lam_ii] == [(3,) + c.shape + (3, 3) for c in op.cols_ii]
+    assert [a.shape for a in gb.mu_ib] == [(3,) + c.shape + (3, 3) for c in op.cols_ib]
     lam_g, mu_g = np.array([0.7, 12.0, 31.0]), np.array([0.3, 1.0, 2.5])
     want = op.blocks(jnp.asarray(lam_g[group]), jnp.asarray(mu_g[group]))
     got = gb.combine(jnp.asarray(lam_g), jnp.asarray(mu_g))
-    for a, b in zip(got, want):
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
         scale = float(jnp.max(jnp.abs(b)))
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13 * scale)
     with pytest.raises(ValueError, match="group must have shape"):
