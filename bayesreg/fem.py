@@ -382,11 +382,10 @@ def ell_dense(blocks, cols, rows, n_cols):
     n_rows = rows.shape[0]
     b = jnp.concatenate([x.reshape(-1, 3, 3) for x in blocks], axis=0)
     c = jnp.concatenate([x.reshape(-1) for x in cols])
-    # concatenated row position of each slot -> original row
+    # assembled in the concatenated row order, then the row order restored (as ell_matvec)
     starts = np.cumsum([0] + [x.shape[0] for x in cols])
     pos = np.concatenate([s + np.repeat(np.arange(x.shape[0]), x.shape[1]) for s, x in zip(starts, cols)])
-    orig = jnp.zeros(n_rows, jnp.int32).at[rows].set(jnp.arange(n_rows, dtype=jnp.int32))[pos]
-    dense = jnp.zeros((n_rows, n_cols + 1, 3, 3), b.dtype).at[orig, c].add(b)[:, :n_cols]
+    dense = jnp.zeros((n_rows, n_cols + 1, 3, 3), b.dtype).at[pos, c].add(b)[rows, :n_cols]
     return dense.transpose(0, 2, 1, 3).reshape(3 * n_rows, 3 * n_cols)
 
 
