@@ -52,6 +52,7 @@ from bayesreg.synthetic import Truth, brain_shift, constrained_shift, warp_image
 
 __all__ = [
     "Problem", "make_data", "assemble", "prepare", "save_problem", "load_problem", "start_center",
+    "start_check",
     "find_mode", "laplace_precision", "initial_positions", "proposal_scale", "Initialisation",
     "initialise", "dense_preconditioning", "cg_preconditioner", "sample_problem", "run",
 ]
@@ -430,7 +431,7 @@ def _condensed_rw(problem: Problem, cfg: Config):
     return Condensation(logdensity, build, 0, cfg.sampler.u_moves)
 
 
-def start_center(problem: Problem, cfg: Config) -> tuple[np.ndarray, dict]:
+def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarray, dict]:
     """Central start ``(dim,)`` of the chains and how it was made.
 
     ``u_b``: ``init.fraction * truth`` (``init.start: between``, paper Sec. 4.2; identity
@@ -440,10 +441,21 @@ def start_center(problem: Problem, cfg: Config) -> tuple[np.ndarray, dict]:
     that the start would put into the skull (or an element it would invert) are pulled back
     toward zero by halving until the start is valid.  Parameters: ``model.initial_*``.
 
+    Parameters
+    ----------
+    check : callable, optional
+        The jitted start check of :func:`start_check` (built here if not given; pass the
+        one :func:`initial_positions` uses so that one program serves both).
+
     Returns
     -------
     theta : (dim,) ndarray
     info : dict  ``{"start", "shrink"}`` (and the registration time)
+
+    Raises
+    ------
+    ValueError
+        If 30 halvings of the start's displacements find no valid start.
     """
     post, mesh = problem.posterior, problem.mesh
     nb = post.n_boundary
@@ -464,11 +476,11 @@ def start_center(problem: Problem, cfg: Config) -> tuple[np.ndarray, dict]:
     elif problem.truth is not None:
         base_u = cfg.init.fraction * problem.truth.u[mesh.boundary]
     theta = np.concatenate([base_u.ravel(), problem.phi_init])
-    logdensity = make_logdensity(problem, cfg)
-    valid = jax.jit(lambda th: jnp.isfinite(logdensity(th, jnp.zeros((post.op.n_interior, 3)))[0]))
+    check = start_check(problem, cfg) if check is None else check
     shrink = 1.0
     for _ in range(30):
-        if bool(valid(jnp.asarray(theta))):
+        # the one start, as each of the chains' rows: the program of the dispersed starts
+        if np.isfinite(np.asarray(check(jnp.tile(jnp.asarray(theta), (cfg.sampler.chains, 1))))[0]):
             info["shrink"] = shrink
             return theta, info
         # pull back only the offending nodes (in the skull or out of the image) first
@@ -645,14 +657,38 @@ def find_mode(problem: Problem, cfg: Config, theta0) -> tuple[np.ndarray, dict]:
     return (to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])), info
 
 
-def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None) -> np.ndarray:
+def start_check(problem: Problem, cfg: Config):
+    """The jitted check of chain starts: ``(chains, dim) -> (chains,)`` log posterior.
+
+    Each row is evaluated from a cold interior (zeros); ``-inf`` marks a start that violates
+    a hard constraint (skull, inverted element, prior support) or whose solve did not
+    converge.  :func:`start_center` and :func:`initial_positions` share it, so a run
+    compiles one program for both (one compilation of 1.2-1.3 s fewer on the tests' tiny
+    quickstart).
+    """
+    logdensity = make_logdensity(problem, cfg)
+    zeros = jnp.zeros((problem.posterior.op.n_interior, 3))
+
+    def start_logdensity(theta):
+        return logdensity(theta, zeros)[0]
+
+    return jax.jit(jax.vmap(start_logdensity))
+
+
+def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None, *,
+                      check=None) -> np.ndarray:
     """Dispersed starts ``(chains, dim)`` around ``center``.
 
     ``u_b``: Gaussian jitter of ``init.perturb_mm`` (method ``between``), or
     ``init.overdispersion`` times a draw from the Laplace approximation ``N(0, prec^-1)``
     (method ``mode``).  Parameters: log-normal jitter ``init.param_jitter``, clipped into
     the prior support.  Starts that violate a hard constraint are redrawn closer to the
-    centre (halving the jitter, at most 20 times).
+    centre (halving the jitter, at most 20 times).  ``check``: as in :func:`start_center`.
+
+    Raises
+    ------
+    ValueError
+        If some chain has no valid start after 20 halvings.
     """
     post = problem.posterior
     nb3 = 3 * post.n_boundary
@@ -662,8 +698,7 @@ def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None) -> 
     chol = None
     if cfg.init.method == "mode":
         chol = sla.cholesky(prec, lower=True)
-    logdensity = make_logdensity(problem, cfg)
-    check = jax.jit(jax.vmap(lambda th: logdensity(th, jnp.zeros((post.op.n_interior, 3)))[0]))
+    check = start_check(problem, cfg) if check is None else check
     out = np.tile(np.asarray(center, np.float64), (c, 1))
     todo = np.arange(c)
     shrink = 1.0
@@ -781,7 +816,8 @@ def initialise(problem: Problem, cfg: Config) -> Initialisation:
     """Central start (:func:`start_center`), optional mode search, dispersed starts, kernels."""
     rng = np.random.default_rng(cfg.seed)
     t = time.perf_counter()
-    center, info = start_center(problem, cfg)
+    check = start_check(problem, cfg)
+    center, info = start_center(problem, cfg, check=check)
     info["method"] = cfg.init.method
     if cfg.init.method == "mode":
         center, mode_info = find_mode(problem, cfg, center)
@@ -789,7 +825,7 @@ def initialise(problem: Problem, cfg: Config) -> Initialisation:
     prec = None
     if cfg.init.method == "mode" or cfg.sampler.proposal == "laplace":
         prec = laplace_precision(problem, center)
-    x0 = initial_positions(problem, cfg, center, rng, prec)
+    x0 = initial_positions(problem, cfg, center, rng, prec, check=check)
     post = problem.posterior
     nb3 = 3 * post.n_boundary
     if cfg.sampler.gradient:

@@ -39,11 +39,14 @@ def tiny_run(tmp_path_factory):
     a copy of its run directory as it stood after chunk 2 (a run killed there).
 
     One run serves the output checks and the resume check (each tiny run costs about 100 s
-    of the CI's budget).  Returns ``(out, killed, args, printed)``.
+    of the CI's budget).  Returns ``(out, killed, args, printed, compiled)``, ``compiled``
+    the run's XLA compilations by program name.
     """
     import contextlib
     import io
     import shutil
+
+    from conftest import compilations
 
     from bayesreg.checkpoint import Checkpoint
 
@@ -60,15 +63,21 @@ def tiny_run(tmp_path_factory):
     for s in TINY + ["sampler.max_draws=40", "sampler.min_draws=40"]:
         args += ["--set", s]
     printed = io.StringIO()
-    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed):
+    with (pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed),
+          compilations() as compiled):
         mp.setattr(Checkpoint, "on_chunk", snapshot)
         assert main(args) == 0
-    return out, killed, args, printed.getvalue()
+    return out, killed, args, printed.getvalue(), compiled
 
 
 @pytest.mark.slow
 def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, capsys):
-    out, _, args, printed = tiny_run
+    out, _, args, printed, compiled = tiny_run
+    # one compilation for each program that evaluates the posterior (one trace per shape):
+    # the start check (central and dispersed starts share it), the L-BFGS step, the NUTS
+    # states' initialisation and the chunk (warm-up and sampling share it)
+    for program in ("jit(start_logdensity)", "jit(step)", "jit(init_states)", "jit(mapped)"):
+        assert compiled.get(program) == 1, (program, compiled)
     assert "error vs truth" in printed and "lam/mu posterior" in printed
     for name in OUTPUTS:
         assert (out / name).is_file(), name
@@ -151,7 +160,7 @@ def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
     """A run killed after its second chunk, resumed, gives the draws of the run never killed."""
     import arviz as az
 
-    full, killed, _, _ = tiny_run
+    full, killed, *_ = tiny_run
     assert len(list((killed / "checkpoint" / "draws").iterdir())) == 2
     assert not (killed / "run.json").exists()
     # a plain run into the killed directory is refused and points at --resume
