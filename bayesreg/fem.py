@@ -51,23 +51,53 @@ _DN_DXI = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 
 
 
 def _check_mesh(nodes, tets):
-    nodes = np.asarray(nodes, dtype=np.float64)
+    """``(nodes float64 (N, 3), tets int64 (M, 4))``, validated (host arrays only).
+
+    Raises ``ValueError`` on a wrong shape, non-finite node coordinates, ``tets`` neither
+    integer nor integral floats, or node indices outside ``[0, N)``."""
+    try:
+        nodes = np.asarray(nodes, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"nodes must be a (N, 3) array of floats, got {np.asarray(nodes).dtype}") from None
     tets = np.asarray(tets)
     if nodes.ndim != 2 or nodes.shape[1] != 3:
         raise ValueError(f"nodes must have shape (N, 3), got {nodes.shape}")
     if tets.ndim != 2 or tets.shape[1] != 4:
         raise ValueError(f"tets must have shape (M, 4), got {tets.shape}")
+    if not np.all(np.isfinite(nodes)):
+        bad = np.flatnonzero(~np.all(np.isfinite(nodes), axis=1))
+        raise ValueError(f"nodes must be finite, got NaN or inf at node(s) {bad[:10].tolist()}")
+    tets = _as_index_array(tets, "tets")
     if tets.size and (tets.min() < 0 or tets.max() >= len(nodes)):
-        raise ValueError("tets reference node indices outside [0, N)")
-    return nodes, tets.astype(np.int64)
+        raise ValueError(f"tets reference node indices outside [0, {len(nodes)}), got values "
+                         f"{tets.min()}..{tets.max()}")
+    return nodes, tets
+
+
+def _as_index_array(a, name):
+    """``a`` as int64 if it is an integer array or floats that are exactly integral."""
+    a = np.asarray(a)
+    if np.issubdtype(a.dtype, np.integer):
+        return a.astype(np.int64)
+    if np.issubdtype(a.dtype, np.floating) and np.all(np.isfinite(a)) and np.all(a == np.round(a)):
+        return a.astype(np.int64)
+    raise ValueError(f"{name} must hold integer node indices (an integer dtype, or integral "
+                     f"floats), got dtype {a.dtype}"
+                     + (" with non-integral values" if np.issubdtype(a.dtype, np.floating) else ""))
 
 
 def _per_element(value, m, name):
+    """``value`` as ``(m,)`` float64 (a scalar broadcasts); finite and ``>= 0`` (host arrays
+    only: the JAX functions used by the log-density take any values)."""
     value = np.asarray(value, dtype=np.float64)
     if value.ndim == 0:
-        return np.full(m, float(value))
-    if value.shape != (m,):
+        value = np.full(m, float(value))
+    elif value.shape != (m,):
         raise ValueError(f"{name} must be a scalar or have shape ({m},), got {value.shape}")
+    if not np.all(np.isfinite(value) & (value >= 0)):
+        bad = value[~(np.isfinite(value) & (value >= 0))]
+        raise ValueError(f"{name} must be finite and >= 0, got {bad[0]} "
+                         f"({len(bad)} of {m} values bad)")
     return value
 
 
@@ -91,14 +121,17 @@ def shape_gradients(nodes, tets):
     Raises
     ------
     ValueError
-        On malformed shapes or a degenerate (zero-volume) element.
+        On malformed shapes, non-finite node coordinates, non-integer ``tets`` or node
+        indices outside ``[0, N)``, or a degenerate (zero-volume) element.
     """
     nodes, tets = _check_mesh(nodes, tets)
     x = nodes[tets]  # (M, 4, 3)
     jac = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1)
     det = np.linalg.det(jac)
-    if np.any(np.abs(det) <= 1e-12 * np.max(np.abs(det), initial=1.0)):
-        raise ValueError(f"{int(np.sum(np.abs(det) <= 1e-12))} degenerate element(s)")
+    degenerate = np.abs(det) <= 1e-12 * np.max(np.abs(det), initial=1.0)
+    if np.any(degenerate):
+        raise ValueError(f"{int(np.sum(degenerate))} degenerate element(s), e.g. element "
+                         f"{int(np.flatnonzero(degenerate)[0])}")
     inv = np.linalg.inv(jac)  # (M, 3, 3): rows d xi / d x
     grads = np.einsum("aj,mjk->mak", _DN_DXI, inv)
     return grads, det / 6.0
@@ -116,12 +149,18 @@ def element_stiffness(nodes, tets, lam, mu):
     nodes : (N, 3) array_like
     tets : (M, 4) array_like of int
     lam, mu : float or (M,) array_like
-        Lamé parameters per element.
+        Lamé parameters per element (finite, ``>= 0``).
 
     Returns
     -------
     (M, 12, 12) ndarray
         Local DOF order ``3*a + axis`` for local node ``a``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`shape_gradients`, or ``lam``/``mu`` not a scalar or ``(M,)``, non-finite
+        or negative.
     """
     klam, kmu = _unit_element_stiffness(nodes, tets)
     m = klam.shape[0]
@@ -182,7 +221,7 @@ def material_matrix(lam, mu):
 def element_stiffness_voigt(nodes, tets, lam, mu):
     """``V_e B^T C B`` assembled literally from paper Eqs. 4-6 (a slow reference).
 
-    Same signature and result as :func:`element_stiffness`.
+    Same signature, result and errors as :func:`element_stiffness`.
     """
     g, vol = shape_gradients(nodes, tets)
     b = strain_displacement_matrix(g)
@@ -206,12 +245,17 @@ def stiffness_matrix(nodes, tets, lam, mu):
         World mm.
     tets : (M, 4) array_like of int
     lam, mu : float or (M,) array_like
-        Lamé parameters, per element or uniform.
+        Lamé parameters, per element or uniform (finite, ``>= 0``).
 
     Returns
     -------
     scipy.sparse.csr_array, shape (3N, 3N)
         Symmetric positive semi-definite; its null space holds the six rigid-body modes.
+
+    Raises
+    ------
+    ValueError
+        As :func:`element_stiffness`.
     """
     nodes, tets = _check_mesh(nodes, tets)
     ke = element_stiffness(nodes, tets, lam, mu)
@@ -233,11 +277,17 @@ def strain_energy(nodes, tets, u, lam, mu):
     u : (N, 3) array_like
         Nodal displacements, mm.
     lam, mu : float or (M,) array_like
+        Finite, ``>= 0``.
 
     Returns
     -------
     float
         ``sum_e V_e (mu eps:eps + lam/2 tr(eps)^2)`` = ``u^T K u / 2``, in ``[lam] mm^3``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`element_stiffness`, or ``u`` not of shape ``(N, 3)``.
     """
     nodes, tets = _check_mesh(nodes, tets)
     u = np.asarray(u, dtype=np.float64)
@@ -314,6 +364,10 @@ class ElasticOperator(NamedTuple):
     row_ii, row_ib : (n_i,) int
         Position of interior row ``r`` in the concatenated slices of ``K_ii`` (resp.
         ``K_ib``, whose rows are sorted by their own number of boundary neighbours).
+    boundary : (n_b,) int or None
+        The boundary node indices, in the column order of ``K_ib`` (as given to
+        :func:`build_operator`); its shape gives ``n_b`` statically, for the shape checks
+        of the solver (``None`` on an operator built without it: no check).
     """
 
     klam: jax.Array
@@ -324,14 +378,36 @@ class ElasticOperator(NamedTuple):
     cols_ib: tuple
     row_ii: jax.Array
     row_ib: jax.Array
+    boundary: jax.Array | None = None
 
     @property
     def n_interior(self) -> int:
         return self.row_ii.shape[0]
 
+    @property
+    def n_boundary(self) -> int | None:
+        """``n_b`` (``None`` where the operator does not hold :attr:`boundary`)."""
+        return None if self.boundary is None else self.boundary.shape[0]
+
+    @property
+    def n_elements(self) -> int:
+        return self.klam.shape[0]
+
     def blocks(self, lam_e, mu_e):
         """Sliced ELL blocks ``(b_ii, b_ib)`` of ``K_ii`` and ``K_ib`` for per-element
-        ``lam_e``, ``mu_e`` (``(M,)``): tuples of ``(R_k, S_k, 3, 3)`` arrays."""
+        ``lam_e``, ``mu_e`` (``(M,)``): tuples of ``(R_k, S_k, 3, 3)`` arrays.
+
+        Raises
+        ------
+        ValueError
+            ``lam_e`` or ``mu_e`` not of shape ``(M,)`` (a static check: their values are
+            not checked, they may be traced).
+        """
+        m = self.n_elements
+        for name, value in (("lam_e", lam_e), ("mu_e", mu_e)):
+            if jnp.shape(value) != (m,):
+                raise ValueError(f"{name} must have shape ({m},) (one value per element), "
+                                 f"got {jnp.shape(value)}")
         ke = lam_e[:, None, None, None, None] * self.klam + mu_e[:, None, None, None, None] * self.kmu
         ke = ke.reshape(-1, 3, 3)
         out = []
@@ -510,18 +586,28 @@ def build_operator(nodes, tets, boundary):
     nodes : (N, 3) array_like
         World mm.
     tets : (M, 4) array_like of int
-    boundary : (n_b,) array_like of int
-        Boundary (Dirichlet, sampled) node indices; all other nodes are interior.
+    boundary : (n_b,) array_like of int, or (N,) array_like of bool
+        Boundary (Dirichlet, sampled) node indices, distinct, in ``[0, N)``, at least one
+        (integral floats are accepted); their order is the column order of ``K_ib``.  A
+        boolean mask of length ``N`` stands for the indices where it is true (in increasing
+        order).  All other nodes are interior.
 
     Returns
     -------
     op : ElasticOperator
     interior : (n_i,) ndarray of int
         Interior node indices, in the row order of ``op``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`shape_gradients`, or ``boundary`` not 1-D, not integer (nor integral
+        floats, nor a boolean mask of length ``N``), empty, with repeated indices or with
+        indices outside ``[0, N)``.
     """
     nodes, tets = _check_mesh(nodes, tets)
     n = len(nodes)
-    boundary = np.asarray(boundary, dtype=np.int64)
+    boundary = _check_boundary(boundary, n)
     is_b = np.zeros(n, bool)
     is_b[boundary] = True
     interior = np.flatnonzero(~is_b)
@@ -566,5 +652,32 @@ def build_operator(nodes, tets, boundary):
         cols_ib=cols_ib,
         row_ii=row_ii,
         row_ib=row_ib,
+        boundary=jnp.asarray(boundary, dtype=jnp.int32),
     )
     return op, interior
+
+
+def _check_boundary(boundary, n):
+    """Boundary node indices ``(n_b,)`` int64 from indices or a boolean mask (see
+    :func:`build_operator`)."""
+    boundary = np.asarray(boundary)
+    if boundary.ndim != 1:
+        raise ValueError(f"boundary must be a 1-D array of node indices (n_b,) or a boolean mask "
+                         f"({n},), got shape {boundary.shape}")
+    if boundary.dtype == np.bool_:
+        if boundary.shape != (n,):
+            raise ValueError(f"a boolean boundary mask must have shape ({n},) (one entry per node), "
+                             f"got {boundary.shape}")
+        boundary = np.flatnonzero(boundary)
+    boundary = _as_index_array(boundary, "boundary")
+    if boundary.size == 0:
+        raise ValueError("boundary must hold at least one node index (with no Dirichlet node "
+                         "K_ii is singular), got none")
+    if boundary.min() < 0 or boundary.max() >= n:
+        raise ValueError(f"boundary node indices must lie in [0, {n}), got values "
+                         f"{boundary.min()}..{boundary.max()}")
+    uniq, counts = np.unique(boundary, return_counts=True)
+    if np.any(counts > 1):
+        raise ValueError(f"boundary node indices must be distinct, got repeated index(es) "
+                         f"{uniq[counts > 1][:10].tolist()}")
+    return boundary

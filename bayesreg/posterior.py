@@ -435,8 +435,36 @@ def skull_barrier(post: Posterior, points):
     return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0))
 
 
+def _check_shape(name, value, expected, what):
+    """Static shape check (shapes are known under ``jit``; under ``vmap`` they are those of
+    one chain): ``value.shape == expected``."""
+    shape = jnp.shape(value)
+    if shape != expected:
+        raise ValueError(f"{name} must have shape {expected} ({what}), got {shape}")
+
+
+def _check_last_axis(name, value, n, what):
+    """``value`` is ``(..., n)`` (batched arrays allowed)."""
+    shape = jnp.shape(value)
+    if len(shape) < 1 or shape[-1] != n:
+        raise ValueError(f"{name} must have shape (..., {n}) ({what}), got {shape}")
+
+
+def _check_theta(post: Posterior, theta):
+    _check_shape("theta", theta, (post.dim,),
+                 f"[u_b.ravel(), phi]: 3 * {post.n_boundary} boundary DOFs + {post.n_free} free "
+                 "parameters")
+
+
 def split_position(post: Posterior, theta):
-    """``theta`` ``(dim,)`` -> ``u_b`` ``(n_b, 3)`` mm and ``phi`` ``(n_free,)``."""
+    """``theta`` ``(dim,)`` -> ``u_b`` ``(n_b, 3)`` mm and ``phi`` ``(n_free,)``.
+
+    Raises
+    ------
+    ValueError
+        ``theta`` not of shape ``(dim,)`` (one position; map batches with ``vmap``).
+    """
+    _check_theta(post, theta)
     nb3 = 3 * post.n_boundary
     return theta[:nb3].reshape(-1, 3), theta[nb3:]
 
@@ -454,8 +482,14 @@ def elastic_groups(post: Posterior, phi):
     Returns
     -------
     lam_g, mu_g : (..., G) arrays, the fixed parameters in place
+
+    Raises
+    ------
+    ValueError
+        ``phi`` not of shape ``(..., n_free)``.
     """
     phi = jnp.asarray(phi)
+    _check_last_axis("phi", phi, post.n_free, "the free elastic parameters")
     full = jnp.broadcast_to(post.base, phi.shape[:-1] + post.base.shape)
     full = full.at[..., post.free_index].set(phi)
     g = post.base.shape[0] // 2
@@ -463,7 +497,15 @@ def elastic_groups(post: Posterior, phi):
 
 
 def full_displacement(post: Posterior, u_b, u_i):
-    """Nodal displacements ``(N, 3)`` from boundary and interior blocks (node order)."""
+    """Nodal displacements ``(N, 3)`` from boundary and interior blocks (node order).
+
+    Raises
+    ------
+    ValueError
+        ``u_b`` not ``(n_b, 3)`` or ``u_i`` not ``(n_i, 3)``.
+    """
+    _check_shape("u_b", u_b, (post.n_boundary, 3), "one row per boundary node")
+    _check_shape("u_i", u_i, (post.op.n_interior, 3), "one row per interior node")
     return jnp.concatenate([u_b, u_i], axis=0)[post.perm]
 
 
@@ -507,7 +549,16 @@ def stiffness_blocks(post: Posterior, lam_g, mu_g):
 
 
 def energies(post: Posterior, u, phi):
-    """``(E_s, E_r)`` for nodal displacements ``u`` ``(N, 3)`` and parameters ``phi``."""
+    """``(E_s, E_r)`` for nodal displacements ``u`` ``(N, 3)`` and parameters ``phi``
+    ``(n_free,)``.
+
+    Raises
+    ------
+    ValueError
+        ``u`` not ``(N, 3)`` or ``phi`` not ``(n_free,)``.
+    """
+    _check_shape("u", u, tuple(post.nodes.shape), "one row per node")
+    _check_shape("phi", phi, (post.n_free,), "the free elastic parameters")
     lam_g, mu_g = elastic_groups(post, phi)
     u_e = u[post.tets]
     e_r = element_strain_energy(post.grads, post.volumes, u_e, lam_g[post.group], mu_g[post.group])
@@ -549,8 +600,16 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
         ``-inf`` on a hard-constraint violation or a non-converged solve.
     aux : Aux
         ``e_s`` and ``e_r`` are 0 where the energies were skipped.
+
+    Raises
+    ------
+    ValueError
+        ``theta`` not of shape ``(dim,)`` or ``u_i0`` not ``(n_i, 3)`` (static shape checks:
+        under ``vmap`` over chains these are the shapes of one chain).  Values are never
+        checked: an invalid position gives ``-inf``.
     """
     u_b, phi = split_position(post, theta)
+    _check_shape("u_i0", u_i0, (post.op.n_interior, 3), "warm start, one row per interior node")
     log_prior, in_support = _log_prior(post, phi)
     phi_solve = jnp.where(in_support, phi, post.phi_ref)
     allowed = in_support & ~jnp.any(_node_forbidden(post, post.nodes[post.boundary] + u_b))
@@ -638,8 +697,15 @@ def log_density_condensed(post: Posterior, theta, h):
     Returns
     -------
     logp, aux : as :func:`log_density` (``aux.solve`` reports 0 iterations)
+
+    Raises
+    ------
+    ValueError
+        ``theta`` not of shape ``(dim,)`` or ``h`` not ``(3 n_i, 3 n_b)``.
     """
     u_b, phi = split_position(post, theta)
+    _check_shape("h", h, (3 * post.op.n_interior, 3 * post.n_boundary),
+                 "the interior map (3 n_i, 3 n_b) of condensation()")
     log_prior, in_support = _log_prior(post, phi)
     phi_solve = jnp.where(in_support, phi, post.phi_ref)
     u_i = (h @ u_b.reshape(-1)).reshape(-1, 3)
@@ -690,7 +756,13 @@ def from_unconstrained(post: Posterior, eta):
     log_jac : (...) array
         ``sum log |d phi / d eta|``: add it to a density over ``phi`` to get the density
         over ``eta``.
+
+    Raises
+    ------
+    ValueError
+        ``eta`` not of shape ``(..., n_free)``.
     """
+    _check_last_axis("eta", eta, post.n_free, "the unconstrained free elastic parameters")
     lo, width = _support(post)
     phi = lo + width * jax.nn.sigmoid(eta)
     log_jac = jnp.sum(jnp.log(width) + jax.nn.log_sigmoid(eta) + jax.nn.log_sigmoid(-eta), axis=-1)
@@ -698,7 +770,9 @@ def from_unconstrained(post: Posterior, eta):
 
 
 def to_unconstrained(post: Posterior, phi):
-    """Inverse of :func:`from_unconstrained` (``phi`` strictly inside the prior support)."""
+    """Inverse of :func:`from_unconstrained` (``phi`` ``(..., n_free)`` strictly inside the
+    prior support).  Raises ``ValueError`` on ``phi`` not of shape ``(..., n_free)``."""
+    _check_last_axis("phi", phi, post.n_free, "the free elastic parameters")
     lo, width = _support(post)
     x = (jnp.asarray(phi) - lo) / width
     return jnp.log(x) - jnp.log1p(-x)

@@ -746,17 +746,26 @@ def sample(
     Raises
     ------
     ValueError
-        On bad arguments or if any chain starts at a point of zero posterior density.
+        On bad arguments (among them: ``blocks`` that do not partition ``range(dim)``, a
+        ``sigma`` of the wrong shape, non-finite, or, as a vector of scales, not ``> 0``;
+        ``min_draws > max_draws`` or ``chunk_draws > max_draws``) or if any chain starts at
+        a point of zero posterior density.
     """
-    x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance)
+    x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws,
+                                 target_acceptance)
     dim = x0.shape[1]
-    idxs = [np.arange(dim)] if blocks is None else [np.asarray(b) for b in blocks]
+    idxs = [np.arange(dim)] if blocks is None else _check_blocks(blocks, dim)
     sigmas = tuple(np.asarray(s_, np.float64) for s_ in (sigma if isinstance(sigma, tuple) else (sigma,)))
     if len(sigmas) != len(idxs):
         raise ValueError(f"{len(idxs)} blocks but {len(sigmas)} sigmas")
     for k, (s_, ix) in enumerate(zip(sigmas, idxs)):
         if s_.shape not in ((len(ix),), (len(ix), len(ix))):
             raise ValueError(f"sigma of block {k} has shape {s_.shape}, block size {len(ix)}")
+        if not np.all(np.isfinite(s_)):
+            raise ValueError(f"sigma of block {k} must be finite, got non-finite values")
+        if s_.ndim == 1 and not np.all(s_ > 0):
+            raise ValueError(f"sigma of block {k} (a vector of scales) must be > 0, got minimum "
+                             f"{s_.min()}")
     adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * len(idxs)
     sigmas = tuple(np.diag(np.broadcast_to(s_, (len(ix),))) if a_ and warmup_steps and s_.ndim < 2
                    and len(ix) <= DENSE_MAX else s_ for s_, ix, a_ in zip(sigmas, idxs, adapt))
@@ -782,7 +791,7 @@ def sample(
                   params_type=lambda *a: tuple(a))
 
 
-def _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance):
+def _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws, target_acceptance):
     x0 = jnp.asarray(initial_positions, dtype=jnp.float64)
     if x0.ndim != 2:
         raise ValueError(f"initial_positions must be (chains, dim), got {x0.shape}")
@@ -790,9 +799,40 @@ def _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_ac
         raise ValueError("at least 2 chains are needed for R-hat")
     if thinning < 1 or chunk_draws < 1 or max_draws < 1:
         raise ValueError("thinning, chunk_draws and max_draws must be >= 1")
+    if min_draws > max_draws:
+        raise ValueError(f"min_draws must be <= max_draws, got min_draws={min_draws}, "
+                         f"max_draws={max_draws}")
+    if chunk_draws > max_draws:
+        raise ValueError(f"chunk_draws must be <= max_draws (draws come in whole chunks), got "
+                         f"chunk_draws={chunk_draws}, max_draws={max_draws}")
     if not 0 < target_acceptance < 1:
         raise ValueError(f"target_acceptance must lie in (0, 1), got {target_acceptance}")
     return x0, x0.shape[0]
+
+
+def _check_blocks(blocks, dim: int) -> list:
+    """The coordinate blocks as int arrays; they must partition ``range(dim)``."""
+    idxs = []
+    for k, b in enumerate(blocks):
+        ix = np.asarray(b)
+        if ix.ndim != 1 or not (np.issubdtype(ix.dtype, np.integer) or ix.size == 0):
+            raise ValueError(f"block {k} must be a 1-D array of integer coordinate indices, got "
+                             f"shape {ix.shape} and dtype {ix.dtype}")
+        idxs.append(ix.astype(np.int64))
+    flat = np.concatenate(idxs) if idxs else np.zeros(0, np.int64)
+    counts = np.bincount(flat[(flat >= 0) & (flat < dim)], minlength=dim)
+    outside = flat[(flat < 0) | (flat >= dim)]
+    if outside.size or np.any(counts != 1):
+        detail = []
+        if outside.size:
+            detail.append(f"indices outside [0, {dim}): {outside[:10].tolist()}")
+        if np.any(counts == 0):
+            detail.append(f"missing: {np.flatnonzero(counts == 0)[:10].tolist()}")
+        if np.any(counts > 1):
+            detail.append(f"repeated: {np.flatnonzero(counts > 1)[:10].tolist()}")
+        raise ValueError(f"blocks must partition range({dim}) (each coordinate in exactly one "
+                         f"block), got {'; '.join(detail)}")
+    return idxs
 
 
 def _check_finite(states):
@@ -977,12 +1017,20 @@ def sample_gradient(
     Raises
     ------
     ValueError
-        On bad arguments or if any chain starts at a point of zero posterior density.
+        On bad arguments (among them: ``step_size`` not finite and ``> 0``, ``eta_scale``
+        non-finite or, as scales, not ``> 0``; ``min_draws > max_draws`` or ``chunk_draws >
+        max_draws``) or if any chain starts at a point of zero posterior density.
     """
     from bayesreg import kernels as gk
 
     target_acceptance = target_acceptance or gk.default_target_acceptance(kind)
-    x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, target_acceptance)
+    x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws,
+                                 target_acceptance)
+    if not (np.ndim(step_size) == 0 and np.isfinite(step_size) and step_size > 0):
+        raise ValueError(f"step_size must be a finite scalar > 0, got {step_size}")
+    eta_check = np.asarray(eta_scale, np.float64)
+    if not np.all(np.isfinite(eta_check)) or (eta_check.ndim < 2 and not np.all(eta_check > 0)):
+        raise ValueError(f"eta_scale must be finite and, as scales, > 0, got {eta_scale}")
     kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
                              jitter_integration_steps=jitter_integration_steps,
                              max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)

@@ -82,6 +82,36 @@ DENSE_MAX_ITERATIONS = 50
 DENSE_MAX_DOFS = 4096
 
 
+def _check_shape(name, value, expected, what):
+    """Static check (shapes are known under ``jit``/``vmap``): ``value.shape == expected``."""
+    shape = jnp.shape(value)
+    if shape != expected:
+        raise ValueError(f"{name} must have shape {expected} ({what}), got {shape}")
+
+
+def _check_blocks(name, blocks, cols):
+    """The ELL blocks ``name`` match the sliced layout of ``cols`` (``op.cols_ii`` or
+    ``op.cols_ib``): one ``(R_k, S_k, 3, 3)`` array per slice."""
+    expected = [tuple(c.shape) + (3, 3) for c in cols]
+    got = ([jnp.shape(b) for b in blocks] if isinstance(blocks, (tuple, list))
+           else type(blocks).__name__)
+    if got != expected:
+        raise ValueError(f"{name} must be a tuple of one array per slice of op's layout with "
+                         f"shapes {expected}, got {got}")
+
+
+def _check_displacements(op: ElasticOperator, u_b, u_i0):
+    """``u_b`` ``(n_b, 3)`` (``n_b`` known where ``op`` holds its boundary) and ``u_i0``
+    ``(n_i, 3)``."""
+    n_b = op.n_boundary
+    shape = jnp.shape(u_b)
+    if len(shape) != 2 or shape[1] != 3 or (n_b is not None and shape[0] != n_b):
+        expected = f"({n_b}, 3)" if n_b is not None else "(n_b, 3)"
+        raise ValueError(f"u_b must have shape {expected} (boundary displacements, one row per "
+                         f"boundary node), got {shape}")
+    _check_shape("u_i0", u_i0, (op.n_interior, 3), "warm start, one row per interior node")
+
+
 class DensePreconditioner(NamedTuple):
     """The inverse of ``K_ii`` at reference Lamé parameters, a preconditioner of the CG.
 
@@ -131,7 +161,13 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
         With ``fallback`` set, and a Jacobi inverse in place (see
         :attr:`DensePreconditioner.fallback`), when the float32 factorisation fails
         (non-positive parameters, or a conditioning beyond float32).
+
+    Raises
+    ------
+    ValueError
+        ``b_ii`` not of ``op``'s layout (a static shape check).
     """
+    _check_blocks("b_ii", b_ii, op.cols_ii)
     n = 3 * op.n_interior
     k = jax.lax.stop_gradient(ell_dense(b_ii, op.cols_ii, op.row_ii, op.n_interior))
     d = 1.0 / jnp.sqrt(jnp.abs(jnp.diag(k)))
@@ -212,10 +248,14 @@ def spectral_preconditioner(op: ElasticOperator, lam_ii, mu_ii) -> SpectralPreco
     Raises
     ------
     ValueError
-        The shear part ``B`` is not positive definite (no Dirichlet boundary holds the
-        interior) or the volumetric part has a negative eigenvalue beyond round-off.
+        ``lam_ii`` or ``mu_ii`` not of ``op``'s layout, the shear part ``B`` not positive
+        definite (no Dirichlet boundary holds the interior) or the volumetric part with a
+        negative eigenvalue beyond round-off.
     """
     import scipy.linalg as sla
+
+    _check_blocks("lam_ii", lam_ii, op.cols_ii)
+    _check_blocks("mu_ii", mu_ii, op.cols_ii)
 
     n = op.n_interior
     a = np.asarray(ell_dense(lam_ii, op.cols_ii, op.row_ii, n), np.float64)
@@ -253,7 +293,13 @@ def pcg(matvec, b, x0, precond, *, rtol=1e-8, maxiter=1000):
     -------
     x : array
     info : SolveInfo
+
+    Raises
+    ------
+    ValueError
+        ``x0`` not of the shape of ``b``.
     """
+    _check_shape("x0", x0, jnp.shape(b), "the shape of b")
     bnorm = jnp.sqrt(jnp.vdot(b, b))
     tol2 = (rtol * bnorm) ** 2
     r0 = b - matvec(x0)
@@ -305,11 +351,19 @@ def solve_interior(op: ElasticOperator, lam_e, mu_e, u_b, u_i0, *, rtol=1e-8, ma
         (implicit differentiation; the warm start carries no gradient).
     info : SolveInfo
 
+    Raises
+    ------
+    ValueError
+        ``lam_e`` or ``mu_e`` not of shape ``(M,)``, ``u_b`` not ``(n_b, 3)`` or ``u_i0`` not
+        ``(n_i, 3)`` (static shape checks, valid under ``jit`` and ``vmap``; the values are
+        not checked: non-positive parameters give a solve reported not converged).
+
     See Also
     --------
     solve_interior_blocks : the same from assembled blocks (e.g. per-group,
         :class:`bayesreg.fem.GroupBlocks`).
     """
+    _check_displacements(op, u_b, u_i0)
     b_ii, b_ib = op.blocks(lam_e, mu_e)
     return solve_interior_blocks(op, b_ii, b_ib, u_b, u_i0, rtol=rtol, maxiter=maxiter)
 
@@ -341,7 +395,16 @@ def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e
     u_i : (n_i, 3) array
         Differentiable in ``u_b`` and the blocks.
     info : SolveInfo
+
+    Raises
+    ------
+    ValueError
+        ``b_ii``, ``b_ib`` not of ``op``'s layout, ``u_b`` not ``(n_b, 3)`` or ``u_i0`` not
+        ``(n_i, 3)`` (static shape checks).
     """
+    _check_blocks("b_ii", b_ii, op.cols_ii)
+    _check_blocks("b_ib", b_ib, op.cols_ib)
+    _check_displacements(op, u_b, u_i0)
     rhs = -ell_matvec(b_ib, op.cols_ib, op.row_ib, u_b)
     u_i0 = jax.lax.stop_gradient(u_i0)
 
@@ -391,6 +454,11 @@ def interior_map(op: ElasticOperator, lam_e, mu_e, n_boundary: int):
     H : (3 n_i, 3 n_b) array
         All NaN if ``K_ii`` is not numerically positive definite (the caller must treat
         that as a failed solve).
+
+    Raises
+    ------
+    ValueError
+        ``lam_e`` or ``mu_e`` not of shape ``(M,)``, or ``n_boundary`` not ``op``'s ``n_b``.
     """
     b_ii, b_ib = op.blocks(lam_e, mu_e)
     return interior_map_blocks(op, b_ii, b_ib, n_boundary)
@@ -399,7 +467,13 @@ def interior_map(op: ElasticOperator, lam_e, mu_e, n_boundary: int):
 def interior_map_blocks(op: ElasticOperator, b_ii, b_ib, n_boundary: int):
     """:func:`interior_map` with ``K_ii``, ``K_ib`` given as ELL blocks (shapes as in
     :func:`solve_interior_blocks`); returns ``H`` ``(3 n_i, 3 n_b)``, all NaN on a failed
-    factorisation."""
+    factorisation.  Raises ``ValueError`` on blocks not of ``op``'s layout or an
+    ``n_boundary`` other than ``op``'s."""
+    _check_blocks("b_ii", b_ii, op.cols_ii)
+    _check_blocks("b_ib", b_ib, op.cols_ib)
+    if op.n_boundary is not None and n_boundary != op.n_boundary:
+        raise ValueError(f"n_boundary must be {op.n_boundary} (op's number of boundary nodes), "
+                         f"got {n_boundary}")
     k_ii = ell_dense(b_ii, op.cols_ii, op.row_ii, op.n_interior)
     k_ib = ell_dense(b_ib, op.cols_ib, op.row_ib, n_boundary)
     chol = jnp.linalg.cholesky(0.5 * (k_ii + k_ii.T))

@@ -86,6 +86,85 @@ def test_bad_shapes_raise():
         fem.stiffness_matrix(m.nodes, m.tets + 100, 1.0, 1.0)
 
 
+def test_mesh_with_non_integer_tets_or_non_finite_nodes_raises():
+    """Fractional tets were truncated, string tets gave a UFuncTypeError, and a NaN node
+    fooled the degenerate-element check; integral floats stay accepted."""
+    m = box_mesh((1, 1, 1))
+    with pytest.raises(ValueError, match="tets must hold integer node indices.*non-integral"):
+        fem.stiffness_matrix(m.nodes, m.tets + 0.5, 1.0, 1.0)
+    with pytest.raises(ValueError, match="tets must hold integer node indices.*dtype <U"):
+        fem.stiffness_matrix(m.nodes, m.tets.astype(str), 1.0, 1.0)
+    with pytest.raises(ValueError, match="tets must hold integer node indices.*dtype bool"):
+        fem.shape_gradients(m.nodes, m.tets > 0)
+    k = fem.stiffness_matrix(m.nodes, m.tets.astype(float), 1.0, 1.0)
+    assert abs(k - fem.stiffness_matrix(m.nodes, m.tets, 1.0, 1.0)).max() == 0
+    for bad in (np.nan, np.inf):
+        nodes = m.nodes.copy()
+        nodes[3, 1] = bad
+        with pytest.raises(ValueError, match=r"nodes must be finite, got NaN or inf at node\(s\) \[3\]"):
+            fem.shape_gradients(nodes, m.tets)
+        with pytest.raises(ValueError, match="nodes must be finite"):
+            fem.build_operator(nodes, m.tets, m.boundary)
+
+
+def test_negative_or_non_finite_lame_parameters_raise():
+    """The host (NumPy) FE routines reject lam, mu < 0 or not finite (0 stays allowed: the
+    unit parts ``element_stiffness(.., 1, 0)``); the JAX ones used by the log-density do not
+    look at values."""
+    m = box_mesh((1, 1, 1))
+    u = np.zeros_like(m.nodes)
+    with pytest.raises(ValueError, match="lam must be finite and >= 0, got -1.0"):
+        fem.stiffness_matrix(m.nodes, m.tets, -1.0, 1.0)
+    with pytest.raises(ValueError, match="mu must be finite and >= 0, got nan"):
+        fem.strain_energy(m.nodes, m.tets, u, 1.0, np.nan)
+    lam = np.ones(len(m.tets))
+    lam[2] = -0.5
+    with pytest.raises(ValueError, match=r"lam must be finite and >= 0, got -0.5 \(1 of 6 values bad\)"):
+        fem.element_stiffness(m.nodes, m.tets, lam, 1.0)
+    with pytest.raises(ValueError, match="mu must be finite and >= 0, got inf"):
+        fem.element_stiffness_voigt(m.nodes, m.tets, 1.0, np.inf)
+    assert np.all(np.isfinite(fem.element_stiffness(m.nodes, m.tets, 1.0, 0.0)))
+
+
+def test_build_operator_rejects_bad_boundary_indices():
+    """Negative indices wrapped, floats were truncated, a bool mask was read as indices 0
+    and 1, duplicates and an empty boundary were accepted, out-of-range gave an IndexError."""
+    m = box_mesh((2, 2, 2))
+    b, n = m.boundary, len(m.nodes)
+    cases = [
+        (np.r_[b[:-1], -1], r"boundary node indices must lie in \[0, 27\), got values -1\.\.25"),
+        (np.r_[b, 10 ** 6], r"must lie in \[0, 27\), got values 0\.\.1000000"),
+        (b + 0.3, "boundary must hold integer node indices.*non-integral"),
+        (np.r_[b, b[0]], r"boundary node indices must be distinct, got repeated index\(es\) \[0\]"),
+        (np.array([], int), "boundary must hold at least one node index"),
+        (b[None], r"boundary must be a 1-D array .* got shape \(1, 26\)"),
+        (np.ones(5, bool), r"boolean boundary mask must have shape \(27,\) .*got \(5,\)"),
+    ]
+    for boundary, match in cases:
+        with pytest.raises(ValueError, match=match):
+            fem.build_operator(m.nodes, m.tets, boundary)
+    # a boolean mask of length N and integral floats give the operator of the indices
+    mask = np.zeros(n, bool)
+    mask[b] = True
+    op, interior = fem.build_operator(m.nodes, m.tets, b)
+    for other in (mask, b.astype(float)):
+        op2, interior2 = fem.build_operator(m.nodes, m.tets, other)
+        np.testing.assert_array_equal(interior2, interior)
+        np.testing.assert_array_equal(np.asarray(op2.boundary), b)
+        np.testing.assert_array_equal(np.asarray(op2.slot_ib), np.asarray(op.slot_ib))
+    assert op.n_boundary == len(b)
+
+
+def test_operator_blocks_check_the_parameter_shapes():
+    m = box_mesh((1, 1, 1))
+    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    lam = np.ones(len(m.tets))
+    with pytest.raises(ValueError, match=r"lam_e must have shape \(6,\) \(one value per element\), got \(5,\)"):
+        op.blocks(lam[:-1], lam)
+    with pytest.raises(ValueError, match=r"mu_e must have shape \(6,\) .* got \(\)"):
+        op.blocks(lam, 1.0)
+
+
 def test_ell_operator_matches_scipy_blocks():
     import jax.numpy as jnp
 

@@ -166,6 +166,51 @@ def test_split_position_is_node_major(small):
     assert phi.shape == (5,)
 
 
+def test_position_shapes_are_checked_statically(small):
+    """A theta 4 entries short (phi of length 1 broadcast over the 5 free parameters) gave a
+    finite log-density; other lengths an opaque JAX TypeError.  The checks look at shapes
+    only: under vmap they see one chain's theta, and out-of-support values still give -inf."""
+    from bayesreg.posterior import (condensation, elastic_groups, from_unconstrained, full_displacement,
+                                    log_density_condensed, to_unconstrained)
+
+    mesh, post, theta = small
+    zero = jnp.zeros((post.op.n_interior, 3))
+    dim = post.dim
+    for bad in (theta[:-4], theta[:-1], np.r_[theta, 1.0]):
+        with pytest.raises(ValueError, match=rf"theta must have shape \({dim},\) .*got \({len(bad)},\)"):
+            log_density(post, jnp.asarray(bad), zero)
+        with pytest.raises(ValueError, match=rf"theta must have shape \({dim},\)"):
+            split_position(post, jnp.asarray(bad))
+    with pytest.raises(ValueError, match=rf"theta must have shape \({dim},\) .*got \(2, {dim}\)"):
+        log_density(post, jnp.asarray(np.stack([theta, theta])), zero)  # a batch needs vmap
+    with pytest.raises(ValueError, match=rf"u_i0 must have shape \({post.op.n_interior}, 3\)"):
+        log_density(post, jnp.asarray(theta), zero[:-1])
+    with pytest.raises(ValueError, match=rf"theta must have shape \({dim},\)"):
+        condensation(post, jnp.asarray(theta[:-4]))
+    h = jax.eval_shape(condensation, post, jnp.asarray(theta))
+    assert h.shape == (3 * post.op.n_interior, 3 * post.n_boundary)
+    with pytest.raises(ValueError, match=r"h must have shape"):
+        log_density_condensed(post, jnp.asarray(theta), jnp.zeros((h.shape[0], h.shape[1] - 3)))
+    with pytest.raises(ValueError, match=r"phi must have shape \(\.\.\., 5\) .*got \(3, 1\)"):
+        elastic_groups(post, jnp.ones((3, 1)))
+    with pytest.raises(ValueError, match=r"eta must have shape \(\.\.\., 5\) .*got \(4,\)"):
+        from_unconstrained(post, jnp.zeros(4))
+    with pytest.raises(ValueError, match=r"phi must have shape \(\.\.\., 5\)"):
+        to_unconstrained(post, jnp.ones(1))
+    with pytest.raises(ValueError, match=rf"u_i must have shape \({post.op.n_interior}, 3\)"):
+        full_displacement(post, jnp.zeros((post.n_boundary, 3)), zero[:-1])
+    # vmapped over chains (traced, not compiled): one chain's shapes pass, a bad one raises
+    thetas = jnp.asarray(np.stack([theta, theta]))
+    lp = jax.eval_shape(jax.vmap(lambda th: log_density(post, th, zero)[0]), thetas)
+    assert lp.shape == (2,)
+    with pytest.raises(ValueError, match=rf"theta must have shape \({dim},\) .*got \({dim - 1},\)"):
+        jax.eval_shape(jax.vmap(lambda th: log_density(post, th, zero)[0]), thetas[:, :-1])
+    # values are not checked: a parameter outside the support still gives -inf under jit
+    out = theta.copy()
+    out[-1] = -1.0
+    assert float(jax.jit(lambda th: log_density(post, th, zero)[0])(jnp.asarray(out))) == -np.inf
+
+
 def test_bad_temperatures_and_priors_raise(small):
     mesh, post, _ = small
     from bayesreg.similarity import SSDTerm  # noqa: F401

@@ -193,6 +193,56 @@ def test_sampler_rejects_bad_start():
                progress=False)
 
 
+def test_sampler_rejects_bad_scales_blocks_and_draw_counts():
+    """sigma NaN, 0 or negative, blocks that leave out (or repeat) a coordinate, min_draws >
+    max_draws and chunk_draws > max_draws (which returned a whole chunk) were accepted.
+    The checks run before anything is traced."""
+    from bayesreg.sampler import sample_gradient
+
+    logdensity, mean, cov, n_i = _quadratic_problem()
+    d = len(mean)
+    x0 = np.tile(mean, (2, 1))
+    run = partial(sample, jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), progress=False)
+    ok = np.full(d, 0.1)
+    for value, match in ((np.nan, "sigma of block 0 must be finite"),
+                         (0.0, r"sigma of block 0 \(a vector of scales\) must be > 0, got minimum 0.0"),
+                         (-0.1, r"must be > 0, got minimum -0.1")):
+        sigma = ok.copy()
+        sigma[3] = value
+        with pytest.raises(ValueError, match=match):
+            run(sigma)
+    dense = np.diag(ok)
+    dense[1, 0] = np.inf
+    with pytest.raises(ValueError, match="sigma of block 0 must be finite"):
+        run(dense)
+    half = d // 2
+    blocks_bad = [
+        ((np.arange(half), np.arange(half + 1, d)), rf"blocks must partition range\({d}\) .*missing: \[{half}\]"),
+        ((np.arange(half + 1), np.arange(half, d)), rf"repeated: \[{half}\]"),
+        ((np.arange(half), np.arange(half, d + 1)), rf"indices outside \[0, {d}\): \[{d}\]"),
+        ((np.arange(half), np.arange(half, d) + 0.0), "block 1 must be a 1-D array of integer coordinate indices"),
+    ]
+    for blocks, match in blocks_bad:
+        sig = tuple(np.full(len(b), 0.1) for b in blocks)
+        with pytest.raises(ValueError, match=match):
+            run(sig, blocks=blocks)
+    with pytest.raises(ValueError, match="min_draws must be <= max_draws, got min_draws=100, max_draws=40"):
+        run(ok, max_draws=40, min_draws=100, chunk_draws=20)
+    with pytest.raises(ValueError, match="chunk_draws must be <= max_draws"):
+        run(ok, max_draws=4, min_draws=4, chunk_draws=8)
+    # the gradient driver shares the draw checks and checks its own scales (target unused)
+    grad = partial(sample_gradient, jax.random.key(0), None, x0, jnp.zeros((n_i, 3)), progress=False)
+    with pytest.raises(ValueError, match="chunk_draws must be <= max_draws"):
+        grad(max_draws=4, min_draws=4, chunk_draws=8)
+    with pytest.raises(ValueError, match="min_draws must be <= max_draws"):
+        grad(max_draws=40, min_draws=100, chunk_draws=20)
+    for step in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match="step_size must be a finite scalar > 0"):
+            grad(step_size=step)
+    with pytest.raises(ValueError, match="eta_scale must be finite and, as scales, > 0"):
+        grad(eta_scale=np.array([0.1, 0.0]))
+
+
 def test_blocked_kernel_targets_the_same_posterior():
     """Metropolis-within-Gibbs over two blocks leaves the same Gaussian posterior invariant."""
     logdensity, mean, cov, n_i = _quadratic_problem()

@@ -205,3 +205,44 @@ def test_spectral_preconditioner_is_the_exact_inverse_at_every_lam_and_mu(brain)
     assert float(g) == pytest.approx(float(fd), rel=1e-5)
     with pytest.raises(ValueError, match="positive definite"):
         spectral_preconditioner(op, gb.group(0)[0], tuple(0.0 * b for b in gb.group(0)[1]))
+
+
+def test_solver_entry_points_check_shapes_statically():
+    """A u_b one node short was solved; other wrong shapes gave opaque JAX errors.  The
+    checks are on shapes only: under jit they raise at tracing, under vmap they see one
+    chain's shapes (a batch of valid u_b solves)."""
+    from conftest import box_mesh
+
+    from bayesreg.solver import interior_map, pcg, solve_interior_blocks
+
+    m = box_mesh((2, 2, 2))
+    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    n_b, n_i, n_e = len(m.boundary), op.n_interior, len(m.tets)
+    lam, mu = np.full(n_e, 10.0), np.ones(n_e)
+    ub = np.random.default_rng(7).normal(size=(n_b, 3))
+    x0 = jnp.zeros((n_i, 3))
+    bad = [
+        (dict(u_b=ub[:-1]), rf"u_b must have shape \({n_b}, 3\) .*got \({n_b - 1}, 3\)"),
+        (dict(u_b=ub.ravel()), rf"u_b must have shape \({n_b}, 3\) .*got \({3 * n_b},\)"),
+        (dict(u_b=ub[:, :2]), rf"u_b must have shape \({n_b}, 3\) .*got \({n_b}, 2\)"),
+        (dict(u_i0=jnp.zeros((n_i + 1, 3))), rf"u_i0 must have shape \({n_i}, 3\) .*got \({n_i + 1}, 3\)"),
+        (dict(lam_e=lam[:-1]), rf"lam_e must have shape \({n_e},\) .*got \({n_e - 1},\)"),
+        (dict(mu_e=1.0), rf"mu_e must have shape \({n_e},\) .*got \(\)"),
+    ]
+    for change, match in bad:
+        kw = {"lam_e": lam, "mu_e": mu, "u_b": ub, "u_i0": x0, **change}
+        with pytest.raises(ValueError, match=match):
+            solve_interior(op, kw["lam_e"], kw["mu_e"], kw["u_b"], kw["u_i0"])
+    with pytest.raises(ValueError, match=rf"u_b must have shape \({n_b}, 3\)"):
+        jax.jit(lambda u: solve_interior(op, lam, mu, u, x0))(ub[:-1])
+    b_ii, b_ib = op.blocks(lam, mu)
+    with pytest.raises(ValueError, match="b_ib must be a tuple of one array per slice"):
+        solve_interior_blocks(op, b_ii, b_ii, ub, x0)
+    with pytest.raises(ValueError, match=rf"n_boundary must be {n_b} .*got {n_b + 1}"):
+        interior_map(op, lam, mu, n_b + 1)
+    with pytest.raises(ValueError, match=r"x0 must have shape \(4,\) .*got \(3,\)"):
+        pcg(lambda x: x, jnp.ones(4), jnp.zeros(3), lambda r: r)
+    # batched u_b under vmap: the checks see (n_b, 3)
+    batch = jnp.stack([ub, 2 * ub])
+    out = jax.eval_shape(jax.vmap(lambda u: solve_interior(op, lam, mu, u, x0)[0]), batch)
+    assert out.shape == (2, n_i, 3)
