@@ -1,20 +1,48 @@
 """Run configuration: YAML validated by pydantic (unknown keys are errors naming the key).
 
 Load with :func:`load_config`; override single values with ``--set key.sub=value``
-(:func:`apply_overrides`, values parsed as YAML scalars).
+(:func:`apply_overrides`, values parsed as YAML scalars).  Also errors, before any meshing:
+a key given twice in one mapping, an empty file, a boolean, infinity or NaN given for a
+number, a key that the chosen data source or synthetic case would ignore, and a start
+(``model.initial_*``) outside its prior's support.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Field,
+    StrictInt,
+    Tag,
+    ValidationError,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
-__all__ = ["Config", "load_config", "apply_overrides", "ConfigError"]
+__all__ = ["Config", "load_config", "override_config", "apply_overrides", "ConfigError"]
 
 Tissue = Literal["csf", "gm", "wm"]
+
+
+def _no_bool(v):
+    # YAML 1.1 reads yes/no/on/off/true/false as booleans, which pydantic's lax float would
+    # take as 1.0 / 0.0
+    if isinstance(v, bool):
+        raise PydanticCustomError("float_type", "Input should be a valid number, not a boolean")
+    return v
+
+
+Float = Annotated[float, BeforeValidator(_no_bool)]
+"""A float that refuses booleans (integers and numeric strings as pydantic's lax mode)."""
+Int = StrictInt
+"""An int that refuses booleans, floats and strings (YAML integers are ints)."""
 
 
 class ConfigError(ValueError):
@@ -22,25 +50,26 @@ class ConfigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # allow_inf_nan=False: ``.inf``, ``.nan`` and overflowing literals (1e400) are errors
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class TissueValues(_Strict):
-    csf: float = Field(gt=0)
-    gm: float = Field(gt=0)
-    wm: float = Field(gt=0)
+    csf: Float = Field(gt=0)
+    gm: Float = Field(gt=0)
+    wm: Float = Field(gt=0)
 
 
 class DataConfig(_Strict):
     source: Literal["mni152", "nifti"] = "mni152"
-    resolution_mm: float | None = Field(2.0, gt=0, description="resample to isotropic voxels")
-    skull_margin_mm: float = Field(5.0, gt=0)
+    resolution_mm: Float | None = Field(2.0, gt=0, description="resample to isotropic voxels")
+    skull_margin_mm: Float = Field(5.0, gt=0)
     fixed: Path | None = Field(None, description="pre-operative T1 f (nifti source)")
     moving: Path | None = Field(None, description="intra-operative image m (nifti, optional)")
     labels: Path | None = Field(None, description="label map on f's world frame (nifti)")
-    label_coding: dict[str, int | list[int]] | None = None
-    intensity_percentile: float = Field(99.5, gt=0, le=100)
-    smoothing_mm: float = Field(
+    label_coding: dict[str, Int | list[Int]] | None = None
+    intensity_percentile: Float = Field(99.5, gt=0, le=100)
+    smoothing_mm: Float = Field(
         0.0, ge=0, description="Gaussian sigma (mm) applied to f and m before the SSD; smooths "
         "the likelihood surface sampled at the Gauss points")
 
@@ -50,20 +79,27 @@ class DataConfig(_Strict):
             missing = [k for k in ("fixed", "labels", "label_coding") if getattr(self, k) is None]
             if missing:
                 raise ValueError(f"data.source 'nifti' needs data.{', data.'.join(missing)}")
+        else:  # the template brings its own image and labels: these would be ignored
+            given = [k for k in ("fixed", "moving", "labels", "label_coding")
+                     if getattr(self, k) is not None]
+            if given:
+                raise ValueError(f"data.{', data.'.join(given)} {'is' if len(given) == 1 else 'are'} "
+                                 f"only used with data.source: nifti (data.source is "
+                                 f"'{self.source}', which brings its own image and labels)")
         return self
 
 
 class MeshConfig(_Strict):
-    edge_length_mm: float = Field(16.0, gt=0, description="fTetWild's target edge length (mm); "
+    edge_length_mm: Float = Field(16.0, gt=0, description="fTetWild's target edge length (mm); "
                                   "with target_nodes, that of the first attempt")
-    smoothing_sigma_mm: float = Field(4.0, ge=0)
-    epsilon: float = Field(2e-2, gt=0)
-    target_nodes: int | None = Field(
+    smoothing_sigma_mm: Float = Field(4.0, ge=0)
+    epsilon: Float = Field(2e-2, gt=0)
+    target_nodes: Int | None = Field(
         None, ge=20, description="re-mesh, scaling the edge length, until the node count is within "
         "target_tolerance of this (fTetWild's count at one edge length scatters by about 7% between "
         "runs); None: one mesh at edge_length_mm (bayesreg.mesh.mesh_brain_sized)")
-    target_tolerance: float = Field(0.05, gt=0, lt=1, description="relative tolerance on target_nodes")
-    max_attempts: int = Field(12, ge=1, description="meshes tried at most for target_nodes (the "
+    target_tolerance: Float = Field(0.05, gt=0, lt=1, description="relative tolerance on target_nodes")
+    max_attempts: Int = Field(12, ge=1, description="meshes tried at most for target_nodes (the "
                               "closest is kept, with a warning, when none is within the tolerance)")
 
 
@@ -75,16 +111,16 @@ class SyntheticConfig(_Strict):
         "constrained", description="constrained: the pushed nodes fixed, every other boundary node "
         "at the minimum elastic energy subject to the skull constraint (paper Sec. 4.1); smooth: "
         "the push fades over the boundary with falloff_mm (no minimisation)")
-    shift_mm: float = Field(15.0, gt=0, description="displacement of the pushed nodes toward the "
+    shift_mm: Float = Field(15.0, gt=0, description="displacement of the pushed nodes toward the "
                             "brain's centre of gravity")
-    n_pushed: int = Field(20, ge=1, description="pushed nodes: the n_pushed boundary nodes with the "
+    n_pushed: Int = Field(20, ge=1, description="pushed nodes: the n_pushed boundary nodes with the "
                           "largest world z (top of the head)")
-    pushed_nodes: list[int] | None = Field(None, description="explicit mesh node indices instead")
-    falloff_mm: float = Field(30.0, gt=0, description="smooth truth only")
-    clearance_mm: float | None = Field(
+    pushed_nodes: list[Int] | None = Field(None, description="explicit mesh node indices instead")
+    falloff_mm: Float = Field(30.0, gt=0, description="smooth truth only")
+    clearance_mm: Float | None = Field(
         None, ge=0, description="constrained truth: distance kept from the skull region (default "
         "half a voxel diagonal, so no node's nearest voxel is skull)")
-    tol_mm: float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
+    tol_mm: Float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
     outside: Literal["extend", "background"] = Field(
         "extend", description="voxels of m that no deformed element covers: extend, f shifted by "
         "the displacement continued from the nearest boundary nodes (so that trilinear samples "
@@ -94,10 +130,10 @@ class SyntheticConfig(_Strict):
 
 
 class BetaPrior(_Strict):
-    a: float = Field(1.0, gt=0)
-    b: float = Field(1.0, gt=0)
-    r1: float = Field(0.0, ge=0)
-    r2: float = Field(gt=0)
+    a: Float = Field(1.0, gt=0)
+    b: Float = Field(1.0, gt=0)
+    r1: Float = Field(0.0, ge=0)
+    r2: Float = Field(gt=0)
 
     @model_validator(mode="after")
     def _range(self):
@@ -114,19 +150,38 @@ class TissuePriors(_Strict):
     wm: BetaPrior
 
 
+def _prior_kind(v):
+    """Which form of prior ``v`` is: per tissue if it names a tissue, else one Beta prior (so a
+    bad value gets the errors of its own form only, not those of both)."""
+    if isinstance(v, dict):
+        return "per-tissue" if set(v) & {"csf", "gm", "wm"} else "beta"
+    if isinstance(v, TissuePriors):
+        return "per-tissue"
+    return "beta" if isinstance(v, BetaPrior) else None
+
+
+_PRIOR_TAGS = ("beta", "per-tissue")
+Prior = Annotated[
+    Union[Annotated[BetaPrior, Tag("beta")], Annotated[TissuePriors, Tag("per-tissue")]],
+    Discriminator(_prior_kind, custom_error_type="prior_type",
+                  custom_error_message="Input should be a prior {a, b, r1, r2} or per-tissue "
+                  "priors {csf: {...}, gm: {...}, wm: {...}}"),
+]
+
+
 class FixedParam(_Strict):
     param: Literal["lam", "mu"] = "mu"
     group: str = "gm"
-    value: float = Field(1.0, gt=0)
+    value: Float = Field(1.0, gt=0)
 
 
 class ModelConfig(_Strict):
     elastic: Literal["uniform", "tissue", "element"] = "tissue"
-    t_s: float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11)")
-    t_r: float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12)")
-    prior_lam: BetaPrior | TissuePriors = BetaPrior(r2=100.0)
-    prior_mu: BetaPrior | TissuePriors = BetaPrior(r2=10.0)
-    skull_barrier_mm: float = Field(
+    t_s: Float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11)")
+    t_r: Float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12)")
+    prior_lam: Prior = BetaPrior(r2=100.0)
+    prior_mu: Prior = BetaPrior(r2=10.0)
+    skull_barrier_mm: Float = Field(
         1.0, ge=0, description="width w (mm) of a smooth barrier -sum (w/d - 1)^2 over nodes at "
         "distance d < w from the skull's voxel cubes (a soft minimum, never positive inside "
         "the forbidden voxels), added to the log-density (a change of the model that "
@@ -134,7 +189,7 @@ class ModelConfig(_Strict):
         "of transitions against 85% on the wall alone, benchmarks/barrier.py); 0: off, the "
         "paper's hard constraint alone (which stays in place either way), as the paper's "
         "configs say")
-    quadrature_level: int = Field(
+    quadrature_level: Int = Field(
         1, ge=0, le=3, description="quadrature of E_s (Eq. 1): 0, the paper's 4 Gauss points per "
         "tetrahedron; k, the same rule in each of the 8^k children of k red refinements "
         "(4 * 8^k points, up to 8^k times the cost of E_s), against the aliasing of 4 points "
@@ -154,8 +209,8 @@ class ModelConfig(_Strict):
 
 
 class SolverConfig(_Strict):
-    rtol: float = Field(1e-8, gt=0, lt=1)
-    maxiter: int = Field(1000, ge=1)
+    rtol: Float = Field(1e-8, gt=0, lt=1)
+    maxiter: Int = Field(1000, ge=1)
     preconditioner: Literal["auto", "dense", "spectral", "block-jacobi"] = Field(
         "auto", description="CG preconditioner of the interior solves (the random walks', "
         "the gradient kernels' elastic moves', the mode search's): spectral (one parameter "
@@ -177,18 +232,18 @@ class SamplerConfig(_Strict):
         "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up).  Default "
         "nuts, the kernel that mixed best in benchmarks/samplers.py (the quickstart's too); "
         "the paper's configs say rwmh")
-    chains: int = Field(3, ge=2)
-    thinning: int | None = Field(None, ge=1, description="keep every n-th step; default 10 (rwmh), "
+    chains: Int = Field(3, ge=2)
+    thinning: Int | None = Field(None, ge=1, description="keep every n-th step; default 10 (rwmh), "
                                  "1 (gradient kernels)")
-    warmup_steps: int | None = Field(None, ge=0, description="steps per chain before the stored "
+    warmup_steps: Int | None = Field(None, ge=0, description="steps per chain before the stored "
                                      "draws; default 2000 (rwmh), 500 (gradient kernels)")
-    max_draws: int = Field(2000, ge=1)
-    min_draws: int = Field(100, ge=2)
-    chunk_draws: int = Field(50, ge=2)
-    target_acceptance: float | None = Field(
+    max_draws: Int = Field(2000, ge=1)
+    min_draws: Int = Field(100, ge=2)
+    chunk_draws: Int = Field(50, ge=2)
+    target_acceptance: Float | None = Field(
         None, gt=0, lt=1, description="warm-up target of the u_b kernel's acceptance; default 0.25 "
         "(rwmh), 0.57 (mala), 0.8 (hmc, nuts)")
-    rhat_threshold: float = Field(1.2, gt=1)
+    rhat_threshold: Float = Field(1.2, gt=1)
     rhat_split: bool = Field(
         False, description="monitor the split-chain Gelman-Rubin R-hat (catches a common drift) "
         "instead of the paper's whole-chain one")
@@ -200,38 +255,51 @@ class SamplerConfig(_Strict):
         "u_i = H(lam, mu) u_b (one mat-vec instead of a CG solve), rebuilt after each accepted "
         "elastic move; memory 72 n_i n_b bytes per chain (paper size ~12 MB); rwmh: blocked "
         "only, default false; gradient kernels: default true")
-    u_moves: int = Field(
+    u_moves: Int = Field(
         1, ge=1, description="condensed only: updates of u_b per step (the cheap moves that "
         "amortise one rebuild of the condensation)")
     proposal: Literal["laplace", "isotropic"] = "laplace"
-    sigma_u: float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
-    sigma_lam: float = Field(0.5, gt=0)
-    sigma_mu: float = Field(0.05, gt=0)
-    step_size: float = Field(0.1, gt=0, description="gradient kernels: initial leapfrog step in the "
+    sigma_u: Float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
+    sigma_lam: Float = Field(0.5, gt=0)
+    sigma_mu: Float = Field(0.05, gt=0)
+    step_size: Float = Field(0.1, gt=0, description="gradient kernels: initial leapfrog step in the "
                              "preconditioned coordinates (adapted in the warm-up)")
-    hmc_steps: int = Field(16, ge=1, description="hmc: leapfrog steps per transition (the mean "
+    hmc_steps: Int = Field(16, ge=1, description="hmc: leapfrog steps per transition (the mean "
                            "number with hmc_jitter)")
     hmc_jitter: bool = Field(True, description="hmc: draw each transition's number of leapfrog "
                              "steps uniformly from 1 .. 2 hmc_steps - 1 (a fixed length can make "
                              "trajectories nearly periodic: antithetic draws, a high tail R-hat)")
-    max_tree_depth: int = Field(6, ge=1, le=15, description="nuts: maximum trajectory doublings "
+    max_tree_depth: Int = Field(6, ge=1, le=15, description="nuts: maximum trajectory doublings "
                                 "(at most 2^depth - 1 gradients per transition)")
     dense_mass: bool = Field(False, description="gradient kernels: adapt a dense inverse mass "
                              "matrix instead of a diagonal one")
     adapt_mass: bool = Field(True, description="gradient kernels: adapt the inverse mass matrix in "
                              "the warm-up windows; false: identity in the Laplace-preconditioned "
                              "coordinates, step size alone adapted")
-    elastic_moves: int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
+    elastic_moves: Int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
                                "elastic parameters per transition (cheap next to a trajectory)")
-    sigma_eta: float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
+    sigma_eta: Float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
                              "random walk in the unconstrained (logit) space (adapted)")
 
     @model_validator(mode="after")
+    def _draws(self):
+        # sampling runs whole chunks until max_draws (sampler._drive): a chunk beyond
+        # max_draws overshoots it, and min_draws beyond it never applies
+        for key in ("min_draws", "chunk_draws"):
+            if getattr(self, key) > self.max_draws:
+                raise ValueError(f"sampler.{key} ({getattr(self, key)}) must not exceed "
+                                 f"sampler.max_draws ({self.max_draws})")
+        return self
+
+    @model_validator(mode="after")
     def _per_kind_defaults(self):
+        # filled in without marking the keys as given (no assignment): a config re-validated
+        # from its given keys (``model_dump(exclude_unset=True)``, as ``bayesreg.run`` does
+        # with overrides) then takes the defaults of its new kind
         if self.thinning is None:
-            self.thinning = 1 if self.gradient else 10
+            self.__dict__["thinning"] = 1 if self.gradient else 10
         if self.warmup_steps is None:
-            self.warmup_steps = 500 if self.gradient else 2000
+            self.__dict__["warmup_steps"] = 500 if self.gradient else 2000
         return self
 
     @property
@@ -255,17 +323,17 @@ class InitConfig(_Strict):
         "maximise the posterior from the central start (L-BFGS, optax) and start the chains "
         "overdispersed around the mode",
     )
-    fraction: float = Field(0.5, ge=0, le=1, description="between: start at fraction * truth")
+    fraction: Float = Field(0.5, ge=0, le=1, description="between: start at fraction * truth")
     registration: Literal["tvl1", "ilk"] = Field(
         "tvl1", description="registration: skimage.registration.optical_flow_<method>")
-    perturb_mm: float = Field(0.5, ge=0, description="perturb: per-chain Gaussian jitter, mm")
-    overdispersion: float = Field(
+    perturb_mm: Float = Field(0.5, ge=0, description="perturb: per-chain Gaussian jitter, mm")
+    overdispersion: Float = Field(
         2.0, ge=0, description="mode: chains start at mode + overdispersion * Laplace draw"
     )
-    optimizer_iterations: int = Field(1000, ge=1)
+    optimizer_iterations: Int = Field(1000, ge=1)
     optimize_parameters: bool = Field(
         True, description="mode: optimise the free elastic parameters jointly with u_b")
-    param_jitter: float = Field(0.2, ge=0, description="log-normal sd of start parameters")
+    param_jitter: Float = Field(0.2, ge=0, description="log-normal sd of start parameters")
 
 
 class OutputConfig(_Strict):
@@ -283,7 +351,7 @@ class Config(_Strict):
     module; ``configs/quickstart.yaml`` is a commented example of the common ones."""
 
     name: str = "run"
-    seed: int = 0
+    seed: Int = Field(0, ge=0, lt=2**32, description="seed of NumPy's and JAX's generators")
     data: DataConfig = DataConfig()
     mesh: MeshConfig = MeshConfig()
     synthetic: SyntheticConfig = SyntheticConfig()
@@ -315,18 +383,59 @@ class Config(_Strict):
             if isinstance(getattr(self.model, key), TissuePriors) and self.model.elastic != "tissue":
                 raise ValueError(f"model.{key}: per-tissue priors need elastic: tissue")
         if not self.synthetic.enabled and self.data.moving is None:
-            raise ValueError("without synthetic.enabled, data.moving (the image m) is required")
+            raise ValueError("without synthetic.enabled, data.moving (the image m) is required"
+                             + (" (with data.source: nifti)" if self.data.source != "nifti" else ""))
+        if self.synthetic.enabled and self.data.moving is not None:
+            raise ValueError("data.moving is not used with synthetic.enabled: true (m is f warped "
+                             "by the synthetic deformation); remove it or set synthetic.enabled: "
+                             "false")
+        self._initial_in_support()
         if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:
             raise ValueError("init.start 'between' needs a synthetic truth (synthetic.enabled); "
                              "use init.start: registration for real data")
         return self
 
+    def _initial_in_support(self):
+        """The start of each free elastic parameter (``model.initial_*``) must lie strictly
+        inside its prior's support ``(r1, r2)`` (the posterior refuses it after meshing).
+
+        Per tissue: each tissue's value against its prior (``model.prior_*`` or its tissue's
+        entry); ``elastic: uniform`` starts at the volume-weighted mean of the tissues' values,
+        known only after meshing, so each value must lie inside; ``element``: each element
+        starts at its tissue's value.  The fixed parameter (``model.fixed``) is not free: its
+        tissue is skipped (uniform: the whole parameter)."""
+        m = self.model
+        for p in ("lam", "mu"):
+            prior = getattr(m, f"prior_{p}")
+            initial = getattr(m, f"initial_{p}")
+            for t in ("csf", "gm", "wm"):
+                if m.fixed is not None and m.fixed.param == p and (
+                        (m.elastic == "tissue" and m.fixed.group == t)
+                        or (m.elastic == "uniform" and m.fixed.group == "all")):
+                    continue
+                pr, key = prior, f"model.prior_{p}"
+                if isinstance(prior, TissuePriors):
+                    pr, key = getattr(prior, t), f"model.prior_{p}.{t}"
+                v = getattr(initial, t)
+                if not pr.r1 < v < pr.r2:
+                    raise ValueError(
+                        f"model.initial_{p}.{t} ({v:g}) must lie strictly inside the support "
+                        f"({pr.r1:g}, {pr.r2:g}) of {key}"
+                        + (" (elastic: uniform starts at the volume-weighted mean of the "
+                           "tissues' values)" if m.elastic == "uniform" else ""))
+
 
 def _format_errors(err: ValidationError, source: str) -> str:
     lines = [f"invalid configuration {source}:"]
     for e in err.errors():
-        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        loc = e["loc"]
+        # drop the branch tag of the prior union (model.prior_lam.beta.r2 -> model.prior_lam.r2)
+        loc = [p for i, p in enumerate(loc)
+               if not (p in _PRIOR_TAGS and i and loc[i - 1] in ("prior_lam", "prior_mu"))]
+        key = ".".join(str(p) for p in loc) or "(top level)"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        if e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
         lines.append(f"  {key}: {msg}")
     return "\n".join(lines)
 
@@ -341,14 +450,100 @@ def _set_path(d: dict, dotted: str, value):
     cur[keys[-1]] = value
 
 
+class _DuplicateKey(Exception):
+    def __init__(self, key: str, first: int, again: int):
+        super().__init__(key, first, again)
+        self.key, self.first, self.again = key, first, again
+
+
+def _check_duplicate_keys(node, path: tuple, seen_nodes: set) -> None:
+    """Raise :class:`_DuplicateKey` for a key given twice in one mapping (YAML would keep the
+    last silently).  Keys brought in by a merge (``<<: *anchor``) may be overridden."""
+    if id(node) in seen_nodes:
+        return
+    seen_nodes.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        lines: dict = {}
+        for k, v in node.value:
+            if k.tag == "tag:yaml.org,2002:merge":
+                _check_duplicate_keys(v, path, seen_nodes)
+                continue
+            name = k.value if isinstance(k, yaml.ScalarNode) else None
+            if name is not None:
+                if name in lines:
+                    raise _DuplicateKey(".".join(path + (name,)), lines[name], k.start_mark.line + 1)
+                lines[name] = k.start_mark.line + 1
+            _check_duplicate_keys(v, path + (str(name),), seen_nodes)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, v in enumerate(node.value):
+            _check_duplicate_keys(v, path + (str(i),), seen_nodes)
+
+
+def _load_yaml(text: str):
+    """``yaml.safe_load`` that refuses a key given twice in one mapping (:class:`_DuplicateKey`)."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_duplicate_keys(node, (), set())
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
-    """Apply ``key.sub=value`` strings to a raw config dict (values parsed as YAML)."""
+    """Apply ``key.sub=value`` strings to a raw config dict (values parsed as YAML).
+
+    Raises
+    ------
+    ConfigError
+        If ``overrides`` is a string rather than a list, or an item is not ``key=value``
+        with a valid YAML value.
+    """
+    if isinstance(overrides, str):
+        raise ConfigError(f"overrides must be a list of 'key=value' strings, got the string {overrides!r}")
     for item in overrides or []:
         if "=" not in item:
             raise ConfigError(f"--set expects key=value, got '{item}'")
         key, val = item.split("=", 1)
-        _set_path(raw, key.strip(), yaml.safe_load(val))
+        try:
+            value = _load_yaml(val)
+        except _DuplicateKey as exc:
+            raise ConfigError(f"--set {item}: duplicate key {key.strip()}.{exc.key}") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {item}: not a valid YAML value: {exc}") from None
+        _set_path(raw, key.strip(), value)
     return raw
+
+
+def override_config(cfg: Config, overrides: list[str] | None = None, **values) -> Config:
+    """A new config: ``cfg`` with ``key.sub=value`` overrides and dotted ``values`` applied.
+
+    Re-validated from the keys ``cfg`` was given, so defaults that follow other keys follow
+    the overrides (the sampler's ``thinning`` and ``warmup_steps`` follow ``sampler.kind``,
+    as in :func:`load_config`).  ``cfg`` is not changed.
+
+    Parameters
+    ----------
+    cfg : Config
+    overrides : list of str, optional
+        As ``--set`` (values parsed as YAML).
+    **values
+        ``section__key=value`` pairs set as Python values (e.g. ``output__dir=path``).
+
+    Raises
+    ------
+    ConfigError
+        On unknown keys or bad values (the message names each key).
+    """
+    raw = apply_overrides(cfg.model_dump(mode="json", exclude_unset=True), overrides)
+    for key, value in values.items():
+        _set_path(raw, key.replace("__", "."), value)
+    try:
+        return Config.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc, "(overrides)")) from None
 
 
 def _read_raw(path: Path, chain: tuple) -> dict:
@@ -358,9 +553,14 @@ def _read_raw(path: Path, chain: tuple) -> dict:
     if not path.exists():
         raise FileNotFoundError(f"config not found: {path}")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        raw = _load_yaml(path.read_text())
+    except _DuplicateKey as exc:
+        raise ConfigError(f"{path}: duplicate key {exc.key} (lines {exc.first} and {exc.again}): "
+                          "give each key once") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if raw is None:  # not a run of every default: most likely a file not written yet
+        raise ConfigError(f"config file {path} is empty (for a run of the defaults give none)")
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: the top level must be a mapping")
     base = raw.pop("extends", None)

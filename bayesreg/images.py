@@ -99,16 +99,26 @@ def load_nifti(path) -> Image:
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        If the image is not 3D (a trailing singleton 4th axis is dropped), or its qform
+        If ``path`` is not a NIfTI file, the image is not 3D (a trailing singleton 4th axis
+        is dropped), or its qform
         and sform (both with codes > 0) disagree by more than ``1e-3`` mm in translation or
         ``1e-4`` in the linear part.
     """
     import nibabel as nib
 
+    from nibabel.filebasedimages import ImageFileError
+
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"image not found: {path}")
-    nii = nib.load(str(path))
+    if path.is_dir():
+        raise ValueError(f"{path} is a directory, not a NIfTI image")
+    try:
+        nii = nib.load(str(path))
+    except ImageFileError as exc:
+        raise ValueError(f"{path} is not an image nibabel can read ({exc})") from None
+    if not isinstance(nii, nib.Nifti1Pair):  # NIfTI-1 and -2, single file or pair
+        raise ValueError(f"{path} is a {type(nii).__name__}, not a NIfTI image")
     _check_qform_sform(nii, path)
     data = np.asanyarray(nii.dataobj)
     if data.ndim == 4 and data.shape[3] == 1:

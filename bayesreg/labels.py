@@ -11,6 +11,8 @@ e.g. ``{csf: 1, gm: 2, wm: 3, skull: [4, 5]}``.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import scipy.ndimage as ndi
 
@@ -90,13 +92,20 @@ def remap_labels(labels: Image, coding: dict) -> Image:
         Integer label map.
     coding : dict
         ``{"csf": int | list[int], "gm": ..., "wm": ..., "skull": ...}``; values not listed
-        become background.  ``skull`` may be omitted (no skull constraint inside the image;
-        leaving the image is still forbidden).
+        become background; every listed value must occur.  ``skull`` may be omitted (no
+        skull constraint inside the image; leaving the image is still forbidden).
 
     Raises
     ------
     ValueError
-        Unknown keys, a value claimed by two tissues, or an empty tissue.
+        Unknown keys, a value claimed by two tissues, or a tissue or skull none of whose
+        listed values has a voxel (a typo in the coding would otherwise empty a tissue or
+        silently drop the skull constraint); the message names the tissue and the values.
+
+    Warns
+    -----
+    UserWarning
+        Some, not all, of a tissue's listed values have no voxel (named).
     """
     allowed = {"csf": CSF, "gm": GM, "wm": WM, "skull": SKULL}
     unknown = set(coding) - set(allowed)
@@ -110,11 +119,27 @@ def remap_labels(labels: Image, coding: dict) -> Image:
     out = np.full(data.shape, BACKGROUND, np.uint8)
     seen: dict[int, str] = {}
     for name, values in coding.items():
-        for v in np.atleast_1d(values):
-            if int(v) in seen:
-                raise ValueError(f"label value {v} assigned to both {seen[int(v)]} and {name}")
-            seen[int(v)] = name
-            out[data == int(v)] = allowed[name]
+        values = [int(v) for v in np.atleast_1d(values)]
+        missing = []
+        for v in values:
+            if v in seen:
+                raise ValueError(f"label value {v} assigned to both {seen[v]} and {name}")
+            seen[v] = name
+            hit = data == v
+            if not hit.any():
+                missing.append(v)
+            out[hit] = allowed[name]
+        if missing:
+            what = "tissue" if name in TISSUES else "region"
+            empty = len(missing) == len(values)
+            msg = (f"{what} '{name}' is {'empty' if empty else 'incomplete'} in the label map: no "
+                   f"voxel has the label value{'s' if len(missing) > 1 else ''} "
+                   f"{', '.join(map(str, missing))} of label_coding {name}: {coding[name]}"
+                   + (" (the skull constraint would be lost)" if name == "skull" and empty else ""))
+            if empty:
+                raise ValueError(msg)
+            # a list of codes (an atlas's structures) may name some a subject lacks
+            warnings.warn(msg, stacklevel=2)
     res = Image(out, labels.affine)
     check_labels(res)
     return res

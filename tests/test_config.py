@@ -33,8 +33,8 @@ def test_bad_value_is_named(tmp_path):
 
 
 def test_overrides_are_validated():
-    cfg = load_config("configs/quickstart.yaml", overrides=["sampler.max_draws=7", "model.t_r=2.5"])
-    assert cfg.sampler.max_draws == 7 and cfg.model.t_r == 2.5
+    cfg = load_config("configs/quickstart.yaml", overrides=["sampler.max_draws=700", "model.t_r=2.5"])
+    assert cfg.sampler.max_draws == 700 and cfg.model.t_r == 2.5
     with pytest.raises(ConfigError, match=r"sampler\.chains"):
         load_config("configs/quickstart.yaml", overrides=["sampler.chains=1"])
     with pytest.raises(ConfigError, match="key=value"):
@@ -163,3 +163,145 @@ def test_paper_configs_mesh_to_the_papers_node_count():
                      ("mesh.max_attempts=0", r"mesh\.max_attempts")):
         with pytest.raises(ConfigError, match=key):
             load_config("configs/quickstart.yaml", overrides=[bad])
+
+
+def _error(overrides, config="configs/quickstart.yaml"):
+    with pytest.raises(ConfigError) as err:
+        load_config(config, overrides=overrides)
+    return str(err.value)
+
+
+@pytest.mark.parametrize("item, key", [
+    ("model.t_s=.inf", r"model\.t_s"), ("model.t_r=.inf", r"model\.t_r"),
+    ("model.prior_lam.r2=.inf", r"model\.prior_lam\.r2"), ("model.t_s=.nan", r"model\.t_s"),
+    ("model.fixed.value=1e400", r"model\.fixed\.value"),  # a YAML string, inf as a float
+    ("model.fixed.value=1.0e+400", r"model\.fixed\.value"),
+])
+def test_infinite_values_are_errors(item, key):
+    with pytest.raises(ConfigError, match=key + ": Input should be a finite number"):
+        load_config("configs/quickstart.yaml", overrides=[item])
+
+
+def test_initial_parameters_lie_inside_their_prior_support():
+    """The start of every free parameter lies strictly inside its prior's support (the
+    posterior refuses it only after meshing); a fixed parameter is not checked."""
+    msg = _error(["model.initial_lam.gm=500"])
+    assert ("model.initial_lam.gm (500) must lie strictly inside the support (0, 100) of "
+            "model.prior_lam") in msg
+    assert "support (2, 100)" in _error(["model.prior_lam.r1=2"])  # initial_lam.csf = 1
+    # per-tissue priors: each tissue against its own
+    tissue = "model.prior_lam={csf: {r2: 10}, gm: {r2: 100}, wm: {r2: 3}}"
+    assert "model.initial_lam.wm (5) must lie strictly inside the support (0, 3) of model.prior_lam.wm" \
+        in _error([tissue])
+    load_config("configs/quickstart.yaml", overrides=[tissue, "model.initial_lam.wm=2"])
+    # mu_GM is fixed in the quickstart: its initial value is unused
+    load_config("configs/quickstart.yaml", overrides=["model.initial_mu.gm=500"])
+    assert "model.initial_mu.gm" in _error(["model.initial_mu.gm=500", "model.fixed=null"])
+    # uniform: the start is a volume-weighted mean of the tissues' values, so each must be inside
+    msg = _error(["model.initial_lam.csf=5000"], "configs/paper_uniform.yaml")
+    assert "model.initial_lam.csf" in msg and "volume-weighted mean" in msg
+    load_config("configs/paper_uniform.yaml", overrides=["model.initial_mu.csf=500"])  # mu fixed
+
+
+def test_seed_is_a_32_bit_unsigned_integer():
+    assert load_config(None, overrides=[f"seed={2**32 - 1}"]).seed == 2**32 - 1
+    with pytest.raises(ConfigError, match=r"seed: Input should be greater than or equal to 0"):
+        load_config(None, overrides=["seed=-1"])
+    with pytest.raises(ConfigError, match=r"seed: Input should be less than 4294967296"):
+        load_config(None, overrides=[f"seed={2**32}"])
+
+
+def test_bad_prior_gives_the_errors_of_its_own_form_only():
+    """A union of a Beta prior and per-tissue priors: only the form given is reported."""
+    assert _error(["model.prior_lam={r1: 100, r2: 10}"]).splitlines()[1:] == [
+        "  model.prior_lam: r2 (10.0) must exceed r1 (100.0)"]
+    assert _error(["model.prior_lam={csf: {r2: 10}, gm: {r1: 5, r2: 1}, wm: {r2: 3}}"]).splitlines()[1:] == [
+        "  model.prior_lam.gm: r2 (1.0) must exceed r1 (5.0)"]
+    assert _error(["model.prior_mu={r2: 10, foo: 1}"]).splitlines()[1:] == [
+        "  model.prior_mu.foo: unknown key"]
+    assert "model.prior_mu: Input should be a prior" in _error(["model.prior_mu=5"])
+
+
+@pytest.mark.parametrize("item, key", [
+    ("data.fixed=f.nii.gz", "data.fixed"), ("data.labels=l.nii.gz", "data.labels"),
+    ("data.label_coding={csf: 1, gm: 2, wm: 3}", "data.label_coding"),
+    ("data.moving=m.nii.gz", "data.moving"),
+])
+def test_data_keys_of_nifti_are_errors_with_the_template(item, key):
+    assert f"{key} is only used with data.source: nifti" in _error([item])
+
+
+def test_moving_image_is_an_error_with_a_synthetic_case(tmp_path):
+    nifti = ["data.source=nifti", "data.fixed=f.nii.gz", "data.labels=l.nii.gz",
+             "data.label_coding={csf: 1, gm: 2, wm: 3}"]
+    load_config(None, overrides=nifti)  # synthetic m from the user's f
+    msg = _error(nifti + ["data.moving=m.nii.gz"], None)
+    assert "data.moving is not used with synthetic.enabled: true" in msg
+    load_config(None, overrides=nifti + ["data.moving=m.nii.gz", "synthetic.enabled=false",
+                                          "init.start=registration"])
+
+
+def test_draw_counts_are_consistent():
+    """Sampling runs whole chunks until max_draws: min_draws and chunk_draws may not exceed it."""
+    assert ("sampler.min_draws (2000) must not exceed sampler.max_draws (1000)"
+            in _error(["sampler.min_draws=2000"]))
+    assert ("sampler.chunk_draws (1500) must not exceed sampler.max_draws (1000)"
+            in _error(["sampler.chunk_draws=1500"]))
+    cfg = load_config("configs/quickstart.yaml",
+                      overrides=["sampler.min_draws=1000", "sampler.chunk_draws=1000"])
+    assert cfg.sampler.min_draws == cfg.sampler.chunk_draws == cfg.sampler.max_draws == 1000
+
+
+def test_booleans_are_not_numbers():
+    """YAML reads yes/no/true/false as booleans: an integer or float key refuses them."""
+    assert "sampler.chains: Input should be a valid integer" in _error(["sampler.chains=true"])
+    assert "sampler.thinning: Input should be a valid integer" in _error(["sampler.thinning=yes"])
+    assert "model.t_s: Input should be a valid number, not a boolean" in _error(["model.t_s=on"])
+    cfg = load_config("configs/quickstart.yaml", overrides=["sampler.chains=4", "model.t_s=1e-3"])
+    assert cfg.sampler.chains == 4 and cfg.model.t_s == 1e-3  # '1e-3' is a YAML string
+
+
+def test_duplicate_yaml_keys_are_errors(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("sampler:\n  chains: 3\n  kind: nuts\n  chains: 4\n")
+    with pytest.raises(ConfigError, match=r"duplicate key sampler\.chains \(lines 2 and 4\)"):
+        load_config(p)
+    p.write_text("model: {t_s: 0.1}\nseed: 1\nmodel: {t_r: 2.0}\n")
+    with pytest.raises(ConfigError, match=r"duplicate key model \(lines 1 and 3\)"):
+        load_config(p)
+    with pytest.raises(ConfigError, match=r"duplicate key model\.prior_lam\.r2"):
+        load_config(None, overrides=["model.prior_lam={r2: 10, r2: 20}"])
+    # a merge key's values may be overridden
+    p.write_text("model:\n  prior_lam: &p {r1: 0.0, r2: 100.0}\n  prior_mu: {<<: *p, r2: 10.0}\n")
+    assert load_config(p).model.prior_mu.r2 == 10.0
+
+
+def test_empty_config_file_is_an_error(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("")
+    with pytest.raises(ConfigError, match=f"config file {p} is empty"):
+        load_config(p)
+    p.write_text("# only a comment\n")
+    with pytest.raises(ConfigError, match="is empty"):
+        load_config(p)
+    (tmp_path / "child.yaml").write_text("extends: c.yaml\nseed: 2\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml is empty"):
+        load_config(tmp_path / "child.yaml")
+
+
+def test_override_config_follows_the_kind_and_leaves_the_original_alone():
+    from bayesreg.config import override_config
+
+    cfg = load_config(overrides=["sampler.kind=nuts"])
+    assert (cfg.sampler.thinning, cfg.sampler.warmup_steps) == (1, 500)
+    rw = override_config(cfg, ["sampler.kind=rwmh"], output__dir="runs/x")
+    # the per-kind defaults follow the new kind, as load_config with the same overrides gives
+    assert rw.model_dump() == load_config(overrides=["sampler.kind=rwmh", "output.dir=runs/x"]).model_dump()
+    assert (rw.sampler.thinning, rw.sampler.warmup_steps) == (10, 2000)
+    assert cfg.sampler.kind == "nuts" and str(cfg.output.dir) != "runs/x"  # unchanged
+    given = override_config(load_config(overrides=["sampler.thinning=3"]), ["sampler.kind=nuts"])
+    assert given.sampler.thinning == 3  # a value given is kept
+    with pytest.raises(ConfigError, match="sampler.chainz: unknown key"):
+        override_config(cfg, ["sampler.chainz=3"])
+    with pytest.raises(ConfigError, match="a list of 'key=value' strings"):
+        override_config(cfg, "seed=3")

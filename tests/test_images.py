@@ -37,8 +37,22 @@ def test_remap_labels_and_errors():
         L.remap_labels(img, {"csf": 1, "grey": 2})
     with pytest.raises(ValueError, match="both"):
         L.remap_labels(img, {"csf": 1, "gm": 1, "wm": 3})
-    with pytest.raises(ValueError, match="tissue 'wm' is empty"):
+    with pytest.raises(ValueError, match="tissue 'wm' is empty in the label map: no voxel has "
+                                         "the label value 7"):
         L.remap_labels(img, {"csf": 1, "gm": 2, "wm": 7})
+    # a coded value with no voxel: an error naming the tissue and the value (a typo would
+    # otherwise drop the skull constraint or part of a tissue silently)
+    with pytest.raises(ValueError, match=r"region 'skull' is empty .* value 8 .*skull constraint "
+                                         "would be lost"):
+        L.remap_labels(img, {"csf": 1, "gm": 2, "wm": 3, "skull": 8})
+    # some of a list of codes absent (an atlas's structure a subject lacks): a warning
+    with pytest.warns(UserWarning, match=r"region 'skull' is incomplete .* value 8 of "
+                                         r"label_coding skull: \[4, 8\]"):
+        L.remap_labels(img, {"csf": 1, "gm": 2, "wm": 3, "skull": [4, 8]})
+    with pytest.warns(UserWarning, match=r"tissue 'csf' is incomplete .* values 6, 7 "):
+        out = L.remap_labels(img, {"csf": [1, 6, 7], "gm": 2, "wm": 3})
+    assert out.data.ravel().tolist()[:3] == [L.CSF, L.GM, L.WM]
+    assert L.remap_labels(img, {"csf": 1, "gm": 2, "wm": 3}).data.ravel().tolist()[3:5] == [0, 0]  # no skull
 
 
 def test_check_same_space_names_the_problem():
@@ -255,3 +269,13 @@ def test_frames_scanner_vs_mni_refused(tmp_path):
     assert "data.fixed: scanner" in str(err.value) and "data.labels: mni" in str(err.value)
     with pytest.raises(ValueError, match="different world frames"):
         check_same_frame(paths["scanner"], paths["aligned"], strict=True)
+
+
+def test_load_nifti_names_a_path_that_is_not_an_image(tmp_path):
+    with pytest.raises(ValueError, match="is a directory, not a NIfTI image"):
+        load_nifti(tmp_path)
+    (tmp_path / "notes.nii.gz").write_text("not an image")
+    with pytest.raises(ValueError, match="notes.nii.gz is not an image nibabel can read"):
+        load_nifti(tmp_path / "notes.nii.gz")
+    with pytest.raises(FileNotFoundError, match="image not found"):
+        load_nifti(tmp_path / "missing.nii.gz")
