@@ -62,18 +62,37 @@ class Checkpoint:
         os.replace(tmp, self.config_path)
 
     def load_config(self):
-        from bayesreg.config import Config
+        """The run's saved config (``checkpoint/config.json``), validated.
+
+        Raises
+        ------
+        FileNotFoundError
+            If there is no saved config.
+        ConfigError
+            If it is not valid JSON or not a valid config (the message names the file and key).
+        """
+        from pydantic import ValidationError
+
+        from bayesreg.config import Config, ConfigError, _format_errors
 
         if not self.config_path.is_file():
             raise FileNotFoundError(f"{self.config_path} not found: not a run directory written "
                                     "with output.checkpoint, or not a run directory at all")
-        raw = json.loads(self.config_path.read_text())
+        try:
+            raw = json.loads(self.config_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{self.config_path}: not valid JSON: {exc}") from None
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{self.config_path}: the top level must be a mapping")
         # a run written before a key existed resumes with the behaviour it was started with,
         # not with a later default
         raw.setdefault("model", {}).setdefault("skull_barrier_mm", 0.0)
         raw["model"].setdefault("quadrature_level", 0)
         raw.setdefault("synthetic", {}).setdefault("outside", "background")
-        return Config.model_validate(raw)
+        try:
+            return Config.model_validate(raw)
+        except ValidationError as exc:
+            raise ConfigError(_format_errors(exc, str(self.config_path))) from None
 
     def save_init(self, init) -> None:
         arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}

@@ -89,7 +89,9 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from bayesreg.config import ConfigError
 
-    errors = (ConfigError, FileExistsError, FileNotFoundError, ValueError)
+    # bad input and file-system errors (a path that is a file, a missing or damaged file,
+    # no permission) end with their message and exit status 2, not a traceback
+    errors = (ConfigError, OSError, ValueError)
     progress = False if getattr(args, "no_progress", False) else None
     try:
         if args.command == "run":

@@ -64,25 +64,37 @@ class RunDirectory:
     ----------
     path : str or Path
     overwrite : bool
-        Replace an existing non-empty directory: it is moved aside to a hidden sibling
-        (``.NAME.replaced-PID``) at once and deleted only when the new run commits.
+        Replace an existing non-empty directory that holds one of ``marks`` (a folder of
+        other files is never replaced): it is moved aside to a hidden sibling
+        (``.NAME.replaced-PID``) at once and deleted only when the new run commits;
+        :meth:`rollback` puts it back.
     resume : bool
         Continue the unfinished run in ``path`` (it must hold ``checkpoint/config.json`` and
         no ``run.json``).
+    marks : tuple of str
+        Names whose presence in ``path`` makes it a directory ``overwrite`` may replace
+        (default: a run's ``run.json`` and ``checkpoint``).
 
     Raises
     ------
     FileExistsError
-        If ``path`` exists, is not empty and neither ``overwrite`` nor ``resume`` is set, or
-        ``resume`` is set and the run there is already finished.
+        If ``path`` exists, is not empty and neither ``overwrite`` nor ``resume`` is set;
+        with ``overwrite``, if it holds none of ``marks``; with ``resume``, if the run there
+        is already finished.
+    NotADirectoryError
+        If ``path`` or one of its parents is a file.
     FileNotFoundError
         With ``resume``, if ``path`` holds no checkpoint.
     """
 
-    def __init__(self, path, *, overwrite=False, resume=False):
+    def __init__(self, path, *, overwrite=False, resume=False, marks=("run.json", "checkpoint")):
         self.path = Path(path)
         self.overwrite = overwrite
         self._old: Path | None = None
+        for p in (self.path, *self.path.parents):
+            if p.exists() and not p.is_dir():
+                raise NotADirectoryError(f"run directory {self.path}: {p} is a file")
+        self._created = not self.path.exists()
         if resume:
             if (self.path / "run.json").is_file():
                 raise FileExistsError(f"run {self.path} is finished (run.json exists): nothing to resume")
@@ -97,10 +109,24 @@ class RunDirectory:
                     f"run directory {self.path} exists and is not empty{hint}; pass --out to "
                     "choose another or --overwrite to replace it"
                 )
+            if not any((self.path / m).exists() for m in marks):
+                raise FileExistsError(
+                    f"{self.path} is not empty and holds none of {', '.join(marks)}: not a "
+                    "directory bayesreg wrote, so --overwrite does not replace it; choose "
+                    "another --out"
+                )
+            if self.path.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
+                raise FileExistsError(f"{self.path} is the working directory or holds it: "
+                                      "--overwrite does not replace it; choose another --out")
             self._old = self.path.with_name(f".{self.path.name}.replaced-{os.getpid()}")
             os.replace(self.path, self._old)
         self.path.mkdir(parents=True, exist_ok=True)
         self._staging = self.path / ".outputs-partial"
+
+    @property
+    def replaced(self) -> Path | None:
+        """Where the directory this one replaces waits until :meth:`commit` (else ``None``)."""
+        return self._old
 
     @property
     def staging(self) -> Path:
@@ -121,6 +147,19 @@ class RunDirectory:
             shutil.rmtree(self._old)
             self._old = None
         return self.path
+
+    def rollback(self) -> None:
+        """Undo the directory of a run that failed before it wrote anything to resume.
+
+        Deletes what this run wrote and puts back what was there before: the replaced
+        directory (``overwrite``), an empty directory, or nothing.  Not for resumed runs.
+        """
+        shutil.rmtree(self.path, ignore_errors=True)
+        if self._old is not None:
+            os.replace(self._old, self.path)
+            self._old = None
+        elif not self._created:
+            self.path.mkdir(parents=True, exist_ok=True)
 
 
 class RunResult(NamedTuple):

@@ -108,6 +108,11 @@ def _load_data(cfg: Config):
     f = load_nifti(d.fixed)
     lab = load_nifti(d.labels)
     m = load_nifti(d.moving) if d.moving is not None else None
+    for key, img in (("data.fixed", f), ("data.labels", lab), ("data.moving", m)):
+        bad = 0 if img is None else int(np.size(img.data) - np.count_nonzero(np.isfinite(img.data)))
+        if bad:
+            raise ValueError(f"{key} ({getattr(d, key[5:])}) has {bad} non-finite voxels (NaN or "
+                             "inf): replace them (e.g. by 0 outside the head) before registering")
     # the images may lie on different grids of one world frame: resampled onto f's grid
     check_same_frame(d.fixed, d.labels, d.moving, names=("data.fixed", "data.labels", "data.moving"))
     lab = to_reference_grid(lab, f, name="data.labels", reference_name="data.fixed", order=0)
@@ -340,22 +345,33 @@ def save_problem(problem: Problem, path) -> None:
 
 
 def load_problem(path, cfg: Config) -> Problem:
-    """Inverse of :func:`save_problem` (the posterior is rebuilt from ``cfg``)."""
-    import json
+    """Inverse of :func:`save_problem` (the posterior is rebuilt from ``cfg``).
 
-    z = np.load(path, allow_pickle=False)
-    meta = json.loads(str(z["meta"]))
-    truth = None
-    if "truth_u" in z:
-        truth = Truth(z["truth_u"], z["truth_lam_e"], z["truth_mu_e"], z["truth_pushed"])
-    data = {
-        "f": Image(z["f"], z["f_affine"]), "m": Image(z["m"], z["m_affine"]),
-        "labels": Image(z["labels"], z["labels_affine"]),
-        "mesh": Mesh(z["nodes"], z["tets"], z["tissue"], z["boundary"]),
-        "truth": truth, "truth_info": meta["truth_info"],
-        "intensity_scale": meta["intensity_scale"], "n_skull_carved": meta["n_skull_carved"],
-        "timings": meta["timings"], "mesh_info": meta.get("mesh_info"),  # (older checkpoints: none)
-    }
+    Raises
+    ------
+    ValueError
+        If the file is damaged or incomplete (not a readable ``.npz`` of a problem).
+    """
+    import json
+    import zipfile
+
+    try:
+        z = np.load(path, allow_pickle=False)
+        meta = json.loads(str(z["meta"]))
+        truth = None
+        if "truth_u" in z:
+            truth = Truth(z["truth_u"], z["truth_lam_e"], z["truth_mu_e"], z["truth_pushed"])
+        data = {
+            "f": Image(z["f"], z["f_affine"]), "m": Image(z["m"], z["m_affine"]),
+            "labels": Image(z["labels"], z["labels_affine"]),
+            "mesh": Mesh(z["nodes"], z["tets"], z["tissue"], z["boundary"]),
+            "truth": truth, "truth_info": meta["truth_info"],
+            "intensity_scale": meta["intensity_scale"], "n_skull_carved": meta["n_skull_carved"],
+            "timings": meta["timings"], "mesh_info": meta.get("mesh_info"),  # (older: none)
+        }
+    except (zipfile.BadZipFile, EOFError, KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path} is damaged or incomplete ({type(exc).__name__}: {exc}): "
+                         "the problem cannot be read back") from exc
     return assemble(cfg, data)
 
 
@@ -948,35 +964,40 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
     -------
     bayesreg.outputs.RunResult
 
+    A new run that fails before its sampling starts (an error in the data, the mesh or the
+    starts) removes its run directory and puts back the one it replaced; one that fails or
+    is interrupted later keeps its checkpoint for ``resume``.
+
     Raises
     ------
     FileExistsError
-        If the run directory exists and is not empty and ``overwrite`` is false, or a run to
-        resume is already finished.
+        If the run directory exists and is not empty and ``overwrite`` is false (or it is
+        not a run directory), or a run to resume is already finished.
     FileNotFoundError
         If ``resume`` names a directory without a checkpoint.
+    ConfigError
+        On a bad config, override or saved config (the message names the key or file).
     """
     from bayesreg.checkpoint import Checkpoint
     from bayesreg.outputs import RunDirectory, write_outputs
 
     t0 = time.perf_counter()
     if resume is not None:
-        if config is not None or overrides:
-            raise ValueError("resume continues a run with its own config: give no config or overrides")
+        if config is not None or overrides or out is not None or overwrite:
+            raise ValueError("resume continues a run with its own config and directory: give no "
+                             "config, overrides, out or overwrite")
         run_dir = RunDirectory(resume, resume=True)
         ckpt = Checkpoint(run_dir.path)
         cfg = ckpt.load_config()
         cfg.output.dir = run_dir.path
     else:
-        cfg = config if isinstance(config, Config) else load_config(config, overrides=overrides)
-        if isinstance(config, Config) and overrides:
-            from bayesreg.config import apply_overrides
+        from bayesreg.config import override_config
 
-            cfg = Config.model_validate(apply_overrides(cfg.model_dump(mode="json"), overrides))
-        if out is not None:
-            cfg.output.dir = out
-        if overwrite is not None:
-            cfg.output.overwrite = overwrite
+        cfg = config if isinstance(config, Config) else load_config(config, overrides=overrides)
+        values = {k: v for k, v in (("output__dir", None if out is None else str(out)),
+                                    ("output__overwrite", overwrite)) if v is not None}
+        # a copy (the caller's config is not changed), overrides applied to a Config object
+        cfg = override_config(cfg, overrides if isinstance(config, Config) else None, **values)
         run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite)  # fails early
         ckpt = Checkpoint(run_dir.path)
         if cfg.output.checkpoint:
@@ -984,15 +1005,23 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
     if progress is not None:
         cfg.output.progress = progress
 
-    saved = resume is not None and ckpt.problem_path.is_file()
-    problem = load_problem(ckpt.problem_path, cfg) if saved else prepare(cfg)
-    if cfg.output.checkpoint and not saved:
-        save_problem(problem, ckpt.problem_path)
-    init = ckpt.load_init() if resume is not None else None
-    if init is None:
-        init = initialise(problem, cfg)
-        if cfg.output.checkpoint:
-            ckpt.save_init(init)
+    try:
+        saved = resume is not None and ckpt.problem_path.is_file()
+        problem = load_problem(ckpt.problem_path, cfg) if saved else prepare(cfg)
+        if cfg.output.checkpoint and not saved:
+            save_problem(problem, ckpt.problem_path)
+        init = ckpt.load_init() if resume is not None else None
+        if init is None:
+            init = initialise(problem, cfg)
+            if cfg.output.checkpoint:
+                ckpt.save_init(init)
+    except Exception:
+        # a new run that fails before its sampling starts (bad data, a mesh that fails, no
+        # valid start) leaves nothing behind and puts back what it replaced, so the same
+        # command runs again once the input is fixed (an interrupt keeps it for --resume)
+        if resume is None:
+            run_dir.rollback()
+        raise
     state = ckpt.load_state() if resume is not None else None
     result, init = sample_problem(
         problem, cfg, init,

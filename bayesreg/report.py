@@ -1038,7 +1038,8 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
         Report directory.  Written in a staging folder beside it and moved in place at the
         end (:class:`bayesreg.outputs.RunDirectory`).
     overwrite : bool
-        Replace an existing non-empty ``out``.
+        Replace an existing non-empty ``out`` that holds a report (``report.json`` or
+        ``report.md``); a folder of other files is never replaced.
 
     Returns
     -------
@@ -1048,7 +1049,7 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
     Raises
     ------
     FileExistsError
-        ``out`` exists, is not empty and ``overwrite`` is false.
+        ``out`` exists, is not empty and ``overwrite`` is false, or holds no report.
     FileNotFoundError
         A run directory or one of its required files is missing (named).
     ValueError
@@ -1066,7 +1067,7 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
         raise FileExistsError(f"report directory {out} exists and is not empty; pass "
                               "overwrite=True to replace it")
     data = _as_runs(runs)  # fails (missing file, no truth) before anything is written
-    rd = RunDirectory(out, overwrite=overwrite)
+    rd = RunDirectory(out, overwrite=overwrite, marks=("report.json", "report.md"))
     try:
         _write(rd, data)
         return rd.commit()

@@ -149,6 +149,43 @@ def test_nifti_images_in_different_world_frames_fail_clearly(tmp_path, capsys):
     assert "world frame" in err and "data.labels" in err
 
 
+def test_a_run_that_fails_before_sampling_leaves_nothing_and_puts_back_what_it_replaced(tmp_path, capsys):
+    import nibabel as nib
+
+    data = np.ones((10, 10, 10), np.float32)
+    data[3, 3, 3] = np.nan
+    nib.save(nib.Nifti1Image(data, np.eye(4)), tmp_path / "f.nii.gz")
+    nib.save(nib.Nifti1Image(np.full((10, 10, 10), 2, np.int16), np.eye(4)), tmp_path / "labels.nii.gz")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        "data:\n  source: nifti\n  fixed: f.nii.gz\n  labels: labels.nii.gz\n"
+        "  label_coding: {csf: 1, gm: 2, wm: 3}\ninit: {start: registration}\n"
+    )
+    out = tmp_path / "r"
+    assert main(["run", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "data.fixed" in err and "has 1 non-finite voxels" in err
+    assert not out.exists()  # the same command runs once the input is fixed
+    out.mkdir()
+    (out / "run.json").write_text('{"earlier": "run"}')
+    assert main(["run", str(cfg), "--out", str(out), "--overwrite"]) == 2
+    assert "non-finite voxels" in capsys.readouterr().err
+    assert (out / "run.json").read_text() == '{"earlier": "run"}'  # put back
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.yaml", "f.nii.gz", "labels.nii.gz", "r"]
+    # a folder of the user's own files is never replaced; a file is not a run directory
+    assert main(["run", str(cfg), "--out", str(tmp_path), "--overwrite"]) == 2
+    assert "holds none of run.json, checkpoint" in capsys.readouterr().err
+    assert main(["run", str(cfg), "--out", str(tmp_path / "c.yaml" / "r")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    # a damaged saved config is named
+    bad = tmp_path / "bad"
+    (bad / "checkpoint").mkdir(parents=True)
+    (bad / "checkpoint" / "config.json").write_text("{")
+    assert main(["run", "--resume", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "config.json: not valid JSON" in err
+
+
 def test_resume_needs_an_unfinished_run(tmp_path, capsys):
     assert main(["run", "--resume", str(tmp_path)]) == 2
     assert "nothing to resume" in capsys.readouterr().err

@@ -95,3 +95,48 @@ def test_blocked_coverage_and_rhat_equal_whole(block):
     two = gelman_rubin(x.reshape(3, 200, 8, 5), block=block)
     assert two.shape == (8, 5)
     np.testing.assert_allclose(two.ravel(), gelman_rubin(x, block=block), rtol=1e-14)
+
+
+def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(tmp_path, monkeypatch):
+    """``overwrite`` never hides a folder bayesreg did not write; a failed start undoes itself."""
+    import os
+
+    monkeypatch.chdir(tmp_path)
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "f.nii.gz").write_text("the user's input")
+    with pytest.raises(FileExistsError, match="not empty"):
+        outputs.RunDirectory(data)
+    with pytest.raises(FileExistsError, match="holds none of run.json, checkpoint"):
+        outputs.RunDirectory(data, overwrite=True)
+    assert (data / "f.nii.gz").read_text() == "the user's input"
+    with pytest.raises(NotADirectoryError, match="is a file"):
+        outputs.RunDirectory(data / "f.nii.gz" / "run")
+    with pytest.raises(FileExistsError, match="working directory"):
+        (tmp_path / "run.json").write_text("{}")
+        outputs.RunDirectory(tmp_path, overwrite=True)
+    (tmp_path / "run.json").unlink()
+
+    old = tmp_path / "run"
+    old.mkdir()
+    (old / "run.json").write_text('{"old": true}')
+    hidden = tmp_path / f".run.replaced-{os.getpid()}"
+    rd = outputs.RunDirectory(old, overwrite=True)  # the old run moves aside at once
+    assert hidden.is_dir() and rd.replaced == hidden and not any(old.iterdir())
+    (old / "checkpoint").mkdir()
+    rd.rollback()  # a start that failed: the old run is back, nothing of the new one
+    assert (old / "run.json").read_text() == '{"old": true}' and not hidden.exists()
+    assert sorted(p.name for p in old.iterdir()) == ["run.json"]
+
+    rd = outputs.RunDirectory(old, overwrite=True)
+    rd.file("run.json").write_text('{"new": true}')
+    rd.commit()  # a run that finished: the old one is gone
+    assert (old / "run.json").read_text() == '{"new": true}' and not hidden.exists()
+
+    fresh = tmp_path / "fresh"
+    outputs.RunDirectory(fresh).rollback()
+    assert not fresh.exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    outputs.RunDirectory(empty).rollback()
+    assert empty.is_dir() and not any(empty.iterdir())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import meshio
 import nibabel as nib
@@ -197,9 +198,16 @@ def test_existing_report_not_overwritten(runs, tmp_path):
     paths = {"three_compartment": runs["three_compartment"][0]}
     with pytest.raises(FileExistsError, match="overwrite"):
         write_report(paths, out)
-    assert (out / "keep.txt").exists()
+    # overwrite replaces a report, never a folder of other files
+    with pytest.raises(FileExistsError, match="holds none of report.json, report.md"):
+        write_report(paths, out, overwrite=True)
+    assert (out / "keep.txt").exists() and not (tmp_path / f".report.replaced-{os.getpid()}").exists()
+    (out / "keep.txt").unlink()
+    write_report(paths, out)
+    (out / "stale.txt").write_text("x")
     write_report(paths, out, overwrite=True)
-    assert not (out / "keep.txt").exists() and (out / "report.md").exists()
+    assert not (out / "stale.txt").exists() and (out / "report.md").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]  # nothing left beside it
 
 
 def test_run_without_truth_raises(tmp_path):
