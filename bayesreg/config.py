@@ -60,6 +60,24 @@ class TissueValues(_Strict):
     wm: Float = Field(gt=0)
 
 
+def _fill_from_defaults(cls, data):
+    """A partial mapping given for a field whose default is a model of required values (per
+    tissue values; a Beta prior, unless the mapping names tissues) takes the rest from that
+    default: ``--set model.initial_lam.gm=5`` or ``initial_lam: {gm: 5}`` keeps the
+    default's ``csf`` and ``wm``."""
+    if not isinstance(data, dict):
+        return data
+    out = dict(data)
+    for name, field in cls.model_fields.items():
+        given, default = data.get(name), field.default
+        if not isinstance(given, dict):
+            continue
+        if isinstance(default, TissueValues) or (
+                isinstance(default, BetaPrior) and not set(given) & {"csf", "gm", "wm"}):
+            out[name] = {**default.model_dump(), **given}
+    return out
+
+
 class DataConfig(_Strict):
     source: Literal["mni152", "nifti"] = "mni152"
     resolution_mm: Float | None = Field(2.0, gt=0, description="resample to isotropic voxels")
@@ -127,6 +145,8 @@ class SyntheticConfig(_Strict):
         "of m near the deformed surface are not blended with a constant); background, 0")
     lam: TissueValues = TissueValues(csf=1e-6, gm=10.0, wm=30.0)
     mu: TissueValues = TissueValues(csf=1e-6, gm=1.0, wm=1.0)
+
+    _partial = model_validator(mode="before")(classmethod(_fill_from_defaults))
 
 
 class BetaPrior(_Strict):
@@ -206,6 +226,8 @@ class ModelConfig(_Strict):
         "without it (then fix one parameter, Sec. 3.3)")
     initial_lam: TissueValues = TissueValues(csf=1.0, gm=5.0, wm=5.0)
     initial_mu: TissueValues = TissueValues(csf=1.0, gm=1.0, wm=1.0)
+
+    _partial = model_validator(mode="before")(classmethod(_fill_from_defaults))
 
 
 class SolverConfig(_Strict):

@@ -305,3 +305,15 @@ def test_override_config_follows_the_kind_and_leaves_the_original_alone():
         override_config(cfg, ["sampler.chainz=3"])
     with pytest.raises(ConfigError, match="a list of 'key=value' strings"):
         override_config(cfg, "seed=3")
+
+
+def test_a_partial_tissue_mapping_keeps_the_defaults_of_the_rest(tmp_path):
+    cfg = load_config(overrides=["model.initial_lam.gm=7", "model.prior_lam.a=2", "synthetic.mu.wm=3"])
+    assert (cfg.model.initial_lam.csf, cfg.model.initial_lam.gm, cfg.model.initial_lam.wm) == (1.0, 7.0, 5.0)
+    assert (cfg.model.prior_lam.a, cfg.model.prior_lam.r2) == (2.0, 100.0)
+    assert (cfg.synthetic.mu.gm, cfg.synthetic.mu.wm) == (1.0, 3.0)
+    path = tmp_path / "c.yaml"
+    path.write_text("model:\n  initial_mu: {gm: 2}\n")
+    assert load_config(path).model.initial_mu.model_dump() == {"csf": 1.0, "gm": 2.0, "wm": 1.0}
+    with pytest.raises(ConfigError, match=r"model.initial_lam.gm: Input should be greater than 0"):
+        load_config(overrides=["model.initial_lam.gm=-1"])
