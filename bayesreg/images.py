@@ -59,15 +59,31 @@ class Image(NamedTuple):
         return np.linalg.norm(self.affine[:3, :3], axis=0)
 
 
-def _check_image(img: Image, name: str = "image") -> Image:
-    data = np.asarray(img.data)
-    affine = np.asarray(img.affine, dtype=np.float64)
-    if data.ndim != 3:
-        raise ValueError(f"{name} must be 3D, got shape {data.shape}")
+def _check_affine(affine, name: str = "image") -> np.ndarray:
+    """``affine`` as a float64 ``(4, 4)`` array; ``ValueError`` unless finite and invertible."""
+    affine = np.asarray(affine, dtype=np.float64)
     if affine.shape != (4, 4) or not np.all(np.isfinite(affine)):
-        raise ValueError(f"{name} affine must be a finite (4, 4) matrix, got {affine.shape}")
+        got = f"shape {affine.shape}" if affine.shape != (4, 4) else "non-finite entries"
+        raise ValueError(f"{name} affine must be a finite (4, 4) matrix, got {got}")
     if abs(np.linalg.det(affine[:3, :3])) < 1e-9:
         raise ValueError(f"{name} affine is singular")
+    return affine
+
+
+def _check_image(img: Image, name: str = "image", *, finite: bool = False) -> Image:
+    """``img`` with array data and a float64 affine; ``ValueError`` unless it is an
+    :class:`Image` with 3D data and a finite invertible affine (and, with ``finite``,
+    finite voxel values)."""
+    if not (hasattr(img, "data") and hasattr(img, "affine")):
+        raise ValueError(f"{name} must be an Image(data, affine), got {type(img).__name__}")
+    data = np.asarray(img.data)
+    if data.ndim != 3:
+        raise ValueError(f"{name} must be 3D, got shape {data.shape}")
+    affine = _check_affine(img.affine, name)
+    if finite and data.dtype.kind not in "biu":
+        bad = data.size - int(np.count_nonzero(np.isfinite(data)))
+        if bad:
+            raise ValueError(f"{name} must have finite voxel values, got {bad} NaN or infinite")
     return Image(data, affine)
 
 
@@ -296,20 +312,36 @@ def resample(img: Image, affine, shape, *, order=1, cval=0.0, mode="constant") -
         beyond the outermost voxel centres; ``"grid-constant"`` treats each voxel as
         covering its extent (with ``order=0``, nearest neighbour up to half a voxel
         outside the centres).
+
+    Raises
+    ------
+    ValueError
+        If ``img`` is not a 3D image with a finite invertible affine, ``affine`` is not a
+        finite invertible ``(4, 4)`` matrix, or ``shape`` is not 3 positive integers.
     """
     img = _check_image(img)
-    affine = np.asarray(affine, dtype=np.float64)
+    affine = _check_affine(affine, "target")
+    shape = _check_shape(shape)
     src_from_tgt = np.linalg.solve(img.affine, affine)
     data = ndi.affine_transform(
         np.asarray(img.data, dtype=np.float64 if order else img.data.dtype),
         src_from_tgt[:3, :3],
         offset=src_from_tgt[:3, 3],
-        output_shape=tuple(int(s) for s in shape),
+        output_shape=shape,
         order=order,
         mode=mode,
         cval=cval,
     )
     return Image(data, affine)
+
+
+def _check_shape(shape) -> tuple:
+    """``shape`` as a tuple of 3 ints; ``ValueError`` unless 3 positive integers."""
+    arr = np.asarray(shape)
+    if (arr.shape != (3,) or arr.dtype.kind not in "iuf" or not np.all(np.isfinite(arr))
+            or np.any(arr != np.round(arr)) or np.any(arr < 1)):
+        raise ValueError(f"shape must be 3 positive integers, got {shape!r}")
+    return tuple(int(n) for n in arr)
 
 
 def _grid_box(affine, shape) -> np.ndarray:
@@ -409,15 +441,37 @@ def to_reference_grid(
     return Image(np.stack(comps, axis=-1), ref.affine)
 
 
+def _check_number(value, name: str, *, positive: bool = True) -> float:
+    """``value`` as a float; ``ValueError`` unless a finite real number ``> 0`` (``positive``)
+    or ``>= 0``."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = np.nan
+    ok = out > 0 if positive else out >= 0
+    if isinstance(value, (bool, np.bool_)) or not (ok and np.isfinite(out)):
+        shown = value.item() if isinstance(value, np.generic) else value
+        raise ValueError(f"{name} must be a finite number {'>' if positive else '>='} 0, "
+                         f"got {shown!r}")
+    return out
+
+
 def resample_to_spacing(img: Image, spacing_mm: float, *, order=1) -> Image:
     """Resample to isotropic voxels of ``spacing_mm`` covering the same field of view.
 
     For downsampling with ``order > 0`` the image is first smoothed with a Gaussian of
     ``sigma = (factor - 1) / 2`` source voxels (anti-aliasing, as scikit-image's
     ``rescale``).
+
+    Raises
+    ------
+    ValueError
+        If ``spacing_mm`` is not a finite number > 0, or ``img`` is not a 3D image with a
+        finite invertible affine.
     """
+    spacing = _check_number(spacing_mm, "spacing_mm")
     img = _check_image(img)
-    factor = float(spacing_mm) / img.spacing
+    factor = spacing / img.spacing
     if np.allclose(factor, 1.0):
         return img
     data = np.asarray(img.data)
@@ -433,9 +487,16 @@ def pad(img: Image, margin_mm: float, *, value=0) -> Image:
     """Pad ``img`` on every side by ``ceil(margin_mm / spacing)`` voxels of ``value``.
 
     The affine is shifted so that world coordinates are unchanged.
+
+    Raises
+    ------
+    ValueError
+        If ``margin_mm`` is not a finite number >= 0, or ``img`` is not a 3D image with a
+        finite invertible affine.
     """
+    margin = _check_number(margin_mm, "margin_mm", positive=False)
     img = _check_image(img)
-    n = np.ceil(float(margin_mm) / img.spacing).astype(int)
+    n = np.ceil(margin / img.spacing).astype(int)
     data = np.pad(np.asarray(img.data), [(k, k) for k in n], constant_values=value)
     affine = img.affine.copy()
     affine[:3, 3] = img.affine[:3, :3] @ (-n) + img.affine[:3, 3]

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from bayesreg import labels as L
-from bayesreg.images import Image, interpolate_numpy
+from bayesreg.images import Image, _check_image, _check_number, interpolate_numpy
 
 __all__ = [
     "Mesh", "MeshError", "mesh_brain", "mesh_brain_sized", "carve_skull", "boundary_nodes", "mesh_quality", "orient_tets",
@@ -128,10 +128,16 @@ def mesh_quality(mesh: Mesh) -> dict:
     }
 
 
-def _surface(mask: np.ndarray, affine, sigma_vox: float, step_size: int):
+def _surface(mask: np.ndarray, affine, sigma_vox: float, step_size: int, sigma_mm: float = 0.0):
     from skimage.measure import marching_cubes
 
     smooth = ndi.gaussian_filter(mask.astype(np.float64), sigma_vox) if sigma_vox > 0 else mask
+    peak = float(np.max(smooth))
+    if not peak > 0.5:  # marching cubes: "Surface level must be within volume data range"
+        raise MeshError(
+            f"smoothing_sigma_mm={sigma_mm:g} removed the brain surface: the smoothed "
+            f"intracranial mask peaks at {peak:.3g}, below the 0.5 level of the surface; "
+            "use a smaller smoothing_sigma_mm")
     padded = np.pad(smooth, 2)
     verts, faces, _, _ = marching_cubes(padded, level=0.5, step_size=step_size)
     verts = verts - 2.0
@@ -150,6 +156,24 @@ def _compact(nodes, tets):
     remap = np.full(len(nodes), -1, np.int64)
     remap[used] = np.arange(len(used))
     return np.asarray(nodes, np.float64)[used], remap[tets]
+
+
+_UNSET = object()
+
+
+def _check_mesh_args(edge_length_mm, smoothing_sigma_mm=_UNSET, epsilon=_UNSET,
+                     step_size=_UNSET) -> None:
+    """``ValueError`` naming the first invalid argument of :func:`mesh_brain` (those given)."""
+    _check_number(edge_length_mm, "edge_length_mm")
+    if smoothing_sigma_mm is not _UNSET:
+        _check_number(smoothing_sigma_mm, "smoothing_sigma_mm", positive=False)
+    if epsilon is not _UNSET:
+        _check_number(epsilon, "epsilon")
+    if step_size is not _UNSET:
+        ok = isinstance(step_size, (int, float, np.integer, np.floating)) and not isinstance(
+            step_size, (bool, np.bool_)) and np.isfinite(step_size) and step_size >= 1
+        if not (ok and int(step_size) == step_size):
+            raise ValueError(f"step_size must be an integer >= 1, got {step_size!r}")
 
 
 def mesh_brain(
@@ -184,17 +208,25 @@ def mesh_brain(
 
     Raises
     ------
+    ValueError
+        If ``labels`` is not a 3D :class:`~bayesreg.images.Image` with a finite invertible
+        affine, ``edge_length_mm`` or ``epsilon`` is not a finite number > 0,
+        ``smoothing_sigma_mm`` not a finite number >= 0, or ``step_size`` not an integer >= 1.
     MeshError
-        If meshing fails, returns too few elements, or any element is inverted/degenerate.
+        (a ``ValueError``) If the label map has (almost) no intracranial voxels, the smoothing
+        removes the brain surface (``smoothing_sigma_mm`` too large for the brain), meshing
+        fails, returns too few elements, or any element is inverted/degenerate.
     """
     import pytetwild
 
+    _check_mesh_args(edge_length_mm, smoothing_sigma_mm, epsilon, step_size)
+    labels = _check_image(labels, "labels")
     data = np.asarray(labels.data)
     inside = np.isin(data, L.TISSUE_LABELS)
     if inside.sum() < 27:
         raise MeshError("the label map has (almost) no intracranial voxels to mesh")
-    sigma_vox = smoothing_sigma_mm / float(np.mean(labels.spacing))
-    verts, faces = _surface(inside, labels.affine, sigma_vox, step_size)
+    sigma_vox = float(smoothing_sigma_mm) / float(np.mean(labels.spacing))
+    verts, faces = _surface(inside, labels.affine, sigma_vox, int(step_size), float(smoothing_sigma_mm))
     try:
         # fTetWild writes a scratch file (__tracked_surface.stl) into the working folder
         with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
@@ -278,8 +310,9 @@ def mesh_brain_sized(
     Raises
     ------
     ValueError
-        ``target_nodes < 20``, ``tolerance`` outside (0, 1), ``max_attempts < 1`` or
-        ``edge_length_mm <= 0``.
+        ``target_nodes < 20``, ``tolerance`` outside (0, 1), ``max_attempts < 1``,
+        ``edge_length_mm`` not a finite number > 0, or an invalid ``smoothing_sigma_mm``,
+        ``epsilon`` or ``step_size`` (as :func:`mesh_brain`), before any meshing.
     MeshError
         As :func:`mesh_brain`, from any attempt.
     """
@@ -289,8 +322,8 @@ def mesh_brain_sized(
         raise ValueError(f"tolerance must lie in (0, 1), got {tolerance}")
     if int(max_attempts) != max_attempts or max_attempts < 1:
         raise ValueError(f"max_attempts must be an integer >= 1, got {max_attempts}")
-    if not edge_length_mm > 0:
-        raise ValueError(f"edge_length_mm must be positive, got {edge_length_mm}")
+    _check_mesh_args(edge_length_mm, **{k: v for k, v in mesh_kwargs.items()
+                                        if k in ("smoothing_sigma_mm", "epsilon", "step_size")})
     target_nodes = int(target_nodes)
     edge = float(edge_length_mm)
     attempts: list[dict] = []

@@ -31,6 +31,7 @@ Sec. 3.3), which biases the elastic parameters toward zero.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import partial
 from typing import NamedTuple
 
@@ -51,6 +52,7 @@ from bayesreg.fem import (  # noqa: E402
     group_blocks,
     shape_gradients,
 )
+from bayesreg.images import _check_image  # noqa: E402
 from bayesreg.mesh import Mesh  # noqa: E402
 from bayesreg.similarity import SSDTerm, ssd_residuals  # noqa: E402
 from bayesreg.solver import (  # noqa: E402
@@ -270,11 +272,16 @@ def build_posterior(
     Raises
     ------
     ValueError
-        Non-positive temperatures, an invalid prior, ``phi_ref`` outside its support or a
-        negative barrier width.
+        Non-positive temperatures; a ``prior`` that is not a dict with an entry for each
+        kind of free parameter (``"lam"``, ``"mu"``), each one ``(A, B, r1, r2)`` or one
+        such tuple per group, with finite ``A, B > 0`` and ``0 <= r1 < r2 < inf``;
+        ``phi_ref`` not of shape ``(n_free,)`` or not strictly inside its support (NaN
+        included); ``forbidden`` not a 3D :class:`~bayesreg.images.Image` with a finite
+        invertible affine; or a negative barrier width.
     """
     if not (t_s > 0 and t_r > 0 and np.isfinite(t_s) and np.isfinite(t_r)):
         raise ValueError(f"temperatures must be finite and > 0, got T_s={t_s}, T_r={t_r}")
+    forbidden = _check_image(forbidden, "forbidden")
     n_groups = len(layout.group_names)
     base = np.ones(2 * n_groups)
     for p, g, v in layout.fixed:
@@ -282,17 +289,19 @@ def build_posterior(
             raise ValueError(f"fixed {p}_{layout.group_names[g]} must be > 0, got {v}")
         base[g + (n_groups if p == "mu" else 0)] = v
     free_index = np.array([g + (n_groups if p == "mu" else 0) for p, g in layout.free], int)
-    def prior_of(p, g):
-        pr = np.asarray(prior[p], dtype=np.float64)
-        return pr if pr.ndim == 1 else pr[g]
-
-    pri = np.array([prior_of(p, g) for p, g in layout.free], dtype=np.float64).reshape(-1, 4)
+    pri = _prior_table(prior, layout)
     a, b, r1, r2 = pri.T
-    if np.any(a <= 0) or np.any(b <= 0) or np.any(r2 <= r1) or np.any(r1 < 0):
-        raise ValueError(f"invalid Beta prior (need A, B > 0 and 0 <= r1 < r2): {prior}")
     phi_ref = np.asarray(phi_ref, dtype=np.float64)
-    if np.any(phi_ref <= np.maximum(r1, 0)) or np.any(phi_ref >= r2):
-        raise ValueError(f"reference parameters {phi_ref} lie outside the prior support")
+    if phi_ref.shape != (len(layout.free),):
+        raise ValueError(f"phi_ref must have shape ({len(layout.free)},) (one value per free "
+                         f"parameter), got {phi_ref.shape}")
+    outside = ~((phi_ref > r1) & (phi_ref < r2))
+    if np.any(outside):
+        bad = [f"{layout.free_names[k]}={phi_ref[k]:g} not in ({r1[k]:g}, {r2[k]:g})"
+               for k in np.flatnonzero(outside)[:5]]
+        more = f" and {int(outside.sum()) - 5} more" if outside.sum() > 5 else ""
+        raise ValueError(f"reference parameters phi_ref lie outside the prior support: "
+                         f"{', '.join(bad)}{more}")
     op, interior = build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     n_b, n_i = len(mesh.boundary), len(interior)
     perm = np.empty(len(mesh.nodes), np.int64)
@@ -344,6 +353,40 @@ def build_posterior(
         ub = post.unit_blocks
         post = post._replace(spectral=spectral_preconditioner(op, *ub.group(0)))
     return with_skull_barrier(post, barrier_mm)
+
+
+def _prior_table(prior, layout: ParamLayout) -> np.ndarray:
+    """``(n_free, 4)`` rows ``(A, B, r1, r2)`` of the free parameters (:func:`build_posterior`);
+    ``ValueError`` naming the entry that is missing, of the wrong shape or invalid."""
+    n_groups = len(layout.group_names)
+    if not isinstance(prior, Mapping):
+        raise ValueError(f"prior must be a dict {{'lam': (A, B, r1, r2), 'mu': ...}}, got "
+                         f"{type(prior).__name__}")
+    entries = {}
+    for p in sorted({p for p, _ in layout.free}):
+        if p not in prior:
+            needed = next(n for n, (q, _) in zip(layout.free_names, layout.free) if q == p)
+            raise ValueError(f"prior has no {p!r} entry (needed by the free parameter {needed}); "
+                             f"expected {{'lam': (A, B, r1, r2), 'mu': (A, B, r1, r2)}}")
+        try:
+            pr = np.asarray(prior[p], dtype=np.float64)
+        except (TypeError, ValueError):
+            pr = None
+        if pr is None or pr.shape not in ((4,), (n_groups, 4)):
+            got = "a ragged or non-numeric sequence" if pr is None else f"shape {pr.shape}"
+            raise ValueError(f"prior[{p!r}] must be (A, B, r1, r2) or one such tuple per group, "
+                             f"shape ({n_groups}, 4); got {got}")
+        entries[p] = pr
+    rows = np.array([entries[p] if entries[p].ndim == 1 else entries[p][g] for p, g in layout.free],
+                    dtype=np.float64).reshape(-1, 4)
+    a, b, r1, r2 = rows.T
+    ok = np.all(np.isfinite(rows), axis=1) & (a > 0) & (b > 0) & (r1 >= 0) & (r1 < r2)
+    if not np.all(ok):
+        k = int(np.argmin(ok))
+        raise ValueError(f"invalid Beta prior of {layout.free_names[k]}: need finite A, B > 0 and "
+                         f"0 <= r1 < r2 < inf, got (A, B, r1, r2) = "
+                         f"({', '.join(f'{v:g}' for v in rows[k])})")
+    return rows
 
 
 def with_skull_barrier(post: Posterior, barrier_mm: float) -> Posterior:

@@ -27,6 +27,7 @@ so ``E_s`` is in ``intensity^2 mm^3``.
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import numpy as np
@@ -37,7 +38,14 @@ _xla.configure()
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from bayesreg.images import Image, interpolate, trilinear_clamped, world_to_voxel  # noqa: E402
+from bayesreg.images import (  # noqa: E402
+    Image,
+    _check_image,
+    _grid_box,
+    interpolate,
+    trilinear_clamped,
+    world_to_voxel,
+)
 from bayesreg.mesh import signed_volumes  # noqa: E402
 
 __all__ = ["GAUSS_BARY", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
@@ -181,6 +189,32 @@ def _moving_array(m: Image, cval: float, box=None):
     return out, shift @ np.linalg.inv(np.asarray(m.affine, np.float64))
 
 
+#: :func:`build_ssd` warns when fewer than this fraction of the quadrature points lie in ``f``.
+MIN_INSIDE_FRACTION = 0.5
+
+
+def _check_overlap(img: Image, name: str, pts) -> None:
+    """Raise if no point of ``pts`` ``(..., 3)`` lies in ``img``'s grid (voxel extent);
+    warn if less than :data:`MIN_INSIDE_FRACTION` of them do (for ``f`` only)."""
+    pts = np.reshape(pts, (-1, 3))
+    c = world_to_voxel(img.affine, pts)
+    inside = np.all((c >= -0.5) & (c <= np.array(img.data.shape) - 0.5), axis=1)
+    frac = float(np.mean(inside)) if len(inside) else 1.0
+    if frac == 0.0:
+        box = _grid_box(img.affine, img.data.shape)
+        raise ValueError(
+            f"no quadrature point of the mesh lies inside {name}'s grid (mesh box "
+            f"{_fmt_box(pts.min(axis=0), pts.max(axis=0))} mm, {name} box {_fmt_box(*box)} mm): "
+            f"the mesh and {name} do not share a world frame")
+    if name == "f" and frac < MIN_INSIDE_FRACTION:
+        warnings.warn(f"only {100 * frac:.1f}% of the mesh's quadrature points lie inside f's "
+                      "grid; outside it f takes the value cval", UserWarning, stacklevel=3)
+
+
+def _fmt_box(lo, hi) -> str:
+    return f"{np.round(lo, 1).tolist()} to {np.round(hi, 1).tolist()}"
+
+
 def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: int = 0,
               reach: Image | None = None) -> SSDTerm:
     """Precompute :class:`SSDTerm` for a mesh and an image pair (world frames must agree).
@@ -201,9 +235,28 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
         there.  Outside the box (some node already in the forbidden region, whose
         log-density is ``-inf`` anyway) the moving image is clamped to the box's faces.
         ``None``: the whole image.
+
+    Raises
+    ------
+    ValueError
+        If ``f``, ``m`` (or ``reach``) is not a 3D :class:`Image` with a finite invertible
+        affine, ``f`` or ``m`` has a NaN or infinite voxel, ``quadrature_level`` is outside
+        0..3, or no quadrature point of the mesh lies inside ``f``'s grid or ``m``'s grid
+        (the mesh and the images then do not share a world frame).
+
+    Warns
+    -----
+    UserWarning
+        If less than half of the quadrature points lie inside ``f``'s grid.
     """
+    f = _check_image(f, "f", finite=True)
+    m = _check_image(m, "m", finite=True)
+    if reach is not None:
+        reach = _check_image(reach, "reach")
     bary, _ = quadrature_rule(quadrature_level)
     pts, w = gauss_points(nodes, tets, quadrature_level)
+    for img, name in ((f, "f"), (m, "m")):
+        _check_overlap(img, name, pts)
     f_inv = jnp.asarray(np.linalg.inv(f.affine))
     f_q = jax.jit(interpolate)(jnp.asarray(f.data, dtype=jnp.float64), f_inv, jnp.asarray(pts),
                                float(cval))  # one program, not one per op

@@ -279,3 +279,30 @@ def test_load_nifti_names_a_path_that_is_not_an_image(tmp_path):
         load_nifti(tmp_path / "notes.nii.gz")
     with pytest.raises(FileNotFoundError, match="image not found"):
         load_nifti(tmp_path / "missing.nii.gz")
+
+
+@pytest.mark.parametrize("spacing", [0, -2.0, np.nan, np.inf])
+def test_resample_to_spacing_rejects_a_spacing_that_is_not_positive_and_finite(spacing):
+    # before: 0, -2 and NaN returned a 1x1x1 image with a zero (or NaN) affine
+    with pytest.raises(ValueError, match=r"spacing_mm must be a finite number > 0, got"):
+        resample_to_spacing(_smooth_image((4, 4, 4)), spacing)
+
+
+def test_resample_rejects_a_singular_target_affine_and_a_bad_shape():
+    from bayesreg.images import resample
+
+    img = _smooth_image((4, 4, 4))
+    with pytest.raises(ValueError, match="target affine is singular"):
+        resample(img, np.diag([1.0, 1.0, 0.0, 1.0]), (3, 3, 3))
+    with pytest.raises(ValueError, match=r"target affine must be a finite \(4, 4\) matrix, got shape \(3, 3\)"):
+        resample(img, np.eye(3), (3, 3, 3))
+    with pytest.raises(ValueError, match=r"shape must be 3 positive integers, got \(3, 0, 3\)"):
+        resample(img, np.eye(4), (3, 0, 3))
+
+
+@pytest.mark.parametrize("margin", [-4.0, np.nan])
+def test_pad_rejects_a_negative_or_nan_margin(margin):
+    # before: numpy's "index can't contain negative values"
+    with pytest.raises(ValueError, match=r"margin_mm must be a finite number >= 0, got"):
+        pad(_smooth_image((4, 4, 4)), margin)
+    assert pad(_smooth_image((4, 4, 4)), 0.0).data.shape == (4, 4, 4)

@@ -76,3 +76,47 @@ def test_sized_mesh_damps_scatter_and_keeps_the_closest_with_a_warning(monkeypat
 def test_sized_mesh_rejects_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         mesh_brain_sized("labels", **kwargs)
+
+
+def _ball_labels(affine=None, shape=(16, 16, 16)):
+    """A ball of grey matter (radius 5 voxels) in a 16^3 label map, 2 mm voxels."""
+    from bayesreg import labels as L
+    from bayesreg.images import Image
+
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
+    data = np.where(np.linalg.norm(ijk - 7.5, axis=-1) < 5, L.GM, L.BACKGROUND).astype(np.uint8)
+    return Image(data, np.diag([2.0, 2.0, 2.0, 1.0]) if affine is None else affine)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"edge_length_mm": 0.0}, r"edge_length_mm must be a finite number > 0, got 0\.0"),
+    ({"edge_length_mm": -5.0}, "edge_length_mm must be a finite number > 0"),
+    ({"edge_length_mm": np.nan}, "edge_length_mm must be a finite number > 0, got nan"),
+    ({"epsilon": 0.0}, r"epsilon must be a finite number > 0, got 0\.0"),  # before: std::bad_alloc
+    ({"epsilon": -0.01}, "epsilon must be a finite number > 0"),
+    ({"smoothing_sigma_mm": -1.0}, "smoothing_sigma_mm must be a finite number >= 0"),
+    ({"smoothing_sigma_mm": np.nan}, "smoothing_sigma_mm must be a finite number >= 0"),
+    ({"step_size": 0}, "step_size must be an integer >= 1, got 0"),
+])
+def test_mesh_brain_rejects_bad_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        M.mesh_brain(_ball_labels(), **kwargs)
+    if "edge_length_mm" not in kwargs:  # checked before any meshing, as mesh_brain's
+        with pytest.raises(ValueError, match=match):
+            mesh_brain_sized("labels", 800, **kwargs)
+
+
+def test_mesh_brain_rejects_bad_label_maps_and_names_a_smoothing_that_removes_the_surface():
+    from bayesreg.images import Image
+
+    ball = _ball_labels()
+    with pytest.raises(ValueError, match=r"labels must be 3D, got shape \(16, 16\)"):
+        M.mesh_brain(Image(ball.data[:, :, 8], ball.affine))
+    # before: "fTetWild returned 0 elements"
+    with pytest.raises(ValueError, match="labels affine is singular"):
+        M.mesh_brain(_ball_labels(np.diag([2.0, 2.0, 0.0, 1.0])))
+    # before: scikit-image's "Surface level must be within volume data range"
+    with pytest.raises(M.MeshError, match=r"smoothing_sigma_mm=200 removed the brain surface"):
+        M.mesh_brain(ball, smoothing_sigma_mm=200.0)
+    with pytest.raises(ValueError, match=r"edge_length_mm must be a finite number > 0, got inf"):
+        mesh_brain_sized("labels", 800, edge_length_mm=np.inf)

@@ -595,3 +595,41 @@ def test_a_boundary_node_in_the_skull_is_rejected_without_a_solve(small):
     lp, aux = log_density(post, jnp.asarray(t), warm)
     assert float(lp) == -np.inf and int(aux.solve.iterations) == 0 and bool(aux.solve.converged)
     assert float(aux.e_s) == 0.0 and float(aux.e_r) == 0.0
+
+
+def _tiny_posterior_args():
+    """A one-cube mesh, its SSD term and valid keyword arguments of build_posterior (every
+    check below raises before the FE assembly)."""
+    mesh = box_mesh((1, 1, 1), size=(10.0, 10.0, 10.0))
+    affine = np.eye(4)
+    affine[:3, 3] = -2.0
+    img = Image(np.full((14, 14, 14), 0.5), affine)
+    kw = dict(t_s=1.0, t_r=1.0, layout=ParamLayout(("all",), (("lam", 0), ("mu", 0)), ()),
+              element_group=np.zeros(len(mesh.tets), int),
+              prior={"lam": (1.0, 1.0, 0.0, 10.0), "mu": (1.0, 1.0, 0.0, 5.0)}, phi_ref=[5.0, 1.0])
+    return mesh, build_ssd(mesh.nodes, mesh.tets, img, img), Image(np.zeros((14, 14, 14), np.uint8), affine), kw
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"prior": {"lam": (1.0, 1.0, 0.0, np.inf), "mu": (1.0, 1.0, 0.0, 5.0)}},
+     r"invalid Beta prior of lam_all: need finite .* got \(A, B, r1, r2\) = \(1, 1, 0, inf\)"),
+    ({"prior": {"lam": (np.nan, 1.0, 0.0, 10.0), "mu": (1.0, 1.0, 0.0, 5.0)}}, "invalid Beta prior of lam_all"),
+    ({"prior": {"lam": (1.0, 1.0, 0.0, 10.0), "mu": (1.0, np.nan, 0.0, 5.0)}}, "invalid Beta prior of mu_all"),
+    ({"prior": {"lam": (1.0, 1.0, 10.0), "mu": (1.0, 1.0, 0.0, 5.0)}},
+     r"prior\['lam'\] must be \(A, B, r1, r2\) or one such tuple per group, shape \(1, 4\); got shape \(3,\)"),
+    ({"prior": {"lam": [(1.0, 1.0, 0.0, 10.0)] * 3, "mu": (1.0, 1.0, 0.0, 5.0)}},
+     r"prior\['lam'\] .* got shape \(3, 4\)"),
+    ({"prior": {"lam": (1.0, 1.0, 0.0, 10.0)}}, "prior has no 'mu' entry .*mu_all"),
+    ({"prior": [(1.0, 1.0, 0.0, 10.0)]}, "prior must be a dict"),
+    ({"phi_ref": [np.nan, 1.0]}, r"phi_ref lie outside the prior support: lam_all=nan not in \(0, 10\)"),
+    ({"phi_ref": [5.0]}, r"phi_ref must have shape \(2,\) .*got \(1,\)"),
+    ({"forbidden": Image(np.zeros((14, 14), np.uint8), np.eye(4))}, r"forbidden must be 3D, got shape \(14, 14\)"),
+    ({"forbidden": Image(np.zeros((14, 14, 14), np.uint8), np.zeros((4, 4)))}, "forbidden affine is singular"),
+], ids=["r2-inf", "a-nan", "b-nan", "prior-length", "prior-groups", "prior-missing-mu", "prior-not-dict",
+        "phi-nan", "phi-shape", "forbidden-2d", "forbidden-singular"])
+def test_build_posterior_rejects_bad_priors_references_and_forbidden_images(change, match):
+    mesh, ssd_term, forbidden, kw = _tiny_posterior_args()
+    kw = {**kw, **change}
+    forbidden = kw.pop("forbidden", forbidden)
+    with pytest.raises(ValueError, match=match):
+        build_posterior(mesh, ssd_term, forbidden, **kw)

@@ -183,3 +183,44 @@ def test_moving_image_kept_over_the_reachable_box_gives_the_same_ssd():
         assert float(b) == pytest.approx(float(a), rel=1e-13)
         np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-10, atol=1e-13)
     assert reach_box(Image(np.zeros_like(allowed), f.affine)) is None
+
+
+def _bad_image_cases():
+    good = _grid_image(lambda x: x[..., 0] * 0.0 + 0.5, shape=(24, 24, 24))
+    nan = good.data.copy()
+    nan[10, 10, 10] = np.nan
+    return [
+        ("f", Image(good.data, np.diag([1.0, 1.0, 0.0, 1.0])), "f affine is singular"),
+        ("m", Image(good.data, np.zeros((4, 4))), "m affine is singular"),
+        ("f", Image(good.data[:, :, 0], good.affine), r"f must be 3D, got shape \(24, 24\)"),
+        ("m", None, r"m must be an Image\(data, affine\), got NoneType"),
+        ("f", Image(nan, good.affine), "f must have finite voxel values, got 1 NaN or infinite"),
+        ("m", Image(nan, good.affine), "m must have finite voxel values"),
+    ], good
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_build_ssd_rejects_bad_images(case):
+    cases, good = _bad_image_cases()
+    which, bad, match = cases[case]
+    m = box_mesh((1, 1, 1), size=(10.0, 10.0, 10.0))
+    f_img, m_img = (bad, good) if which == "f" else (good, bad)
+    with pytest.raises(ValueError, match=match):
+        build_ssd(m.nodes, m.tets, f_img, m_img)
+
+
+def test_build_ssd_rejects_a_mesh_outside_the_images_and_warns_on_little_overlap():
+    img = _grid_image(lambda x: x[..., 0] * 0.0 + 0.5, shape=(24, 24, 24))  # world -5.5 .. 18.5
+    far_affine = img.affine.copy()
+    far_affine[:3, 3] += 500.0
+    far = Image(img.data, far_affine)
+    mesh = box_mesh((1, 1, 1), size=(10.0, 10.0, 10.0))
+    # before: f_q all zero (cval), silently
+    with pytest.raises(ValueError, match="no quadrature point of the mesh lies inside f's grid"):
+        build_ssd(mesh.nodes, mesh.tets, far, img)
+    with pytest.raises(ValueError, match="no quadrature point of the mesh lies inside m's grid"):
+        build_ssd(mesh.nodes, mesh.tets, img, far)
+    # 6 of the 24 quadrature points of a box from x = 14 to 34 mm lie in the grid (x <= 18.5 mm)
+    shifted = box_mesh((1, 1, 1), size=(20.0, 20.0, 20.0), origin=(14.0, 0.0, 0.0))
+    with pytest.warns(UserWarning, match=r"only 25\.0% of the mesh's quadrature points lie inside f's grid"):
+        build_ssd(shifted.nodes, shifted.tets, img, img)
