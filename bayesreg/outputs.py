@@ -67,7 +67,9 @@ class RunDirectory:
         Replace an existing non-empty directory that holds one of ``marks`` (a folder of
         other files is never replaced): it is moved aside to a hidden sibling
         (``.NAME.replaced-PID``) at once and deleted only when the new run commits;
-        :meth:`rollback` puts it back.
+        :meth:`rollback` puts it back.  A run interrupted after its sampling started keeps
+        the sibling; the next run into ``path`` that commits (its ``--resume``, or another
+        ``overwrite``) deletes it.
     resume : bool
         Continue the unfinished run in ``path`` (it must hold ``checkpoint/config.json`` and
         no ``run.json``).
@@ -91,6 +93,9 @@ class RunDirectory:
         self.path = Path(path)
         self.overwrite = overwrite
         self._old: Path | None = None
+        # directories replaced by earlier --overwrite runs into this path that were
+        # interrupted after their sampling started: deleted when this run commits
+        self._stale = sorted(self.path.parent.glob(f".{self.path.name}.replaced-*"))
         for p in (self.path, *self.path.parents):
             if p.exists() and not p.is_dir():
                 raise NotADirectoryError(f"run directory {self.path}: {p} is a file")
@@ -146,6 +151,9 @@ class RunDirectory:
         if self._old is not None:
             shutil.rmtree(self._old)
             self._old = None
+        for p in self._stale:
+            shutil.rmtree(p, ignore_errors=True)
+        self._stale = []
         return self.path
 
     def rollback(self) -> None:

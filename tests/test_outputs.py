@@ -133,6 +133,17 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     rd.commit()  # a run that finished: the old one is gone
     assert (old / "run.json").read_text() == '{"new": true}' and not hidden.exists()
 
+    # a run interrupted after its sampling started keeps the run it replaced aside; the
+    # resumed run's commit deletes it
+    outputs.RunDirectory(old, overwrite=True)
+    (old / "checkpoint").mkdir()
+    (old / "checkpoint" / "config.json").write_text("{}")
+    assert hidden.is_dir()
+    resumed = outputs.RunDirectory(old, resume=True)
+    resumed.file("run.json").write_text('{"resumed": true}')
+    resumed.commit()
+    assert not hidden.exists() and (old / "run.json").read_text() == '{"resumed": true}'
+
     fresh = tmp_path / "fresh"
     outputs.RunDirectory(fresh).rollback()
     assert not fresh.exists()
