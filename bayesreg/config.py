@@ -73,7 +73,7 @@ def _fill_from_defaults(cls, data):
         if not isinstance(given, dict):
             continue
         if isinstance(default, TissueValues) or (
-                isinstance(default, BetaPrior) and not set(given) & {"csf", "gm", "wm"}):
+                isinstance(default, BetaPrior) and _prior_kind(given) == "beta"):
             out[name] = {**default.model_dump(), **given}
     return out
 

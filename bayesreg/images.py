@@ -80,11 +80,17 @@ def _check_image(img: Image, name: str = "image", *, finite: bool = False) -> Im
     if data.ndim != 3:
         raise ValueError(f"{name} must be 3D, got shape {data.shape}")
     affine = _check_affine(img.affine, name)
-    if finite and data.dtype.kind not in "biu":
-        bad = data.size - int(np.count_nonzero(np.isfinite(data)))
+    if finite:
+        bad = _count_nonfinite(data)
         if bad:
             raise ValueError(f"{name} must have finite voxel values, got {bad} NaN or infinite")
     return Image(data, affine)
+
+
+def _count_nonfinite(data) -> int:
+    """Number of NaN or infinite values in ``data`` (0 for integer and boolean arrays)."""
+    data = np.asarray(data)
+    return 0 if data.dtype.kind in "biu" else data.size - int(np.count_nonzero(np.isfinite(data)))
 
 
 #: Tolerances of :func:`load_nifti`'s qform/sform agreement check.

@@ -32,7 +32,7 @@ from bayesreg import labels as L  # noqa: E402
 from bayesreg.config import Config, load_config  # noqa: E402
 from bayesreg.fem import stiffness_matrix  # noqa: E402
 from bayesreg.images import (  # noqa: E402
-    Image, check_same_frame, interpolate_numpy, load_nifti, mni152, pad,
+    Image, _count_nonfinite, check_same_frame, interpolate_numpy, load_nifti, mni152, pad,
     resample_to_spacing, to_reference_grid,
 )
 from bayesreg.mesh import Mesh, carve_skull, mesh_brain, mesh_brain_sized, signed_volumes  # noqa: E402
@@ -109,7 +109,7 @@ def _load_data(cfg: Config):
     lab = load_nifti(d.labels)
     m = load_nifti(d.moving) if d.moving is not None else None
     for key, img in (("data.fixed", f), ("data.labels", lab), ("data.moving", m)):
-        bad = 0 if img is None else int(np.size(img.data) - np.count_nonzero(np.isfinite(img.data)))
+        bad = 0 if img is None else _count_nonfinite(img.data)
         if bad:
             raise ValueError(f"{key} ({getattr(d, key[5:])}) has {bad} non-finite voxels (NaN or "
                              "inf): replace them (e.g. by 0 outside the head) before registering")

@@ -60,6 +60,7 @@ from bayesreg.solver import (  # noqa: E402
     DensePreconditioner,
     SolveInfo,
     SpectralPreconditioner,
+    _check_shape,
     dense_preconditioner,
     interior_map_blocks,
     solve_interior_blocks,
@@ -476,14 +477,6 @@ def skull_barrier(post: Posterior, points):
     near = d < w
     d_safe = jnp.where(near, jnp.maximum(d, 1e-6 * jnp.maximum(w, 1e-12)), 1.0)
     return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0))
-
-
-def _check_shape(name, value, expected, what):
-    """Static shape check (shapes are known under ``jit``; under ``vmap`` they are those of
-    one chain): ``value.shape == expected``."""
-    shape = jnp.shape(value)
-    if shape != expected:
-        raise ValueError(f"{name} must have shape {expected} ({what}), got {shape}")
 
 
 def _check_last_axis(name, value, n, what):

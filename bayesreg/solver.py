@@ -83,7 +83,8 @@ DENSE_MAX_DOFS = 4096
 
 
 def _check_shape(name, value, expected, what):
-    """Static check (shapes are known under ``jit``/``vmap``): ``value.shape == expected``."""
+    """Static check (shapes are known under ``jit``; under ``vmap`` they are those of one
+    chain): ``value.shape == expected``.  Also used by :mod:`bayesreg.posterior`."""
     shape = jnp.shape(value)
     if shape != expected:
         raise ValueError(f"{name} must have shape {expected} ({what}), got {shape}")
