@@ -1,7 +1,7 @@
 """Checkpoints of a run in progress: draws written chunk by chunk, the sampler state after each.
 
-Layout inside the run directory (every file written atomically: a temporary name, then
-``os.replace``)::
+Layout inside the run directory (every file written atomically and durably: a temporary
+name, flushed to disk, then ``os.replace``; :mod:`bayesreg._files`)::
 
     checkpoint/config.json      the resolved config of the run
     checkpoint/problem.npz      images, mesh and truth (:func:`bayesreg.pipeline.save_problem`)
@@ -18,12 +18,12 @@ the config, problem and starts stay, so a finished run can be rebuilt in a noteb
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
 import numpy as np
 
+from bayesreg._files import replace_durably
 from bayesreg.sampler import SamplerCheckpoint
 
 __all__ = ["Checkpoint", "savez_atomic"]
@@ -33,10 +33,11 @@ _OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iteration
 
 
 def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
-    """``np.savez`` (or ``savez_compressed``) to a temporary name, then ``os.replace``."""
+    """``np.savez`` (or ``savez_compressed``) to a temporary name, then renamed over ``path``
+    (:func:`bayesreg._files.replace_durably`: flushed to disk, atomic)."""
     tmp = Path(path).with_name(Path(path).name + ".tmp.npz")
     (np.savez_compressed if compressed else np.savez)(tmp, **arrays)
-    os.replace(tmp, path)
+    replace_durably(tmp, path)
 
 
 class Checkpoint:
@@ -59,7 +60,7 @@ class Checkpoint:
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = self.config_path.with_name("config.json.tmp")
         tmp.write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
-        os.replace(tmp, self.config_path)
+        replace_durably(tmp, self.config_path)
 
     def load_config(self):
         """The run's saved config (``checkpoint/config.json``), validated.

@@ -16,6 +16,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from bayesreg import _xla
+from bayesreg._files import replace_durably
 
 _xla.configure()
 import jax  # noqa: E402
@@ -280,7 +281,7 @@ def save_nifti(img: Image, path) -> None:
     os.close(fd)
     try:
         nib.save(nib.Nifti1Image(np.asarray(img.data), np.asarray(img.affine)), tmp)
-        os.replace(tmp, path)
+        replace_durably(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -48,6 +48,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from bayesreg._files import fsync_dir, fsync_file, replace_durably
 from bayesreg.images import Image, save_nifti
 
 __all__ = ["RunDirectory", "RunResult", "write_outputs", "error_table", "format_report"]
@@ -145,8 +146,12 @@ class RunDirectory:
     def commit(self) -> Path:
         """Move the staged outputs in (each file atomically, ``run.json`` last)."""
         names = sorted(p.name for p in self.staging.iterdir())
+        for name in names:  # every file on disk before any rename (a power loss: old or new)
+            if (self.staging / name).is_file():
+                fsync_file(self.staging / name)
         for name in [n for n in names if n != "run.json"] + [n for n in names if n == "run.json"]:
             os.replace(self.staging / name, self.path / name)
+        fsync_dir(self.path)
         self.staging.rmdir()
         if self._old is not None:
             shutil.rmtree(self._old)
@@ -192,7 +197,7 @@ class RunResult(NamedTuple):
 def _atomic_text(path: Path, text: str):
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
-    os.replace(tmp, path)
+    replace_durably(tmp, path)
 
 
 def _versions():
