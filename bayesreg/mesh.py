@@ -214,8 +214,11 @@ def mesh_brain(
         ``smoothing_sigma_mm`` not a finite number >= 0, or ``step_size`` not an integer >= 1.
     MeshError
         (a ``ValueError``) If the label map has (almost) no intracranial voxels, the smoothing
-        removes the brain surface (``smoothing_sigma_mm`` too large for the brain), meshing
-        fails, returns too few elements, or any element is inverted/degenerate.
+        removes the brain surface (``smoothing_sigma_mm`` too large for the brain),
+        ``edge_length_mm`` exceeds the largest extent of the brain's surface (checked before
+        fTetWild runs: beyond the brain's size its run time grows and its mesh does not
+        coarsen), meshing fails, returns too few elements, or any element is
+        inverted/degenerate.
     """
     import pytetwild
 
@@ -227,6 +230,14 @@ def mesh_brain(
         raise MeshError("the label map has (almost) no intracranial voxels to mesh")
     sigma_vox = float(smoothing_sigma_mm) / float(np.mean(labels.spacing))
     verts, faces = _surface(inside, labels.affine, sigma_vox, int(step_size), float(smoothing_sigma_mm))
+    extent = np.ptp(verts, axis=0)
+    if float(edge_length_mm) > float(extent.max()):
+        raise MeshError(
+            f"edge_length_mm={float(edge_length_mm):g} exceeds the largest extent of the "
+            f"intracranial surface ({extent.max():.0f} mm; its box is "
+            f"{' x '.join(f'{e:.0f}' for e in extent)} mm): no element can be that long, and "
+            "fTetWild spends minutes trying (MNI152 at 2 mm: 15 s at 200 mm and 35 s at 400 mm "
+            "for the ~180 nodes it makes at 60 mm); use a smaller edge length")
     try:
         # fTetWild writes a scratch file (__tracked_surface.stl) into the working folder
         with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
@@ -278,7 +289,9 @@ def mesh_brain_sized(
     ``log A`` is estimated as the mean of ``log n + p log h`` over all attempts so far and
     the next edge length is ``(A / target_nodes)^(1/p)`` (the mean damps the scatter that a
     step from the last attempt alone would chase), its change clipped to a factor in
-    ``[0.7, 1.4]``.
+    ``[0.7, 1.4]`` and the length to 0.9 of the brain's largest extent (of the last mesh's
+    nodes): a target below the coarsest mesh fTetWild makes of the surface (about 170-190
+    nodes for MNI152 at 2 mm) ends the search there, with the warning below.
 
     Parameters
     ----------
@@ -339,7 +352,12 @@ def mesh_brain_sized(
             break
         log_a.append(np.log(n) + NODES_EXPONENT * np.log(edge))
         wanted = np.exp((np.mean(log_a) - np.log(target_nodes)) / NODES_EXPONENT)
-        edge *= float(np.clip(wanted / edge, 0.7, 1.4))
+        # never beyond the brain's largest extent (mesh_brain refuses it: fTetWild makes no
+        # coarser mesh there, only slower), and no further attempt once there
+        cap = 0.9 * float(np.ptp(mesh.nodes, axis=0).max())  # fTetWild may place nodes a little outside the surface
+        if edge >= cap and wanted > edge:
+            break
+        edge = min(edge * float(np.clip(wanted / edge, 0.7, 1.4)), cap)
     n, edge, mesh = best
     within = abs(n - target_nodes) <= tolerance * target_nodes
     if not within:

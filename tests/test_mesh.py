@@ -16,7 +16,8 @@ def _fake_mesher(counts):
     def mesh_brain(labels, *, edge_length_mm, **kwargs):
         calls.append((edge_length_mm, kwargs))
         n = int(counts(edge_length_mm))
-        return Mesh(np.zeros((n, 3)), np.zeros((1, 4), np.int64), np.zeros(1, np.int64), np.arange(4))
+        nodes = np.linspace(0.0, 150.0, n)[:, None] * np.ones(3)  # a brain 150 mm across
+        return Mesh(nodes, np.zeros((1, 4), np.int64), np.zeros(1, np.int64), np.arange(4))
 
     return mesh_brain, calls
 
@@ -120,3 +121,23 @@ def test_mesh_brain_rejects_bad_label_maps_and_names_a_smoothing_that_removes_th
         M.mesh_brain(ball, smoothing_sigma_mm=200.0)
     with pytest.raises(ValueError, match=r"edge_length_mm must be a finite number > 0, got inf"):
         mesh_brain_sized("labels", 800, edge_length_mm=np.inf)
+
+
+def test_sized_mesh_stops_at_the_brains_extent(monkeypatch):
+    """A target below the coarsest mesh fTetWild makes (its counts stop falling once the
+    edge nears the brain's size): the edge length grows to 0.9 of the brain's extent (150 mm
+    here) and no further, and the search ends there with the closest mesh and a warning."""
+    fake, calls = _fake_mesher(lambda h: max(180.0, 900.0 * (16.0 / h) ** 4))
+    monkeypatch.setattr(M, "mesh_brain", fake)
+    with pytest.warns(UserWarning, match="no mesh within 5% of 50 nodes"):
+        mesh, info = mesh_brain_sized("labels", 50, max_attempts=12, edge_length_mm=100.0)
+    edges = [h for h, _ in calls]
+    assert edges == [100.0, pytest.approx(0.9 * 150.0)]  # 140 wanted, capped; then no more
+    assert len(mesh.nodes) == 180 and len(info["attempts"]) == 2
+
+
+def test_edge_longer_than_the_brain_is_refused_before_fTetWild(brain):
+    _, labels, _ = brain
+    with pytest.raises(M.MeshError, match=r"edge_length_mm=1000 exceeds the largest extent of the "
+                       r"intracranial surface \(1[5-9]\d mm"):
+        M.mesh_brain(labels, edge_length_mm=1000.0)
