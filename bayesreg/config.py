@@ -9,6 +9,7 @@ number, a key that the chosen data source or synthetic case would ignore, and a 
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
@@ -447,19 +448,28 @@ class Config(_Strict):
                            "tissues' values)" if m.elastic == "uniform" else ""))
 
 
+#: pydantic's tags of the members of a plain union (``Int | list[Int]``) in an error's location
+_UNION_TAG = re.compile(r"^(int|float|str|bool|list\[.*\]|dict\[.*\])$")
+
+
 def _format_errors(err: ValidationError, source: str) -> str:
-    lines = [f"invalid configuration {source}:"]
+    entries: list[tuple[str, str]] = []
     for e in err.errors():
         loc = e["loc"]
         # drop the branch tag of the prior union (model.prior_lam.beta.r2 -> model.prior_lam.r2)
         loc = [p for i, p in enumerate(loc)
                if not (p in _PRIOR_TAGS and i and loc[i - 1] in ("prior_lam", "prior_mu"))]
-        key = ".".join(str(p) for p in loc) or "(top level)"
+        tags = [isinstance(p, str) and bool(_UNION_TAG.match(p)) for p in loc]
+        union = any(tags)
+        key = ".".join(str(p) for p, t in zip(loc, tags) if not t) or "(top level)"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
         if e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
-        lines.append(f"  {key}: {msg}")
-    return "\n".join(lines)
+        if union and entries and entries[-1][0] == key:  # one line per key: "a valid integer, or ..."
+            entries[-1] = (key, f"{entries[-1][1]}, or {msg.removeprefix('Input should be ')}")
+        else:
+            entries.append((key, msg))
+    return "\n".join([f"invalid configuration {source}:"] + [f"  {k}: {m}" for k, m in entries])
 
 
 def _set_path(d: dict, dotted: str, value):

@@ -317,3 +317,14 @@ def test_a_partial_tissue_mapping_keeps_the_defaults_of_the_rest(tmp_path):
     assert load_config(path).model.initial_mu.model_dump() == {"csf": 1.0, "gm": 2.0, "wm": 1.0}
     with pytest.raises(ConfigError, match=r"model.initial_lam.gm: Input should be greater than 0"):
         load_config(overrides=["model.initial_lam.gm=-1"])
+
+
+def test_union_errors_read_as_one_line_per_key():
+    """``Int | list[Int]`` (a label code or a list of codes): pydantic reports one error per
+    union member, tagged ``int`` and ``list[int]``; the message gives one line per key."""
+    nifti = ["data.source=nifti", "data.fixed=f.nii.gz", "data.labels=l.nii.gz"]
+    lines = _error(nifti + ["data.label_coding={csf: abc, gm: 2, wm: 3}"], None).splitlines()
+    assert lines[1:] == ["  data.label_coding.csf: Input should be a valid integer, or a valid list"]
+    lines = _error(nifti + ["data.label_coding={csf: [1, x], gm: 2, wm: 3}"], None).splitlines()
+    assert "  data.label_coding.csf.1: Input should be a valid integer" in lines
+    assert not any("list[int]" in line for line in lines)
