@@ -276,6 +276,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
 
 
 _CHUNK = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
+_SPREAD_MAX_BYTES = 1 << 30  # the nodal covariances' accumulators, all threads together
 
 
 def _node_slots(problem):
@@ -324,15 +325,30 @@ def _nodal_spread(problem, result, mean, *, block=128):
     inter-quartile range of ``|u|`` per node ``(N,)`` (mm).  Memory: the ``(C*D, N)``
     norms and one chunk, not the ``(C*D, N, 3)`` draws.
     """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from bayesreg.sampler import _cores
+
     n_nodes = mean.shape[0]
-    cov = np.zeros((3, n_nodes, n_nodes))
     norm = np.empty((result.positions.shape[0] * result.positions.shape[1], n_nodes))
-    for r in _chunks(result):
-        x = _nodal_draws(problem, result, r)
-        norm[r] = np.linalg.norm(x, axis=2)
-        x -= mean
-        for c in range(3):
-            cov[c] += x[:, :, c].T @ x[:, :, c]
+
+    def accumulate(rows):
+        cov = np.zeros((3, n_nodes, n_nodes))
+        for r in rows:
+            x = _nodal_draws(problem, result, r)
+            norm[r] = np.linalg.norm(x, axis=2)
+            x -= mean
+            for c in range(3):
+                xc = np.ascontiguousarray(x[:, :, c])
+                cov[c] += xc.T @ xc
+        return cov
+
+    # the chunks shared among threads (BLAS and NumPy release the GIL), one (3, N, N)
+    # accumulator each, as many as fit in _SPREAD_MAX_BYTES (the 10k-node mesh: one)
+    chunks = _chunks(result)
+    workers = max(1, min(_cores(), len(chunks), _SPREAD_MAX_BYTES // (24 * n_nodes * n_nodes)))
+    with ThreadPoolExecutor(workers) as pool:
+        cov = sum(pool.map(accumulate, [chunks[k::workers] for k in range(workers)]))
     cov /= len(norm)
     sd = np.sqrt(np.maximum(np.stack([np.diag(cov[c]) for c in range(3)], axis=1), 0.0))
     norm_sd, norm_iqr = np.empty(n_nodes), np.empty(n_nodes)
@@ -342,6 +358,40 @@ def _nodal_spread(problem, result, mean, *, block=128):
         q75, q25 = np.quantile(cols, [0.75, 0.25], axis=0)
         norm_iqr[a:a + block] = q75 - q25
     return cov, sd, norm_sd, norm_iqr
+
+
+def _summary(tree, small: list, big: str, dim: str, *, parts: int | None = None):
+    """``az.summary`` of the variables ``small + [big]`` (90% equal-tailed intervals), the
+    rows of ``big`` computed in ``parts`` threads over contiguous blocks of its ``dim``.
+
+    The same table as one ``az.summary(tree, var_names=small + [big], ...)`` call, row for
+    row and value for value (ArviZ's diagnostics are per estimand; tested).  ArviZ's NumPy
+    work (the rank normalisations' sorts above all) releases the GIL, so the threads use
+    the cores: on the paper experiment's 3 x 25,000 draws of 1,032 boundary coordinates,
+    60 s in one call against 24 s for ``u_b`` in two threads (2-core CPU).  ``parts``
+    defaults to the cores available.
+    """
+    import arviz as az
+    import pandas as pd
+
+    from bayesreg.sampler import _cores
+
+    def one(names, sel=None):
+        t = tree if sel is None else tree.isel({dim: sel})
+        return az.summary(t, var_names=names, ci_prob=0.9, ci_kind="eti")
+
+    n = tree.posterior.sizes[dim]
+    parts = max(1, min(parts or _cores(), n))
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+    blocks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    if len(blocks) == 1:
+        return one(small + [big])
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(len(blocks)) as pool:
+        futures = [pool.submit(one, [big], sel) for sel in blocks]
+        head = one(small)
+        return pd.concat([head] + [f.result() for f in futures])
 
 
 def _per_solve(cg_per_step, cfg, block_names):
@@ -571,7 +621,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
         with arviz_fast_ess():  # ArviZ's numbers, without its Python loop over lags
-            summary = az.summary(tree, var_names=var_names, ci_prob=0.9, ci_kind="eti")
+            summary = _summary(tree, ["lam", "mu", "ratio"], "u_b", "node")
         classic, split = [], []
         for v in var_names:
             x = np.asarray(tree.posterior[v].values)

@@ -189,3 +189,45 @@ def test_writes_are_flushed_to_disk_before_their_rename(tmp_path, monkeypatch):
     staged = tmp_path / "run" / ".outputs-partial"
     assert synced == [str(staged / "run.json"), str(staged / "summary.csv"), str(tmp_path / "run")]
     assert (tmp_path / "run" / "run.json").read_text() == "{}" and not staged.exists()
+
+
+@pytest.mark.parametrize("parts", [1, 2, 3, 7])
+def test_summary_in_threads_equals_one_arviz_call(parts):
+    """The run's summary table, ``u_b`` in threads over blocks of nodes, is ArviZ's own
+    table of all the variables in one call: the same rows in the same order, the same values."""
+    import warnings
+
+    import arviz as az
+
+    from bayesreg.diagnostics import arviz_fast_ess, to_datatree
+
+    rng = np.random.default_rng(4)
+    c, d, n = 3, 150, 7
+    ub = np.cumsum(rng.normal(size=(c, d, n, 3)), axis=1) * 0.1 + rng.normal(size=(c, d, n, 3))
+    lam = rng.uniform(1, 2, (c, d, 3))
+    mu = np.concatenate([rng.uniform(0.5, 1, (c, d, 2)), np.ones((c, d, 1))], axis=-1)  # a fixed one
+    tree = to_datatree({"u_b": ub, "lam": lam, "mu": mu, "ratio": lam / mu},
+                       dims={"u_b": ["node", "axis"], "lam": ["group"], "mu": ["group"],
+                             "ratio": ["group"]},
+                       coords={"node": np.arange(10, 10 + n), "axis": ["x", "y", "z"],
+                               "group": ["csf", "gm", "wm"]})
+    with warnings.catch_warnings():  # the fixed mu: zero variance, NaN R-hat
+        warnings.simplefilter("ignore", RuntimeWarning)
+        with arviz_fast_ess():
+            ref = az.summary(tree, var_names=["lam", "mu", "ratio", "u_b"], ci_prob=0.9, ci_kind="eti")
+            got = outputs._summary(tree, ["lam", "mu", "ratio"], "u_b", "node", parts=parts)
+    assert list(got.index) == list(ref.index) and list(got.columns) == list(ref.columns)
+    np.testing.assert_array_equal(got.to_numpy(float), ref.to_numpy(float))
+
+
+def test_nodal_statistics_in_one_thread_when_memory_is_short(monkeypatch):
+    """Above the accumulators' byte budget the covariances are summed in one thread; the
+    figures are those of the threaded sum."""
+    _, problem, result, _ = _fake_run()
+    monkeypatch.setattr(outputs, "_CHUNK", 7)
+    mean = outputs._nodal_mean(problem, result)
+    threaded = outputs._nodal_spread(problem, result, mean)
+    monkeypatch.setattr(outputs, "_SPREAD_MAX_BYTES", 1)
+    single = outputs._nodal_spread(problem, result, mean)
+    for a, b in zip(threaded, single):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
