@@ -4,8 +4,8 @@
   relative error of 4e-7, see ``FINDINGS.md``), so the whole log-density is float64.
 * ``--xla_cpu_experimental_ynn_fusion_type=`` (empty): XLA's CPU backend otherwise fuses
   gather-then-sum (trilinear interpolation, ELL mat-vecs) into kernels measured 4-8x
-  slower on these machines (the paper-size log-density with one CG iteration: 0.65-0.76
-  ms with the flag, 2.45 ms without).  Only added when the user has not set XLA_FLAGS to
+  slower on these machines (the paper-size log-density with one CG iteration, one core:
+  0.73 ms with the flag, 2.28 ms without).  Only added when the user has not set XLA_FLAGS to
   something mentioning it.  XLA reads ``XLA_FLAGS`` once, when JAX starts its first
   backend (the first computation, or ``jax.devices()``), not at ``import jax``: so the
   flag is added whenever no backend has started yet, even if JAX (or a package that
@@ -69,7 +69,7 @@ def _warn_started_without_flag() -> None:
     warnings.warn(
         "JAX's CPU backend was started before bayesreg was imported, without XLA_FLAGS="
         f"{_YNN_FLAG} (XLA reads its flags once, at the first JAX computation): the "
-        "log-density runs about 3-4x slower on this CPU (the image interpolation and the FE "
+        "log-density runs about 3x slower on this CPU (the image interpolation and the FE "
         "mat-vecs).  Import bayesreg before running any JAX computation (importing jax or "
         "arviz first is fine), or set the flag in the environment, e.g. "
         f"`export XLA_FLAGS={_YNN_FLAG}`, and restart the process.",

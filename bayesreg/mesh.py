@@ -354,7 +354,8 @@ def mesh_brain_sized(
         wanted = np.exp((np.mean(log_a) - np.log(target_nodes)) / NODES_EXPONENT)
         # never beyond the brain's largest extent (mesh_brain refuses it: fTetWild makes no
         # coarser mesh there, only slower), and no further attempt once there
-        cap = 0.9 * float(np.ptp(mesh.nodes, axis=0).max())  # fTetWild may place nodes a little outside the surface
+        # (0.9: fTetWild may place nodes a little outside the surface)
+        cap = 0.9 * float(np.ptp(mesh.nodes, axis=0).max())
         if edge >= cap and wanted > edge:
             break
         edge = min(edge * float(np.clip(wanted / edge, 0.7, 1.4)), cap)

@@ -348,7 +348,10 @@ def _nodal_spread(problem, result, mean, *, block=128):
     chunks = _chunks(result)
     workers = max(1, min(_cores(), len(chunks), _SPREAD_MAX_BYTES // (24 * n_nodes * n_nodes)))
     with ThreadPoolExecutor(workers) as pool:
-        cov = sum(pool.map(accumulate, [chunks[k::workers] for k in range(workers)]))
+        covs = list(pool.map(accumulate, [chunks[k::workers] for k in range(workers)]))
+    cov = covs.pop(0)
+    for other in covs:  # in place: no third (3, N, N) array
+        cov += other
     cov /= len(norm)
     sd = np.sqrt(np.maximum(np.stack([np.diag(cov[c]) for c in range(3)], axis=1), 0.0))
     norm_sd, norm_iqr = np.empty(n_nodes), np.empty(n_nodes)
@@ -384,7 +387,7 @@ def _summary(tree, small: list, big: str, dim: str, *, parts: int | None = None)
     parts = max(1, min(parts or _cores(), n))
     bounds = np.linspace(0, n, parts + 1).astype(int)
     blocks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-    if len(blocks) == 1:
+    if len(blocks) <= 1:
         return one(small + [big])
     from concurrent.futures import ThreadPoolExecutor
 

@@ -223,8 +223,11 @@ def test_summary_in_threads_equals_one_arviz_call(parts):
 def test_nodal_statistics_in_one_thread_when_memory_is_short(monkeypatch):
     """Above the accumulators' byte budget the covariances are summed in one thread; the
     figures are those of the threaded sum."""
+    from bayesreg import sampler
+
     _, problem, result, _ = _fake_run()
     monkeypatch.setattr(outputs, "_CHUNK", 7)
+    monkeypatch.setattr(sampler, "_cores", lambda: 3)  # three threads whatever the machine
     mean = outputs._nodal_mean(problem, result)
     threaded = outputs._nodal_spread(problem, result, mean)
     monkeypatch.setattr(outputs, "_SPREAD_MAX_BYTES", 1)

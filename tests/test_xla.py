@@ -64,3 +64,17 @@ def test_users_flag_kept():
     assert _probe("", xla_flags=mine)["flags"] == mine
     res = _probe("import jax.numpy as jnp\njnp.zeros(1).block_until_ready()", xla_flags=mine)
     assert res["flags"] == mine and res["warnings"] == []
+
+
+def test_xla_reads_its_flags_when_the_backend_starts():
+    """The premise of the above: XLA_FLAGS set after ``import jax`` but before the first
+    computation is read (an unknown flag then aborts the process).  Should a JAX release
+    read the flags at import instead, this fails and ``_xla.configure`` needs revisiting."""
+    code = ("import os, jax, jax.numpy as jnp\n"
+            "os.environ['XLA_FLAGS'] = '--xla_bayesreg_no_such_flag=1'\n"
+            "jnp.ones(1).block_until_ready()\n")
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAX_PLATFORMS"] = "cpu"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode != 0 and "xla_bayesreg_no_such_flag" in out.stderr
