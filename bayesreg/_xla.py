@@ -73,7 +73,10 @@ def _warn_started_without_flag() -> None:
         "mat-vecs).  Import bayesreg before running any JAX computation (importing jax or "
         "arviz first is fine), or set the flag in the environment, e.g. "
         f"`export XLA_FLAGS={_YNN_FLAG}`, and restart the process.",
-        UserWarning, stacklevel=3)
+        UserWarning,
+        # attributed to the user's ``import bayesreg`` line: bayesreg's own frames are
+        # skipped, and Python skips the import machinery's
+        skip_file_prefixes=(os.path.dirname(os.path.abspath(__file__)) + os.sep,))
 
 
 def configure() -> None:

@@ -21,7 +21,8 @@ with warnings.catch_warnings(record=True) as caught:
     jnp.ones(2).sum().block_until_ready()
     import jax
 print(json.dumps({{"flags": os.environ.get("XLA_FLAGS"), "x64": bool(jax.config.jax_enable_x64),
-                  "warnings": [str(w.message) for w in caught if "bayesreg" in str(w.message)]}}))
+                  "warnings": [str(w.message) for w in caught if "bayesreg" in str(w.message)],
+                  "where": [w.filename for w in caught if "bayesreg" in str(w.message)]}}))
 """
 
 
@@ -55,6 +56,8 @@ def test_backend_started_without_the_flag_warns():
     assert len(res["warnings"]) == 1
     msg = res["warnings"][0]
     assert FLAG in msg and "Import bayesreg before running any JAX computation" in msg
+    # attributed to the user's ``import bayesreg`` (here the ``-c`` script), not to bayesreg
+    assert res["where"] == ["<string>"]
 
 
 def test_users_flag_kept():
