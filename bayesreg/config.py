@@ -120,6 +120,18 @@ class MeshConfig(_Strict):
     target_tolerance: Float = Field(0.05, gt=0, lt=1, description="relative tolerance on target_nodes")
     max_attempts: Int = Field(12, ge=1, description="meshes tried at most for target_nodes (the "
                               "closest is kept, with a warning, when none is within the tolerance)")
+    file: Path | None = Field(
+        None, description="a tetrahedral mesh to use instead of meshing: any format meshio reads "
+        "(e.g. a run's mesh.vtu, to run again on that very mesh: fTetWild is not reproducible), "
+        "points in world mm in the images' frame; relative to the config's folder; the element "
+        "tissues come from the label map (bayesreg.mesh.read_mesh)")
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if self.file is not None and self.target_nodes is not None:
+            raise ValueError("mesh.file and mesh.target_nodes exclude each other (a given mesh is "
+                             "not re-meshed); remove one")
+        return self
 
 
 class SyntheticConfig(_Strict):
@@ -616,7 +628,7 @@ def _merge(base: dict, over: dict) -> dict:
 def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None) -> Config:
     """Read, override and validate a YAML config.
 
-    Relative data paths are resolved against the config file's folder.  A config may start
+    Relative data paths (and ``mesh.file``) are resolved against the config file's folder.  A config may start
     from another with ``extends: OTHER.yaml`` (relative to its folder) and give only what
     differs (mappings merge key by key; ``null`` replaces).
 
@@ -640,8 +652,8 @@ def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None)
     except ValidationError as exc:
         raise ConfigError(_format_errors(exc, source)) from None
     if base_dir is not None:
-        for k in ("fixed", "moving", "labels"):
-            p = getattr(cfg.data, k)
+        for part, k in (("data", "fixed"), ("data", "moving"), ("data", "labels"), ("mesh", "file")):
+            p = getattr(getattr(cfg, part), k)
             if p is not None and not p.is_absolute():
-                setattr(cfg.data, k, (Path(base_dir) / p).resolve())
+                setattr(getattr(cfg, part), k, (Path(base_dir) / p).resolve())
     return cfg

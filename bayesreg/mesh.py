@@ -6,8 +6,11 @@ edge length, then label every element by the majority tissue over sample points 
 so that the element labels follow the tissue boundaries at the resolution of the mesh (as
 in the paper's Fig. 2c).
 
-Meshing is not bit-reproducible (fTetWild); store the mesh with a run's outputs.
-:func:`mesh_brain_sized` re-meshes until the node count is near a target (the paper's 801).
+Meshing is not bit-reproducible (fTetWild draws from an unseeded generator: one thread
+gives a different mesh at every call too); store the mesh with a run's outputs, and read it
+back with :func:`read_mesh` (``mesh.file`` in a config) to run again on the same mesh, or to
+bring a mesh made elsewhere.  :func:`mesh_brain_sized` re-meshes until the node count is
+near a target (the paper's 801).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import tempfile
 import warnings
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -24,7 +28,8 @@ from bayesreg import labels as L
 from bayesreg.images import Image, _check_image, _check_number, interpolate_numpy
 
 __all__ = [
-    "Mesh", "MeshError", "mesh_brain", "mesh_brain_sized", "carve_skull", "boundary_nodes", "mesh_quality", "orient_tets",
+    "Mesh", "MeshError", "mesh_brain", "mesh_brain_sized", "read_mesh", "carve_skull", "boundary_nodes",
+    "mesh_quality", "orient_tets",
 ]
 
 
@@ -262,6 +267,106 @@ def mesh_brain(
     if q["n_inverted"] or q["volume_min_mm3"] <= 1e-9 * vmax:
         raise MeshError(f"mesh has inverted or degenerate elements: {q}")
     return mesh
+
+
+#: meshio's volume cell types other than linear tetrahedra: a file holding any of them is
+#: refused by :func:`read_mesh` rather than read in part
+_OTHER_VOLUME_CELLS = ("tetra10", "hexahedron", "hexahedron20", "hexahedron24", "hexahedron27",
+                       "wedge", "wedge12", "wedge15", "pyramid", "pyramid13", "pyramid14")
+
+#: least fraction of a mesh's element centroids that must lie in the intracranial tissues
+#: of the label map for :func:`read_mesh` (the check that catches a mesh in another frame)
+MIN_INSIDE_FRACTION = 0.5
+
+
+def read_mesh(path, labels: Image) -> Mesh:
+    """A tetrahedral mesh from a file, labelled as :func:`mesh_brain` labels its elements.
+
+    Any format that meshio reads (VTU, XDMF, Gmsh ``.msh``, Medit ``.mesh``, ...): for
+    instance a run's own ``mesh.vtu``, to sample again on the very mesh of that run (fTetWild
+    is not reproducible), or a mesh made with another tool.  Nodes not used by any
+    tetrahedron are dropped, elements are oriented positively (:func:`orient_tets`), the
+    boundary nodes are those of the mesh's surface, and each element's tissue is the
+    majority over sample points of ``labels`` (:func:`label_elements`; a ``tissue`` cell
+    array in the file is not read: the label map decides, as for a generated mesh).  Lower
+    dimensional cells (a Gmsh file's surface triangles, lines, vertices) are ignored.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The mesh file.  Its points are world coordinates in mm, in the frame of ``labels``
+        (the images' affines); their order is kept, apart from unused ones.
+    labels : Image
+        Internal label coding (see :mod:`bayesreg.labels`).
+
+    Returns
+    -------
+    Mesh
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` is not a file.
+    MeshError
+        (a ``ValueError``) meshio cannot read the file; it holds no linear tetrahedra
+        (``tetra``), or volume cells of another type (quadratic tetrahedra, hexahedra,
+        wedges, pyramids); its points are not 3-D and finite, or a tetrahedron names a point
+        that does not exist; an element is degenerate (volume at most 1e-9 of the largest); or
+        fewer than :data:`MIN_INSIDE_FRACTION` of the element centroids lie in the
+        intracranial tissues of ``labels`` (a mesh in voxel coordinates, or of another
+        subject or space: the message gives both extents).
+    """
+    import meshio
+
+    labels = _check_image(labels, "labels")
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        raw = meshio.read(path)
+    except SystemExit:  # meshio exits when no reader of the suffix's formats can read it
+        raise MeshError(f"cannot read mesh file {path}: no meshio reader for its suffix "
+                        f"({path.suffix or 'none'}) could read it") from None
+    except Exception as exc:  # meshio raises many types (ReadError, KeyError, ValueError, ...)
+        raise MeshError(f"cannot read mesh file {path}: {type(exc).__name__}: {exc}") from None
+    types = sorted({c.type for c in raw.cells})
+    other = [t for t in types if t in _OTHER_VOLUME_CELLS or t.startswith("polyhedron")]
+    if other:
+        raise MeshError(f"mesh file {path} holds volume cells of type {', '.join(other)}: "
+                        "bayesreg's elements are linear tetrahedra (meshio type 'tetra') only")
+    blocks = [np.asarray(c.data, np.int64) for c in raw.cells if c.type == "tetra"]
+    if not blocks:
+        raise MeshError(f"mesh file {path} holds no tetrahedra (its cells: "
+                        f"{', '.join(types) or 'none'})")
+    nodes = np.asarray(raw.points, np.float64)
+    if nodes.ndim != 2 or nodes.shape[1] != 3 or not np.all(np.isfinite(nodes)):
+        raise MeshError(f"mesh file {path}: points must be finite 3-D coordinates (mm), got an "
+                        f"array of shape {nodes.shape}")
+    tets = np.concatenate(blocks)
+    if tets.min() < 0 or tets.max() >= len(nodes):
+        raise MeshError(f"mesh file {path}: a tetrahedron names point {int(tets.max())} of "
+                        f"{len(nodes)} (or a negative index)")
+    nodes, tets = _compact(nodes, tets)
+    tets = orient_tets(nodes, tets)
+    vol = np.abs(signed_volumes(nodes, tets))
+    if not vol.min() > 1e-9 * vol.max():
+        bad = np.flatnonzero(vol <= 1e-9 * vol.max())
+        raise MeshError(f"mesh file {path}: {len(bad)} degenerate (flat or repeated-node) "
+                        f"element(s), the first {bad[:5].tolist()}")
+    centroids = nodes[tets].mean(axis=1)
+    at = interpolate_numpy(labels, centroids, order=0, cval=L.BACKGROUND)
+    inside = float(np.mean(np.isin(at, L.TISSUE_LABELS)))
+    if inside < MIN_INSIDE_FRACTION:
+        mask = np.argwhere(np.isin(np.asarray(labels.data), L.TISSUE_LABELS)).astype(np.float64)
+        brain = mask @ labels.affine[:3, :3].T + labels.affine[:3, 3] if len(mask) else np.zeros((1, 3))
+        span = lambda x: " x ".join(f"[{a:.0f}, {b:.0f}]" for a, b in zip(x.min(0), x.max(0)))  # noqa: E731
+        raise MeshError(
+            f"mesh file {path}: only {inside:.0%} of its element centroids lie in the "
+            f"intracranial tissues of the label map (at least {MIN_INSIDE_FRACTION:.0%} "
+            f"needed).  Its points must be world coordinates in mm, in the images' frame: the "
+            f"mesh spans {span(nodes)} mm, the intracranial region {span(brain)} mm")
+    tissue = label_elements(labels, nodes, tets)
+    return Mesh(nodes, tets, tissue, boundary_nodes(tets))
 
 
 NODES_EXPONENT = 4.0

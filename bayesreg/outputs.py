@@ -448,6 +448,8 @@ def format_report(errors: dict | None, info: dict) -> str:
             line += (f"; target {meshing['target_nodes']} within {meshing['tolerance']:.0%}: "
                      f"{'met' if meshing['within_tolerance'] else 'NOT met (closest kept)'} in "
                      f"{len(meshing['attempts'])} attempt(s), edge {meshing['edge_length_mm']:.3g} mm")
+        if meshing.get("file"):
+            line += f"; read from {meshing['file']}"
         lines.append(line)
     s = info["sampler"]
     acc = ", ".join(f"{b} {a:.3f}" for b, a in zip(s["blocks"], s["acceptance"]))

@@ -11,7 +11,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
+import warnings
 from functools import partial
 from types import SimpleNamespace
 from typing import NamedTuple
@@ -35,7 +37,8 @@ from bayesreg.images import (  # noqa: E402
     Image, _count_nonfinite, check_same_frame, interpolate_numpy, load_nifti, mni152, pad,
     resample_to_spacing, to_reference_grid,
 )
-from bayesreg.mesh import Mesh, carve_skull, mesh_brain, mesh_brain_sized, signed_volumes  # noqa: E402
+from bayesreg.mesh import (  # noqa: E402
+    Mesh, carve_skull, mesh_brain, mesh_brain_sized, read_mesh, signed_volumes)
 from bayesreg.posterior import (  # noqa: E402
     ParamLayout, Posterior, build_posterior, elastic_groups, log_density, log_density_condensed,
     add_normaliser, log_normaliser, split_position, with_skull_barrier,
@@ -207,6 +210,15 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
     return truth, info
 
 
+def _sha256(path) -> str:
+    """Hex SHA-256 of a file's bytes (recorded with a run's ``mesh.file``)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def make_data(cfg: Config) -> dict:
     """The expensive, non-reproducible part of :func:`prepare`: images, labels, mesh, truth.
 
@@ -219,7 +231,23 @@ def make_data(cfg: Config) -> dict:
     -------
     dict with ``f, m, labels`` (Image), ``mesh``, ``truth`` (Truth or None),
     ``truth_info`` (dict or None), ``intensity_scale``, ``n_skull_carved``, ``timings``,
-    ``mesh_info`` (dict: the edge length and, with ``mesh.target_nodes``, the attempts).
+    ``mesh_info`` (dict: the edge length and, with ``mesh.target_nodes``, the attempts; with
+    ``mesh.file``, the file and its SHA-256).
+
+    Raises
+    ------
+    FileNotFoundError
+        A data file or ``mesh.file`` does not exist.
+    MeshError
+        Meshing fails, or ``mesh.file`` is unusable (:func:`bayesreg.mesh.read_mesh`).
+
+    Warns
+    -----
+    UserWarning
+        Nodes of ``mesh.file`` lie in the skull region of the label map at rest: the skull
+        voxels under and near the mesh become background (:func:`bayesreg.mesh.carve_skull`,
+        as for a generated mesh that pokes past the brain mask), which a given mesh should
+        not need.
     """
     timings = {}
     t = time.perf_counter()
@@ -236,14 +264,25 @@ def make_data(cfg: Config) -> dict:
     t = time.perf_counter()
     mc = cfg.mesh
     mesh_kw = {"smoothing_sigma_mm": mc.smoothing_sigma_mm, "epsilon": mc.epsilon}
-    if mc.target_nodes is None:
+    if mc.file is not None:
+        mesh = read_mesh(mc.file, labels)
+        mesh_info = {"file": str(mc.file), "sha256": _sha256(mc.file)}
+    elif mc.target_nodes is None:
         mesh = mesh_brain(labels, edge_length_mm=mc.edge_length_mm, **mesh_kw)
         mesh_info = {"edge_length_mm": mc.edge_length_mm}
     else:
         mesh, mesh_info = mesh_brain_sized(
             labels, mc.target_nodes, tolerance=mc.target_tolerance, max_attempts=mc.max_attempts,
             edge_length_mm=mc.edge_length_mm, **mesh_kw)
+    if mc.file is not None:
+        in_skull = int(np.sum(interpolate_numpy(labels, mesh.nodes, order=0, cval=L.SKULL) == L.SKULL))
     labels, n_carved = carve_skull(labels, mesh)
+    if mc.file is not None and in_skull:
+        warnings.warn(
+            f"mesh.file {mc.file}: {in_skull} of its {len(mesh.nodes)} nodes lie in the skull "
+            f"region of the label map at rest (or outside its grid); the {n_carved} skull voxels "
+            "under and near the mesh became background, so the skull constraint only holds "
+            "beyond them.  Is the mesh of these images?", UserWarning, stacklevel=2)
     timings["mesh_s"] = time.perf_counter() - t
     empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
     if cfg.model.elastic == "tissue" and empty:

@@ -328,3 +328,17 @@ def test_union_errors_read_as_one_line_per_key():
     lines = _error(nifti + ["data.label_coding={csf: [1, x], gm: 2, wm: 3}"], None).splitlines()
     assert "  data.label_coding.csf.1: Input should be a valid integer" in lines
     assert not any("list[int]" in line for line in lines)
+
+
+def test_mesh_file_is_read_from_the_configs_folder_and_excludes_a_node_target(tmp_path):
+    (tmp_path / "sub").mkdir()
+    p = tmp_path / "sub" / "c.yaml"
+    p.write_text("extends: ../base.yaml\nmesh:\n  file: meshes/brain.vtu\n")
+    (tmp_path / "base.yaml").write_text("name: base\n")
+    cfg = load_config(p)
+    assert cfg.mesh.file == (tmp_path / "sub" / "meshes" / "brain.vtu").resolve()
+    over = load_config(p, overrides=["mesh.file=other.msh"])  # --set: the config's folder too
+    assert over.mesh.file == (tmp_path / "sub" / "other.msh").resolve()
+    assert load_config(p, overrides=["mesh.file=/abs/m.vtu"]).mesh.file.as_posix() == "/abs/m.vtu"
+    with pytest.raises(ConfigError, match="mesh.file and mesh.target_nodes exclude each other"):
+        load_config(p, overrides=["mesh.target_nodes=800"])

@@ -1,4 +1,5 @@
-"""Meshing to a node count (bayesreg.mesh.mesh_brain_sized)."""
+"""Meshing to a node count (bayesreg.mesh.mesh_brain_sized), argument checks, and a given
+mesh read from a file (bayesreg.mesh.read_mesh, ``mesh.file``)."""
 
 from __future__ import annotations
 
@@ -141,3 +142,108 @@ def test_edge_longer_than_the_brain_is_refused_before_fTetWild(brain):
     with pytest.raises(M.MeshError, match=r"edge_length_mm=1000 exceeds the largest extent of the "
                        r"intracranial surface \(1[5-9]\d mm"):
         M.mesh_brain(labels, edge_length_mm=1000.0)
+
+
+def _box_in_ball():
+    """A 3x3x3-cube box mesh, 12 mm wide, inside the ball of :func:`_ball_labels` (centre
+    15 mm, radius 10 mm)."""
+    from conftest import box_mesh
+
+    return box_mesh((3, 3, 3), (12.0, 12.0, 12.0), origin=(9.0, 9.0, 9.0))
+
+
+@pytest.mark.parametrize("suffix, fmt", [(".vtu", None), (".msh", "gmsh22")])
+def test_read_mesh_round_trips_a_written_mesh(tmp_path, suffix, fmt):
+    """A mesh written by meshio comes back with its points, its elements (oriented), the
+    boundary of its surface and tissues from the label map: a point no element uses is
+    dropped, surface triangles and a ``tissue`` cell array in the file are ignored."""
+    import meshio
+
+    from bayesreg.mesh import boundary_faces, label_elements, read_mesh
+
+    labels = _ball_labels()
+    box = _box_in_ball()
+    tets = box.tets.copy()
+    tets[::2, 2], tets[::2, 3] = box.tets[::2, 3], box.tets[::2, 2]  # half of them inverted
+    nodes = np.vstack([box.nodes, [[99.0, 99.0, 99.0]]])  # an unused point, last
+    cells = [("triangle", boundary_faces(box.tets).astype(np.int64)), ("tetra", tets)]
+    tags = [np.zeros(len(cells[0][1]), np.int32), np.full(len(tets), 2, np.int32)]
+    # a Gmsh file carries its physical and geometrical tags, a VTU the tissue of a run
+    cell_data = {"gmsh:physical": tags, "gmsh:geometrical": tags} if fmt else {"tissue": tags}
+    path = tmp_path / f"given{suffix}"
+    meshio.write(path, meshio.Mesh(nodes, cells, cell_data=cell_data), file_format=fmt)
+
+    mesh = read_mesh(path, labels)
+    np.testing.assert_array_equal(mesh.nodes, box.nodes)  # world mm, exactly, unused dropped
+    assert np.all(M.signed_volumes(mesh.nodes, mesh.tets) > 0)
+    np.testing.assert_array_equal(np.sort(mesh.tets, axis=1), np.sort(box.tets, axis=1))
+    np.testing.assert_array_equal(mesh.boundary, box.boundary)
+    # the label map decides (all grey matter here), not the file's tissue array (WM)
+    np.testing.assert_array_equal(mesh.tissue, label_elements(labels, mesh.nodes, mesh.tets))
+    assert np.all(mesh.tissue == 1)
+
+
+def test_read_mesh_refuses_unusable_files_with_the_reason(tmp_path):
+    import meshio
+
+    from bayesreg.mesh import boundary_faces, read_mesh
+
+    labels = _ball_labels()
+    box = _box_in_ball()
+
+    def write(name, nodes, cells):
+        path = tmp_path / name
+        meshio.write(path, meshio.Mesh(nodes, cells))
+        return path
+
+    with pytest.raises(FileNotFoundError, match="mesh file not found: .*nowhere.vtu"):
+        read_mesh(tmp_path / "nowhere.vtu", labels)
+    junk = tmp_path / "junk.vtu"
+    junk.write_text("not a mesh")
+    with pytest.raises(M.MeshError, match="cannot read mesh file .*junk.vtu"):
+        read_mesh(junk, labels)
+    surface = write("surface.vtu", box.nodes, [("triangle", boundary_faces(box.tets))])
+    with pytest.raises(M.MeshError, match=r"holds no tetrahedra \(its cells: triangle\)"):
+        read_mesh(surface, labels)
+    hexa = write("mixed.vtu", box.nodes, [("tetra", box.tets), ("hexahedron", np.arange(8)[None])])
+    with pytest.raises(M.MeshError, match="volume cells of type hexahedron: .*linear tetrahedra"):
+        read_mesh(hexa, labels)
+    flat = write("flat.vtu", box.nodes, [("tetra", np.vstack([box.tets, [[0, 1, 2, 2]]]))])
+    with pytest.raises(M.MeshError, match=r"1 degenerate .* the first \[162\]"):
+        read_mesh(flat, labels)
+    # the same mesh in voxel coordinates of the label map (2 mm voxels): outside the ball
+    voxels = write("voxels.vtu", box.nodes / 2.0 - 4.0, [("tetra", box.tets)])
+    with pytest.raises(M.MeshError, match=r"only 0% of its element centroids lie in the "
+                       r"intracranial tissues .* world coordinates in mm"):
+        read_mesh(voxels, labels)
+
+
+def test_a_run_on_a_given_mesh_gets_that_mesh_and_the_same_data(tmp_path):
+    """``mesh.file``: the job's data on a run's written mesh are those of that run (mesh,
+    tissues, boundary, synthetic truth, ``m``), which fTetWild alone cannot repeat; a mesh
+    that reaches into the skull is reported, with the key named."""
+    import meshio
+
+    from bayesreg.config import load_config
+    from bayesreg.pipeline import make_data
+
+    tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26"]
+    first = make_data(load_config("configs/quickstart.yaml", overrides=tiny))
+    mesh = first["mesh"]
+    path = tmp_path / "mesh.vtu"  # as bayesreg.outputs writes it
+    meshio.write(path, meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
+                                   cell_data={"tissue": [mesh.tissue.astype(np.int32)]}))
+    again = make_data(load_config("configs/quickstart.yaml", overrides=tiny + [f"mesh.file={path}"]))
+    for a, b in zip(again["mesh"], mesh):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(again["truth"].u, first["truth"].u)
+    np.testing.assert_array_equal(again["m"].data, first["m"].data)
+    np.testing.assert_array_equal(again["labels"].data, first["labels"].data)
+    assert again["mesh_info"]["file"] == str(path) and len(again["mesh_info"]["sha256"]) == 64
+
+    grown = tmp_path / "grown.vtu"  # 15% larger about its centre: nodes in the skull
+    centre = mesh.nodes.mean(0)
+    meshio.write(grown, meshio.Mesh(centre + 1.15 * (mesh.nodes - centre), [("tetra", mesh.tets)]))
+    with pytest.warns(UserWarning, match=r"mesh.file .*grown.vtu: \d+ of its \d+ nodes lie in the "
+                      r"skull region of the label map at rest"):
+        make_data(load_config("configs/quickstart.yaml", overrides=tiny + [f"mesh.file={grown}"]))
