@@ -282,7 +282,8 @@ def pcg(matvec, b, x0, precond, *, rtol=1e-8, maxiter=1000):
     b : array
         Right-hand side.
     x0 : array
-        Initial guess (warm start), same shape as ``b``.
+        Initial guess (warm start), same shape as ``b``; ignored when ``b = 0`` (the
+        solution is then 0, in 0 iterations).
     precond : callable
         ``r -> M^{-1} r`` with ``M`` SPD.
     rtol : float
@@ -303,6 +304,9 @@ def pcg(matvec, b, x0, precond, *, rtol=1e-8, maxiter=1000):
     _check_shape("x0", x0, jnp.shape(b), "the shape of b")
     bnorm = jnp.sqrt(jnp.vdot(b, b))
     tol2 = (rtol * bnorm) ** 2
+    # b = 0 (u_b = 0: the identity deformation): the solution is 0, and a residual tolerance
+    # of 0 would never be met from a non-zero warm start (the iterates end in 0/0)
+    x0 = jnp.where(bnorm > 0, x0, jnp.zeros_like(x0))
     r0 = b - matvec(x0)
 
     def cond(c):

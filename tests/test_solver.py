@@ -65,6 +65,21 @@ def test_nonconverged_solve_is_reported():
     assert not bool(info.converged)  # indefinite K (mu < 0) is never reported converged
 
 
+def test_zero_boundary_displacement_solves_to_zero_from_any_warm_start():
+    """``u_b = 0`` (the identity deformation) makes ``b = 0``: the solution is 0 whatever
+    the warm start (before: a tolerance of 0 from a non-zero warm start, NaN iterates after
+    about 160 iterations, and a valid position at ``-inf``)."""
+    from conftest import box_mesh
+
+    m = box_mesh((3, 3, 3))
+    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    lam, mu = np.full(len(m.tets), 10.0), np.ones(len(m.tets))
+    warm = np.random.default_rng(3).normal(size=(op.n_interior, 3))
+    u_i, info = solve_interior(op, lam, mu, np.zeros((len(m.boundary), 3)), warm)
+    assert bool(info.converged) and int(info.iterations) == 0
+    np.testing.assert_array_equal(np.asarray(u_i), 0.0)
+
+
 @pytest.mark.parametrize("preconditioner", ["block-jacobi", "dense"])
 def test_gradient_through_solve_matches_finite_differences(preconditioner):
     """Implicit differentiation through the CG (``lax.custom_linear_solve``) in ``u_b`` and
