@@ -493,7 +493,10 @@ def build_warmup_step(kernel: Callable, *, target_acceptance: float, dense_mass:
         return state, ws, cache, info
 
     def final(ws: WarmupState) -> GibbsParams:
-        return GibbsParams(jnp.exp(ws.da.log_step_size_avg), ws.inverse_mass,
-                           ws.eta_base * jnp.exp(ws.log_eta_scale))
+        # the dual average, once it has averaged anything: BlackJAX's initial state holds
+        # log_step_size_avg = 0, so with no warm-up step (or none since a window's restart)
+        # the step in use is kept (before: step size 1 for warmup_steps = 0)
+        step_size = jnp.where(ws.da.step > 1, jnp.exp(ws.da.log_step_size_avg), ws.step_size)
+        return GibbsParams(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale))
 
     return init_ws, step, final

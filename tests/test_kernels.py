@@ -154,6 +154,19 @@ def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
     np.testing.assert_array_equal(resumed.grad_evals, full.grad_evals)
 
 
+@pytest.mark.parametrize("kind", ["mala", "nuts"])
+def test_without_warmup_a_gradient_kernel_samples_at_the_given_step_size(kind):
+    """``warmup_steps=0``: the step size given is the one used (before: 1.0 whatever was
+    given, the dual averaging's initial average ``exp(0)``)."""
+    rng = np.random.default_rng(0)
+    x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
+    for step in (0.05, 0.3):
+        res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
+                              step_size=step, eta_scale=0.5, warmup_steps=0, max_draws=10,
+                              min_draws=10, chunk_draws=10, thinning=1, progress=False)
+        np.testing.assert_allclose(res.sigma[0], step)
+
+
 def test_warmup_and_sampling_chunks_compile_one_program():
     """Four warm-up chunks and three sampling chunks run one compiled chunk program (the
     sampling is the warm-up's program with the adaptation discarded; BlackJAX's weakly
