@@ -402,14 +402,17 @@ def _per_solve(cg_per_step, cfg, block_names):
     counted solves are not a fixed number.
 
     The random walk solves once per block and step (a proposal whose parameters leave the
-    prior support is rejected without a solve and counts 0).  A gradient-kernel transition counts
+    prior support is rejected without a solve and counts 0), except for the ``u_b`` block
+    with the cached condensation (``u_i = H u_b``: no solve; the elastic block's solves are
+    then all there are).  A gradient-kernel transition counts
     the solves outside its trajectory: with the cached condensation (the default) the
     trajectory needs none, and the elastic block makes ``elastic_moves`` solves plus one
     evaluation before them; without it every gradient solves (uncounted) and the interior
     after a moved trajectory is one more solve, so the count per step varies.
     """
     if not cfg.sampler.gradient:
-        return float(cg_per_step / len(block_names))
+        solving = [b for b in block_names if not (b == "u_b" and cfg.sampler.use_condensed)]
+        return float(cg_per_step / len(solving))
     if not cfg.sampler.use_condensed or "elastic" not in block_names:
         return None
     return float(cg_per_step / (cfg.sampler.elastic_moves + 1))

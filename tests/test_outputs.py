@@ -234,3 +234,22 @@ def test_nodal_statistics_in_one_thread_when_memory_is_short(monkeypatch):
     single = outputs._nodal_spread(problem, result, mean)
     for a, b in zip(threaded, single):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_cg_iterations_per_solve_count_only_the_blocks_that_solve():
+    """The per-step CG count over the solves a step makes: one per random-walk block, none
+    for the ``u_b`` block under the cached condensation (before: halved there), and the
+    elastic moves plus one evaluation for a condensed gradient kernel."""
+    from types import SimpleNamespace
+
+    from bayesreg.outputs import _per_solve
+
+    def cfg(gradient, condensed, moves=8):
+        return SimpleNamespace(sampler=SimpleNamespace(gradient=gradient, use_condensed=condensed,
+                                                       elastic_moves=moves))
+
+    assert _per_solve(12.0, cfg(False, False), ["joint"]) == 12.0
+    assert _per_solve(12.0, cfg(False, False), ["u_b", "elastic"]) == 6.0
+    assert _per_solve(12.0, cfg(False, True), ["u_b", "elastic"]) == 12.0
+    assert _per_solve(18.0, cfg(True, True), ["u_b", "elastic"]) == 2.0
+    assert _per_solve(18.0, cfg(True, False), ["u_b", "elastic"]) is None
