@@ -85,6 +85,33 @@ def _run_or_resume(config, out: Path, overrides, progress):
     return run(config, out=out, overrides=overrides, progress=progress)
 
 
+def _report_runs(items) -> dict:
+    """``{label: run directory}`` from ``[LABEL=]RUN_DIR`` items of ``bayesreg report``.
+
+    An item that is an existing directory is a run directory whatever it holds (a path may
+    contain ``=``: ``runs/t_r=300``); otherwise the label ends at the first ``=``.  Without
+    a label, the directory's name is the label.
+
+    Raises
+    ------
+    ValueError
+        An empty label, or two runs with one label (the report would show one of them).
+    """
+    runs: dict = {}
+    for item in items:
+        if "=" in item and not Path(item).is_dir():
+            label, _, path = item.partition("=")
+            if not label:
+                raise ValueError(f"report: empty label in {item!r} (give LABEL=RUN_DIR or RUN_DIR)")
+        else:
+            label, path = Path(item).name, item
+        if label in runs:
+            raise ValueError(f"report: two runs are labelled {label!r} ({runs[label]} and {path}): "
+                             f"give each its own label, e.g. one={runs[label]} two={path}")
+        runs[label] = Path(path)
+    return runs
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     from bayesreg.config import ConfigError
@@ -130,11 +157,7 @@ def main(argv=None) -> int:
         elif args.command == "report":
             from bayesreg.report import write_report
 
-            runs = {}
-            for item in args.runs:
-                label, _, path = item.rpartition("=")
-                runs[label or Path(path).name] = Path(path)
-            path = write_report(runs, args.out, overwrite=args.overwrite)
+            path = write_report(_report_runs(args.runs), args.out, overwrite=args.overwrite)
             print(f"report in {path / 'report.md'}")
     except errors as exc:
         print(f"bayesreg: error: {exc}", file=sys.stderr)

@@ -37,11 +37,13 @@ Maps on the image grid are the FE interpolation of the nodal values (zero outsid
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import warnings
 import platform
 import shutil
+import uuid
 from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple
@@ -67,7 +69,7 @@ class RunDirectory:
     overwrite : bool
         Replace an existing non-empty directory that holds one of ``marks`` (a folder of
         other files is never replaced): it is moved aside to a hidden sibling
-        (``.NAME.replaced-PID``) at once and deleted only when the new run commits;
+        (``.NAME.replaced-PID-XXXXXXXX``, unique per call) at once and deleted only when the new run commits;
         :meth:`rollback` puts it back.  A run interrupted after its sampling started keeps
         the sibling; the next run into ``path`` that commits (its ``--resume``, or another
         ``overwrite``) deletes it.
@@ -96,7 +98,7 @@ class RunDirectory:
         self._old: Path | None = None
         # directories replaced by earlier --overwrite runs into this path that were
         # interrupted after their sampling started: deleted when this run commits
-        self._stale = sorted(self.path.parent.glob(f".{self.path.name}.replaced-*"))
+        self._stale = sorted(self.path.parent.glob(f".{glob.escape(self.path.name)}.replaced-*"))
         for p in (self.path, *self.path.parents):
             if p.exists() and not p.is_dir():
                 raise NotADirectoryError(f"run directory {self.path}: {p} is a file")
@@ -124,7 +126,10 @@ class RunDirectory:
             if self.path.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
                 raise FileExistsError(f"{self.path} is the working directory or holds it: "
                                       "--overwrite does not replace it; choose another --out")
-            self._old = self.path.with_name(f".{self.path.name}.replaced-{os.getpid()}")
+            # unique per call: an interrupted --overwrite leaves its aside folder (deleted by
+            # the next commit), and a notebook may overwrite the same path again in one process
+            self._old = self.path.with_name(
+                f".{self.path.name}.replaced-{os.getpid()}-{uuid.uuid4().hex[:8]}")
             os.replace(self.path, self._old)
         self.path.mkdir(parents=True, exist_ok=True)
         self._staging = self.path / ".outputs-partial"

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple
@@ -1072,8 +1071,9 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
         _write(rd, data)
         return rd.commit()
     except BaseException:
-        if rd._staging is not None and rd._staging.exists():
-            shutil.rmtree(rd._staging, ignore_errors=True)
+        # a report is all or nothing: this one's files go, and a report it was to replace
+        # (overwrite) comes back (before: only the staging went, leaving the directory empty)
+        rd.rollback()
         raise
 
 

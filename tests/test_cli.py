@@ -193,6 +193,26 @@ def test_resume_needs_an_unfinished_run(tmp_path, capsys):
     assert "either CONFIG or --resume" in capsys.readouterr().err
 
 
+def test_report_labels_paths_with_equals_signs_and_refuses_one_label_for_two_runs(tmp_path, capsys):
+    from bayesreg.cli import _report_runs
+
+    (tmp_path / "t_r=300").mkdir()
+    for d in ("a/uniform", "b/uniform"):
+        (tmp_path / d).mkdir(parents=True)
+    # an existing directory is a run directory, '=' and all; else the label ends at the first '='
+    assert _report_runs([str(tmp_path / "t_r=300")]) == {"t_r=300": tmp_path / "t_r=300"}
+    assert _report_runs([f"hot={tmp_path / 't_r=300'}"]) == {"hot": tmp_path / "t_r=300"}
+    assert _report_runs([str(tmp_path / "a/uniform"), f"b={tmp_path / 'b/uniform'}"]) == {
+        "uniform": tmp_path / "a/uniform", "b": tmp_path / "b/uniform"}
+    # two runs named alike: refused (before: the second replaced the first in the report)
+    args = ["report", str(tmp_path / "a/uniform"), str(tmp_path / "b/uniform"), "--out", str(tmp_path / "r")]
+    assert main(args) == 2
+    assert "two runs are labelled 'uniform'" in capsys.readouterr().err
+    assert main(["report", "=x", "--out", str(tmp_path / "r")]) == 2
+    assert "empty label in '=x'" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
 def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
     """A run killed after its second chunk, resumed, gives the draws of the run never killed."""
     import arviz as az

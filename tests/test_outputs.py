@@ -120,9 +120,10 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     old = tmp_path / "run"
     old.mkdir()
     (old / "run.json").write_text('{"old": true}')
-    hidden = tmp_path / f".run.replaced-{os.getpid()}"
     rd = outputs.RunDirectory(old, overwrite=True)  # the old run moves aside at once
-    assert hidden.is_dir() and rd.replaced == hidden and not any(old.iterdir())
+    hidden = rd.replaced
+    assert hidden.is_dir() and hidden.name.startswith(f".run.replaced-{os.getpid()}-")
+    assert not any(old.iterdir())
     (old / "checkpoint").mkdir()
     rd.rollback()  # a start that failed: the old run is back, nothing of the new one
     assert (old / "run.json").read_text() == '{"old": true}' and not hidden.exists()
@@ -131,18 +132,29 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     rd = outputs.RunDirectory(old, overwrite=True)
     rd.file("run.json").write_text('{"new": true}')
     rd.commit()  # a run that finished: the old one is gone
-    assert (old / "run.json").read_text() == '{"new": true}' and not hidden.exists()
+    assert (old / "run.json").read_text() == '{"new": true}' and not rd.replaced
+    assert not list(tmp_path.glob(".run.replaced-*"))
 
-    # a run interrupted after its sampling started keeps the run it replaced aside; the
-    # resumed run's commit deletes it
-    outputs.RunDirectory(old, overwrite=True)
-    (old / "checkpoint").mkdir()
-    (old / "checkpoint" / "config.json").write_text("{}")
-    assert hidden.is_dir()
+    # a run interrupted after its sampling started keeps the run it replaced aside, and so
+    # does a second one in the same process (a notebook: before, its aside folder had the
+    # first one's name and the move failed); the resumed run's commit deletes them
+    for _ in range(2):
+        outputs.RunDirectory(old, overwrite=True)
+        (old / "checkpoint").mkdir()
+        (old / "checkpoint" / "config.json").write_text("{}")
+    assert len(list(tmp_path.glob(".run.replaced-*"))) == 2
     resumed = outputs.RunDirectory(old, resume=True)
     resumed.file("run.json").write_text('{"resumed": true}')
     resumed.commit()
-    assert not hidden.exists() and (old / "run.json").read_text() == '{"resumed": true}'
+    assert not list(tmp_path.glob(".run.replaced-*"))
+    assert (old / "run.json").read_text() == '{"resumed": true}'
+
+    # the aside folders of another run are not this one's, whatever its name's glob says
+    (tmp_path / ".exp1.replaced-1-0").mkdir()
+    odd = outputs.RunDirectory(tmp_path / "exp[1]")
+    odd.file("run.json").write_text("{}")
+    odd.commit()
+    assert (tmp_path / ".exp1.replaced-1-0").is_dir()
 
     fresh = tmp_path / "fresh"
     outputs.RunDirectory(fresh).rollback()

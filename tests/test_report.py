@@ -201,13 +201,33 @@ def test_existing_report_not_overwritten(runs, tmp_path):
     # overwrite replaces a report, never a folder of other files
     with pytest.raises(FileExistsError, match="holds none of report.json, report.md"):
         write_report(paths, out, overwrite=True)
-    assert (out / "keep.txt").exists() and not (tmp_path / f".report.replaced-{os.getpid()}").exists()
+    assert (out / "keep.txt").exists() and not list(tmp_path.glob(".report.replaced-*"))
     (out / "keep.txt").unlink()
     write_report(paths, out)
     (out / "stale.txt").write_text("x")
     write_report(paths, out, overwrite=True)
     assert not (out / "stale.txt").exists() and (out / "report.md").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]  # nothing left beside it
+
+
+def test_a_failing_overwrite_puts_the_old_report_back(runs, tmp_path, monkeypatch):
+    """A report that fails while replacing another leaves the old one as it was (before:
+    an empty directory, the old report in a hidden folder that the next report deleted)."""
+    import bayesreg.report as R
+
+    out = tmp_path / "report"
+    paths = {"three_compartment": runs["three_compartment"][0]}
+    write_report(paths, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a figure failed")
+
+    monkeypatch.setattr(R, "table2", broken)
+    with pytest.raises(RuntimeError, match="a figure failed"):
+        write_report(paths, out, overwrite=True)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]
 
 
 def test_run_without_truth_raises(tmp_path):
