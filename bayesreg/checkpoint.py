@@ -17,8 +17,11 @@ the config, problem and starts stay, so a finished run can be rebuilt in a noteb
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -40,8 +43,22 @@ def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
     replace_durably(tmp, path)
 
 
+@contextlib.contextmanager
+def _reading(path):
+    """Errors of reading a damaged ``.npz`` (truncated, emptied, overwritten) as one
+    ``ValueError`` that names the file, in place of NumPy's and zipfile's tracebacks."""
+    try:
+        yield
+    except (zipfile.BadZipFile, EOFError, KeyError, ValueError, zlib.error) as exc:
+        raise ValueError(f"{path} is damaged or incomplete ({type(exc).__name__}: {exc}): the "
+                         "run cannot be resumed from it; start it again (--overwrite)") from exc
+
+
 class Checkpoint:
-    """The ``checkpoint/`` folder of a run directory ``run_dir``."""
+    """The ``checkpoint/`` folder of a run directory ``run_dir``.
+
+    Its readers raise ``ValueError`` naming the file when a file is damaged or incomplete.
+    """
 
     def __init__(self, run_dir):
         self.dir = Path(run_dir) / "checkpoint"
@@ -106,10 +123,11 @@ class Checkpoint:
         path = self.dir / "init.npz"
         if not path.is_file():
             return None
-        z = np.load(path)
-        n = sum(1 for k in z.files if k.startswith("sigma_"))
-        return Initialisation(z["x0"], z["center"], tuple(z[f"sigma_{k}"] for k in range(n)),
-                              bool(z["blocked"]), json.loads(str(z["info"])))
+        with _reading(path):
+            z = np.load(path, allow_pickle=False)
+            n = sum(1 for k in z.files if k.startswith("sigma_"))
+            return Initialisation(z["x0"], z["center"], tuple(z[f"sigma_{k}"] for k in range(n)),
+                                  bool(z["blocked"]), json.loads(str(z["info"])))
 
     # ---- sampler progress ----
     def on_chunk(self, ckpt: SamplerCheckpoint, out) -> None:
@@ -133,15 +151,17 @@ class Checkpoint:
         path = self.dir / "state.npz"
         if not path.is_file():
             return None
-        z = np.load(path)
-        meta = json.loads(str(z["meta"]))
-        n_sig = sum(1 for k in z.files if k.startswith("sigma_"))
-        n_st = sum(1 for k in z.files if k.startswith("state_"))
-        states = [z[f"state_{j}"] for j in range(n_st)]  # the sampler rebuilds the pytree
-        k = int(meta["chunks_done"])
-        ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
-                                 z["warmup_acceptance"], k,
-                                 [(int(a), float(b)) for a, b in meta["rhat_history"]], meta["timings"])
+        with _reading(path):
+            z = np.load(path, allow_pickle=False)
+            meta = json.loads(str(z["meta"]))
+            n_sig = sum(1 for k in z.files if k.startswith("sigma_"))
+            n_st = sum(1 for k in z.files if k.startswith("state_"))
+            states = [z[f"state_{j}"] for j in range(n_st)]  # the sampler rebuilds the pytree
+            k = int(meta["chunks_done"])
+            ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
+                                     z["warmup_acceptance"], k,
+                                     [(int(a), float(b)) for a, b in meta["rhat_history"]],
+                                     meta["timings"])
         if k == 0:
             return ckpt, None
         chunks = []
@@ -149,8 +169,9 @@ class Checkpoint:
             p = self.draws_dir / f"chunk_{j:05d}.npz"
             if not p.is_file():
                 raise FileNotFoundError(f"{p} is missing: the checkpoint is incomplete")
-            c = np.load(p)
-            chunks.append([c[n] for n in _OUT_NAMES])
+            with _reading(p):
+                c = np.load(p, allow_pickle=False)
+                chunks.append([c[n] for n in _OUT_NAMES])
         draws = tuple(np.concatenate([c[j] for c in chunks], axis=1) for j in range(len(_OUT_NAMES)))
         return ckpt, draws
 

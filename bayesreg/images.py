@@ -8,7 +8,8 @@ voxel indices appear only inside interpolation.
 from __future__ import annotations
 
 import os
-import tempfile
+import uuid
+import zlib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -122,7 +123,8 @@ def load_nifti(path) -> Image:
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        If ``path`` is not a NIfTI file, the image is not 3D (a trailing singleton 4th axis
+        If ``path`` is not a NIfTI file, its data cannot be read (a truncated or corrupted
+        file, named), the image is not 3D (a trailing singleton 4th axis
         is dropped), or its qform
         and sform (both with codes > 0) disagree by more than ``1e-3`` mm in translation or
         ``1e-4`` in the linear part.
@@ -143,7 +145,11 @@ def load_nifti(path) -> Image:
     if not isinstance(nii, nib.Nifti1Pair):  # NIfTI-1 and -2, single file or pair
         raise ValueError(f"{path} is a {type(nii).__name__}, not a NIfTI image")
     _check_qform_sform(nii, path)
-    data = np.asanyarray(nii.dataobj)
+    try:
+        data = np.asanyarray(nii.dataobj)
+    except (EOFError, OSError, zlib.error, ValueError) as exc:  # gzip's errors are OSErrors
+        raise ValueError(f"{path}: the image data cannot be read ({type(exc).__name__}: {exc}): "
+                         "the file is truncated or damaged") from None
     if data.ndim == 4 and data.shape[3] == 1:
         data = data[..., 0]
     return _check_image(Image(np.asarray(data), nii.affine), str(path))
@@ -277,8 +283,10 @@ def save_nifti(img: Image, path) -> None:
 
     path = Path(path)
     suffix = ".nii.gz" if path.name.endswith(".nii.gz") else path.suffix
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=suffix)
-    os.close(fd)
+    # a unique name that nibabel creates, so the file gets the umask's mode as every other
+    # output does (tempfile.mkstemp's 0600 made the maps unreadable to a shared group)
+    tmp = str(path.with_name(f".{path.name[:-len(suffix)] if suffix else path.name}-"
+                             f"{uuid.uuid4().hex[:12]}.tmp{suffix}"))
     try:
         nib.save(nib.Nifti1Image(np.asarray(img.data), np.asarray(img.affine)), tmp)
         replace_durably(tmp, path)

@@ -281,6 +281,46 @@ def test_load_nifti_names_a_path_that_is_not_an_image(tmp_path):
         load_nifti(tmp_path / "missing.nii.gz")
 
 
+def test_load_nifti_names_a_truncated_or_corrupted_file(tmp_path):
+    """A ``.nii.gz`` cut short (a copy that failed) or with damaged bytes: an error naming
+    the file (before: EOFError's traceback, or gzip's CRC message without the file)."""
+    from bayesreg.images import Image, save_nifti
+
+    good = tmp_path / "f.nii.gz"
+    rng = np.random.default_rng(0)
+    save_nifti(Image(rng.normal(size=(20, 20, 20)), np.eye(4)), good)
+    data = good.read_bytes()
+    cut = tmp_path / "cut.nii.gz"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"cut.nii.gz: the image data cannot be read .* truncated or damaged"):
+        load_nifti(cut)
+    flipped = tmp_path / "flipped.nii.gz"
+    for pos in (len(data) // 3, len(data) // 2):  # a CRC mismatch; a zlib stream error
+        damaged = bytearray(data)
+        damaged[pos] ^= 0xFF
+        flipped.write_bytes(bytes(damaged))
+        with pytest.raises(ValueError, match=r"flipped.nii.gz: the image data cannot be read"):
+            load_nifti(flipped)
+
+
+def test_saved_nifti_files_get_the_umasks_mode(tmp_path):
+    """NIfTI outputs are readable as the process's umask allows, like the run's other files
+    (before: 0600 from the temporary file, unreadable to a shared group)."""
+    import os
+
+    from bayesreg.images import Image, save_nifti
+
+    old = os.umask(0o022)
+    try:
+        save_nifti(Image(np.zeros((2, 2, 2)), np.eye(4)), tmp_path / "m.nii.gz")
+        (tmp_path / "run.json").write_text("{}")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "m.nii.gz").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "run.json").stat().st_mode & 0o777 == 0o644
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.nii.gz", "run.json"]  # no leftovers
+
+
 @pytest.mark.parametrize("spacing", [0, -2.0, np.nan, np.inf])
 def test_resample_to_spacing_rejects_a_spacing_that_is_not_positive_and_finite(spacing):
     # before: 0, -2 and NaN returned a 1x1x1 image with a zero (or NaN) affine

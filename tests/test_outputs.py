@@ -265,3 +265,33 @@ def test_cg_iterations_per_solve_count_only_the_blocks_that_solve():
     assert _per_solve(12.0, cfg(False, True), ["u_b", "elastic"]) == 12.0
     assert _per_solve(18.0, cfg(True, True), ["u_b", "elastic"]) == 2.0
     assert _per_solve(18.0, cfg(True, False), ["u_b", "elastic"]) is None
+
+
+@pytest.mark.parametrize("damage", ["truncated", "emptied", "text"])
+def test_a_damaged_checkpoint_file_is_an_error_that_names_it(tmp_path, damage):
+    """``--resume`` of a run whose starts, state or draws were damaged (a full disk, a copy
+    cut short) ends with the file named, not a zipfile or NumPy traceback."""
+    from bayesreg.checkpoint import Checkpoint
+    from bayesreg.pipeline import Initialisation
+    from bayesreg.sampler import SamplerCheckpoint
+
+    ck = Checkpoint(tmp_path)
+    ck.dir.mkdir(parents=True)
+    ck.save_init(Initialisation(np.zeros((2, 5)), np.zeros(5), (np.ones(5),), False, {"a": 1}))
+    state = SamplerCheckpoint([np.zeros((2, 5))], (np.ones(5),), np.array([0.3]), 1, [(10, 1.5)], {})
+    ck.on_chunk(state, tuple(np.zeros((2, 10, 1)) for _ in range(8)))
+    assert ck.load_init() is not None and ck.load_state()[1] is not None  # intact: read back
+    files = [ck.dir / "init.npz", ck.dir / "state.npz", ck.draws_dir / "chunk_00000.npz"]
+    intact = [p.read_bytes() for p in files]
+    for path, data in zip(files, intact):
+        if damage == "truncated":
+            path.write_bytes(data[: len(data) // 2])
+        elif damage == "emptied":
+            path.write_bytes(b"")
+        else:
+            path.write_text("not an archive")
+        load = ck.load_init if path.name == "init.npz" else ck.load_state
+        with pytest.raises(ValueError, match=f"{path.name} is damaged or incomplete .* cannot be "
+                           "resumed from it"):
+            load()
+        path.write_bytes(data)
