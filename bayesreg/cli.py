@@ -69,13 +69,61 @@ def _configs_dir(arg) -> Path:
                             + ", ".join(PAPER_CONFIGS.values()) + ")")
 
 
+def _flat(d: dict, prefix="") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _check_same_config(config, out: Path, overrides) -> None:
+    """Refuse to reuse or resume the run in ``out`` if its config is not ``config`` with
+    ``overrides`` (``output.*`` aside: where and how it was written).
+
+    Raises
+    ------
+    ValueError
+        The configs differ (up to five differing keys named), or the run's saved config
+        cannot be read.
+    """
+    import json
+
+    from bayesreg.checkpoint import Checkpoint
+    from bayesreg.config import Config, ConfigError, load_config
+
+    want = load_config(config, overrides=overrides)
+    ckpt = Checkpoint(out)
+    try:
+        if ckpt.config_path.is_file():
+            have = ckpt.load_config()
+        else:  # a finished run written without checkpoints: its run.json has the config
+            have = Config.model_validate(json.loads((out / "run.json").read_text())["config"])
+    except (ConfigError, ValueError, KeyError) as exc:
+        raise ValueError(f"{out}: the run's config cannot be read back to compare it with "
+                         f"{config} ({exc}); choose another --out") from None
+    a, b = (_flat({k: v for k, v in c.model_dump(mode="json").items() if k != "output"})
+            for c in (have, want))
+    diff = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    if diff:
+        shown = "; ".join(f"{k}: {a.get(k)!r} there, {b.get(k)!r} asked" for k in diff[:5])
+        raise ValueError(f"{out} holds a run of another config ({shown}"
+                         f"{'; ...' if len(diff) > 5 else ''}): choose another --out, or remove "
+                         "that run to make this one")
+
+
 def _run_or_resume(config, out: Path, overrides, progress):
-    """Run ``config`` into ``out``; resume it if unfinished; reuse it if finished."""
+    """Run ``config`` into ``out``; resume it if unfinished; reuse it if finished (either
+    only if it was made with ``config`` and ``overrides``: :func:`_check_same_config`)."""
     import json
 
     from bayesreg.outputs import RunResult
     from bayesreg.pipeline import run
 
+    if (out / "run.json").is_file() or (out / "checkpoint" / "config.json").is_file():
+        _check_same_config(config, out, overrides)
     if (out / "run.json").is_file():
         print(f"{out}: finished run found, reused")
         return RunResult(out, None, None, None, json.loads((out / "run.json").read_text()))

@@ -704,7 +704,9 @@ def sample(
         Steps per chain spent tuning (discarded); rounded up to whole chunks.  Each block's
         scale follows Robbins-Monro on its log toward ``target_acceptance``; frozen after.
     max_draws, min_draws : int
-        Bounds on stored draws per chain after warm-up.
+        Bounds on stored draws per chain after warm-up, counted in whole chunks: sampling
+        stops at the first chunk that reaches ``max_draws``, so a ``max_draws`` that is not
+        a multiple of ``chunk_draws`` is rounded up to one.
     chunk_draws : int
         Draws per jitted call (the R-hat check and progress-bar interval).
     target_acceptance : float

@@ -213,6 +213,29 @@ def test_report_labels_paths_with_equals_signs_and_refuses_one_label_for_two_run
     assert not (tmp_path / "r").exists()
 
 
+def test_reproduce_reuses_or_resumes_only_a_run_of_the_same_config(tmp_path):
+    """``bayesreg reproduce`` into a folder that holds runs: a finished (or unfinished) run is
+    reused (resumed) only if its config is the one asked for, ``--set`` included (before: any
+    run there was reused, whatever made it)."""
+    from bayesreg.checkpoint import Checkpoint
+    from bayesreg.cli import _run_or_resume
+    from bayesreg.config import load_config
+
+    out = tmp_path / "uniform"
+    made = load_config("configs/paper_uniform.yaml", overrides=["sampler.max_draws=500"])
+    made.output.dir = out  # as the run saved it
+    Checkpoint(out).save_config(made)
+    (out / "run.json").write_text(json.dumps({"config": made.model_dump(mode="json"), "errors": None}))
+    res = _run_or_resume("configs/paper_uniform.yaml", out, ["sampler.max_draws=500"], False)
+    assert res.dir == out and res.info["errors"] is None  # the same config: reused
+    with pytest.raises(ValueError, match=r"holds a run of another config \(model.t_r: 10000.0 there, "
+                       r"99.0 asked; sampler.max_draws: 500 there, \d+ asked\)"):
+        _run_or_resume("configs/paper_uniform.yaml", out, ["model.t_r=99"], False)
+    (Checkpoint(out).config_path).unlink()  # a run without checkpoints: run.json's config
+    with pytest.raises(ValueError, match="model.elastic: 'uniform' there, 'tissue' asked"):
+        _run_or_resume("configs/paper_three_compartment.yaml", out, ["sampler.max_draws=500"], False)
+
+
 def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
     """A run killed after its second chunk, resumed, gives the draws of the run never killed."""
     import arviz as az
