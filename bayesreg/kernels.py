@@ -355,7 +355,10 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         failed = (~ok_u & moved_u).astype(jnp.int32)
         grads = n_grad
         if target.n_free:
-            lz_c, lnat_c, int_c, its_c, _ = evaluate(w, eta, interior, cache.log_norm)
+            # the chain's own parameters at its new u_b: a failed solve there (never seen)
+            # leaves the elastic parameters where they are and is counted, rather than let
+            # -inf accept whatever is proposed
+            lz_c, lnat_c, int_c, its_c, ok_c = evaluate(w, eta, interior, cache.log_norm)
 
             def elastic_move(carry, key):
                 eta_c, lz, lnat, int_, ln, n_its, n_fail = carry
@@ -365,14 +368,14 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                 eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
                 norm_p = target.log_norm(eta_p)
                 lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w, eta_p, int_, norm_p)
-                log_ratio = jnp.where(jnp.isnan(lz_p - lz), -jnp.inf, lz_p - lz)
+                log_ratio = jnp.where(jnp.isnan(lz_p - lz) | ~ok_c, -jnp.inf, lz_p - lz)
                 _, (do, p_acc, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()), jnp.ones(()))
                 carry = (jnp.where(do, eta_p, eta_c), jnp.where(do, lz_p, lz), jnp.where(do, lnat_p, lnat),
                          jnp.where(do, int_p, int_), jnp.where(do, norm_p, ln), n_its + its_p,
                          n_fail + (~ok_p).astype(jnp.int32))
                 return carry, (p_acc, do)
 
-            carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, jnp.asarray(0, jnp.int32))
+            carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, (~ok_c).astype(jnp.int32))
             (eta_new, _, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
                 elastic_move, carry0, jax.random.split(k_e, elastic_moves))
             do = jnp.any(dos)

@@ -167,6 +167,33 @@ def test_without_warmup_a_gradient_kernel_samples_at_the_given_step_size(kind):
         np.testing.assert_allclose(res.sigma[0], step)
 
 
+def test_a_failed_evaluation_at_the_chains_own_parameters_moves_nothing_and_is_counted():
+    """The elastic moves compare each proposal with the chain's parameters re-evaluated at
+    its new ``u_b``; if that evaluation fails (``-inf``, not ok), no proposal is accepted
+    against it (before: any finite proposal was, at a log-ratio of ``+inf``) and the failure
+    is counted."""
+    rng = np.random.default_rng(3)
+    x0 = np.concatenate([rng.normal(size=(2, D)), np.full((2, 1), M_ETA)], axis=1)
+    target = toy_target()
+
+    starts = jnp.asarray(x0[:, :D] / S)
+
+    def evaluate(w, eta, interior, ln):
+        lp, lnat, interior, its, ok = target.evaluate(w, eta, interior, ln)
+        # fails at the chains' starting parameters once u_b has left its start (so not in
+        # the check of the starts), and nowhere else
+        bad = (eta[0] == M_ETA) & ~jnp.any(jnp.all(w[None] == starts, axis=1))
+        return jnp.where(bad, -jnp.inf, lp), jnp.where(bad, -jnp.inf, lnat), interior, its, ok & ~bad
+
+    # a small step: the first u_b moves are accepted (fixed seed), so every re-evaluation fails
+    res = sample_gradient(jax.random.key(2), target._replace(evaluate=evaluate), x0,
+                          jnp.zeros((1, 3)), kind="mala", step_size=0.05, eta_scale=0.5,
+                          warmup_steps=0, max_draws=10, min_draws=10, chunk_draws=10, thinning=1,
+                          progress=False)
+    assert np.all(res.positions[..., D] == M_ETA)  # never moved
+    assert np.all(res.solve_failures >= 1)  # one per transition at least
+
+
 def test_warmup_and_sampling_chunks_compile_one_program():
     """Four warm-up chunks and three sampling chunks run one compiled chunk program (the
     sampling is the warm-up's program with the adaptation discarded; BlackJAX's weakly
