@@ -78,7 +78,12 @@ class RunDirectory:
         no ``run.json``).
     marks : tuple of str
         Names whose presence in ``path`` makes it a directory ``overwrite`` may replace
-        (default: a run's ``run.json`` and ``checkpoint``).
+        (default: a run's ``run.json`` and ``checkpoint``, and the staging folder
+        ``.outputs-partial`` that a run without checkpoints killed while writing its
+        outputs leaves).
+    inputs : dict, optional
+        ``{name: path}`` of files the run still has to read (data, a given mesh): none may
+        lie inside a directory that ``overwrite`` replaces (it moves aside at once).
 
     Raises
     ------
@@ -88,11 +93,14 @@ class RunDirectory:
         is already finished.
     NotADirectoryError
         If ``path`` or one of its parents is a file.
+    ValueError
+        With ``overwrite``, if one of ``inputs`` lies inside the directory to replace (named).
     FileNotFoundError
         With ``resume``, if ``path`` holds no checkpoint.
     """
 
-    def __init__(self, path, *, overwrite=False, resume=False, marks=("run.json", "checkpoint")):
+    def __init__(self, path, *, overwrite=False, resume=False,
+                 marks=("run.json", "checkpoint", ".outputs-partial"), inputs=None):
         self.path = Path(path)
         self.overwrite = overwrite
         self._old: Path | None = None
@@ -126,6 +134,15 @@ class RunDirectory:
             if self.path.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
                 raise FileExistsError(f"{self.path} is the working directory or holds it: "
                                       "--overwrite does not replace it; choose another --out")
+            here = self.path.resolve()
+            inside = [f"{key} ({p})" for key, p in (inputs or {}).items()
+                      if here in Path(p).resolve().parents]
+            if inside:
+                raise ValueError(
+                    f"{', '.join(inside)} {'lies' if len(inside) == 1 else 'lie'} inside the "
+                    f"run directory {self.path} that --overwrite replaces: copy "
+                    f"{'it' if len(inside) == 1 else 'them'} elsewhere first, or choose another "
+                    "--out")
             # unique per call: an interrupted --overwrite leaves its aside folder (deleted by
             # the next commit), and a notebook may overwrite the same path again in one process
             self._old = self.path.with_name(

@@ -186,6 +186,22 @@ def test_a_run_that_fails_before_sampling_leaves_nothing_and_puts_back_what_it_r
     assert "config.json: not valid JSON" in err
 
 
+def test_overwrite_refuses_inputs_inside_the_directory_it_replaces(tmp_path, capsys):
+    """A rerun on a run's own mesh into that run's directory with --overwrite: refused with
+    the key named, before anything moves (before: the directory moved aside first, and the
+    mesh was then 'not found')."""
+    run = tmp_path / "qs"
+    run.mkdir()
+    (run / "run.json").write_text("{}")
+    (run / "mesh.vtu").write_text("a mesh")
+    args = ["run", "configs/quickstart.yaml", "--out", str(run), "--overwrite",
+            "--set", f"mesh.file={run / 'mesh.vtu'}"]
+    assert main(args) == 2
+    assert f"mesh.file ({run / 'mesh.vtu'}) lies inside the run directory" in capsys.readouterr().err
+    assert sorted(p.name for p in run.iterdir()) == ["mesh.vtu", "run.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["qs"]
+
+
 def test_resume_needs_an_unfinished_run(tmp_path, capsys):
     assert main(["run", "--resume", str(tmp_path)]) == 2
     assert "nothing to resume" in capsys.readouterr().err

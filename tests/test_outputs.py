@@ -156,6 +156,13 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     odd.commit()
     assert (tmp_path / ".exp1.replaced-1-0").is_dir()
 
+    # a run without checkpoints killed while writing its outputs leaves only its staging
+    # folder: that is a directory bayesreg wrote, which --overwrite may replace
+    partial = tmp_path / "partial"
+    (partial / ".outputs-partial").mkdir(parents=True)
+    outputs.RunDirectory(partial, overwrite=True).rollback()
+    assert (partial / ".outputs-partial").is_dir()
+
     fresh = tmp_path / "fresh"
     outputs.RunDirectory(fresh).rollback()
     assert not fresh.exists()
