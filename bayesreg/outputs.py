@@ -609,7 +609,6 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     ``init`` is the run's :class:`bayesreg.pipeline.Initialisation` (its central start is
     the "initial configuration" of the error table).
     """
-    import arviz as az
     import meshio
 
     from bayesreg.diagnostics import arviz_fast_ess, gelman_rubin, to_datatree
