@@ -8,6 +8,8 @@
     variants ``configs/paper_*_nuts.yaml``) and their report (Tables 1-2, Figures 2-5).
 ``bayesreg report RUN_DIR ... --out DIR``
     the report of finished runs.
+``bayesreg --version``
+    the package's version (``run.json`` records it with its dependencies' versions).
 
 Exit status 2 on bad input (the message names the problem), 0 on success.
 """
@@ -27,7 +29,10 @@ PAPER_CONFIGS = {
 
 
 def _parser():
+    from bayesreg import __version__
+
     p = argparse.ArgumentParser(prog="bayesreg", description="Bayesian biomechanical registration")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run a YAML config end to end (or --resume a killed run)")
     r.add_argument("config", nargs="?", help="YAML config file (omit with --resume)")

@@ -122,6 +122,15 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     _killed_run_resumes_to_the_uninterrupted_result(tiny_run)
 
 
+def test_version_prints_the_package_version(capsys):
+    import bayesreg
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"bayesreg {bayesreg.__version__}"
+
+
 def test_cli_bad_config_fails_with_message(tmp_path, capsys):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("sampler:\n  thinning: 0\n  colour: red\n")
