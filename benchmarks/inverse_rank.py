@@ -10,12 +10,18 @@ compression keeps at each truncation and what it costs in CG iterations, with th
 sampler's CG (float64, relative residual 1e-8, float32 preconditioner, warm start from the
 chain's interior)::
 
-    python benchmarks/inverse_rank.py --problem RUN/checkpoint/problem.npz
+    python benchmarks/inverse_rank.py --problem RUN/checkpoint/problem.npz \
+        --posterior RUN/posterior.nc [--time 1e-3]
 
-Each of ``--proposals`` cases is a chain whose parameters drifted from the preconditioner's
-by a random walk of up to 500 steps (the age of a chunk's preconditioner), then one
-proposal of the paper's joint kernel (``--sigma``: the paper configs' steps of ``lam``,
-``mu`` and ``u_b``).  Dense NumPy/SciPy, one process, a minute at the paper's size.
+Each of ``--proposals`` cases is one proposal of the paper's joint kernel (``--sigma``: the
+paper configs' steps of ``lam``, ``mu`` and ``u_b``) from a chain's state.  With
+``--posterior RUN/posterior.nc`` the states are the run's own draws, in 4 random chunks,
+and the preconditioner is built where the sampler builds it, at the chunk's start;
+without it, random walks of up to 500 steps from ``--lam``, ``--mu`` at the truth's
+boundary.  The script also says where the CG iterations come from: the same proposals
+preconditioned at the chain's current parameters, at those with the proposal's CSF
+parameters, at the proposal's own (exact), and a proposal that moves ``u_b`` only.  Dense
+NumPy/SciPy, one process, a minute or two at the paper's size.
 
 ``--time EPS`` also times, in JAX on this machine, a product with the float32 dense inverse
 against one with the HODLR form truncated at ``EPS`` of each block (ranks padded to each
@@ -197,9 +203,51 @@ def pcg_iterations(a, b, x0, m, rtol=1e-8, maxiter=500):
     return maxiter
 
 
+def _chain_states(path, boundary, chunk_draws, n_refs, per_ref, rng):
+    """Chunk starts and later states of a run's chains, from its ``posterior.nc``.
+
+    Returns ``[(theta_0, [(theta, u_b), ...]), ...]``: ``n_refs`` random (chain, chunk)
+    pairs, ``theta_0 = (lam, mu)`` at the chunk's start (the last draw of the chunk before,
+    where the sampler builds the preconditioner) and ``per_ref`` states at random draws
+    within the chunk.
+    """
+    import xarray as xr
+
+    ds = xr.open_dataset(path, group="posterior")
+    if "group" not in ds.dims or [str(g) for g in ds["group"].values] != list(TISSUES):
+        raise SystemExit(f"{path}: not a run of per-tissue parameters {TISSUES} (the uniform "
+                         "model's spectral preconditioner is exact at every lam, mu)")
+    node = ds["node"].values
+    if not np.array_equal(np.sort(node), np.sort(boundary)):
+        raise SystemExit(f"{path}: its boundary nodes are not the problem's")
+    order = np.argsort(node)[np.argsort(np.argsort(boundary))]
+    n_chains, n_draws = ds.sizes["chain"], ds.sizes["draw"]
+    n_chunks = n_draws // chunk_draws
+    if n_chunks < 2:
+        raise SystemExit(f"{path}: {n_draws} draws hold fewer than 2 chunks of {chunk_draws}")
+    out = []
+    for _ in range(n_refs):
+        c, k = int(rng.integers(n_chains)), int(rng.integers(1, n_chunks))
+        start = k * chunk_draws - 1
+
+        def theta(d):
+            return np.r_[ds["lam"][c, d].values, ds["mu"][c, d].values]
+
+        states = [(theta(d), ds["u_b"][c, d].values[order].ravel())
+                  for d in start + rng.integers(0, chunk_draws, size=per_ref)]
+        out.append((theta(start), states))
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--problem", required=True, help="a run's checkpoint/problem.npz")
+    p.add_argument("--posterior", help="the same run's posterior.nc: take the chains' states "
+                   "and their chunk-start parameters from its draws (instead of random walks "
+                   "from --lam, --mu around the truth)")
+    p.add_argument("--chunk-draws", type=int, default=100,
+                   help="stored draws per chunk of that run (the paper configs': 1,000 steps, "
+                   "thinning 10)")
     p.add_argument("--lam", default="3.8,9.5,26", help="lam of (CSF, GM, WM) at the "
                    "preconditioner (default: near the paper run's posterior)")
     p.add_argument("--mu", default="0.17,1,1.03", help="mu of (CSF, GM, WM)")
@@ -214,14 +262,10 @@ def main(argv=None):
 
     z = np.load(args.problem)
     nodes, tets, tissue, boundary = z["nodes"], z["tets"], z["tissue"], z["boundary"]
-    if "truth_u" not in z.files:
-        raise SystemExit(f"{args.problem} holds no synthetic truth (truth_u): its boundary "
-                         "displacement is the proposals' centre")
     lam0 = _floats(args.lam, len(TISSUES), "lam")
     mu0 = _floats(args.mu, len(TISSUES), "mu")
     s_lam, s_mu, s_u = _floats(args.sigma, 3, "sigma")
-    free = np.r_[lam0 > 0, [True, False, True]]  # mu_GM fixed (paper Sec. 3.3)
-    theta0 = np.r_[lam0, mu0]
+    free = np.r_[True, True, True, True, False, True]  # mu_GM fixed (paper Sec. 3.3)
     step = np.r_[np.full(3, s_lam), np.full(3, s_mu)] * free
 
     interior = np.setdiff1d(np.arange(len(nodes)), boundary)
@@ -232,51 +276,91 @@ def main(argv=None):
         k = fem.stiffness_matrix(nodes, tets, theta[:3][tissue], theta[3:][tissue]).tocsr()
         return k[di][:, di], k[di][:, db]
 
-    k_ii, _ = blocks(theta0)
-    n = k_ii.shape[0]
-    inv = np.linalg.inv(k_ii.toarray())
-    parts = _bisection_order(nodes[interior], args.levels)
-    perm = np.concatenate([(3 * q[:, None] + np.arange(3)).ravel() for q in parts])
-    back = np.argsort(perm)
-    offsets = np.r_[0, np.cumsum([3 * len(q) for q in parts])]
-    inv_p = inv[np.ix_(perm, perm)]
+    def inverse(theta):
+        return np.linalg.inv(blocks(theta)[0].toarray())
 
     rng = np.random.default_rng(args.seed)
-    u_b = z["truth_u"][boundary].ravel()
+    if args.posterior:
+        n_refs = 4
+        refs = _chain_states(args.posterior, boundary, args.chunk_draws, n_refs,
+                             -(-args.proposals // n_refs), rng)
+        source = f"states of {args.posterior}"
+    else:
+        if "truth_u" not in z.files:
+            raise SystemExit(f"{args.problem} holds no synthetic truth (truth_u): give "
+                             "--posterior")
+        theta0 = np.r_[lam0, mu0]
+        u_b = z["truth_u"][boundary].ravel()
+        states = [(np.maximum(theta0 + step * rng.normal(size=6) * np.sqrt(rng.integers(0, 501)),
+                              1e-3 * theta0), u_b) for _ in range(args.proposals)]
+        refs = [(theta0, states)]
+        source = "random walks of up to 500 steps from --lam, --mu, at the truth's u_b"
+
+    # each case: a proposal of the paper's joint kernel from a chain's state, warm-started
+    # from the chain's interior (exact at its state, as the sampler's is to 1e-8)
     cases = []
-    for _ in range(args.proposals):
-        age = rng.integers(0, 501)
-        chain = np.maximum(theta0 + step * rng.normal(size=6) * np.sqrt(age), 1e-3 * theta0)
-        prop = np.maximum(chain + step * rng.normal(size=6), 1e-3 * theta0)
-        ki, kb = blocks(chain)
-        x0 = np.linalg.solve(ki.toarray(), -kb @ u_b)
-        kp, kbp = blocks(prop)
-        cases.append((kp, -kbp @ (u_b + s_u * rng.normal(size=u_b.size)), x0))
+    for r, (theta0, states) in enumerate(refs):
+        for theta_c, u_c in states:
+            theta_p = np.maximum(theta_c + step * rng.normal(size=6), 1e-6)
+            u_p = u_c + s_u * rng.normal(size=u_c.size)
+            ki, kb = blocks(theta_c)
+            x0 = np.linalg.solve(ki.toarray(), -kb @ u_c)
+            kp, kbp = blocks(theta_p)
+            csf = theta_c.copy()
+            csf[[0, 3]] = theta_p[[0, 3]]
+            cases.append(dict(ref=r, a=kp, b=-kbp @ u_p, x0=x0, a_u=ki, b_u=-kb @ u_p,
+                              theta_c=theta_c, theta_p=theta_p, theta_csf=csf))
 
     def f32(a):
         return a.astype(np.float32).astype(np.float64)
 
-    print(f"{args.problem}: {n} interior DOFs, {len(db)} boundary DOFs, "
-          f"{2 ** args.levels} leaves of {offsets[1]}-{np.diff(offsets).max()} DOFs")
+    ref_inv = [inverse(theta0) for theta0, _ in refs]
+    n = ref_inv[0].shape[0]
+    print(f"{args.problem}: {n} interior DOFs, {len(db)} boundary DOFs; {len(cases)} "
+          f"proposals from {source}")
+
+    print("\nWhere the CG iterations come from (the preconditioner at ...):\n")
+    print("| preconditioner | CG iterations per proposal |\n|---|---|")
+    rows = (("the chunk's start (the sampler's)", lambda c: ref_inv[c["ref"]], "a", "b"),
+            ("the chain's current parameters", lambda c: inverse(c["theta_c"]), "a", "b"),
+            ("the chain's, with the proposal's CSF parameters",
+             lambda c: inverse(c["theta_csf"]), "a", "b"),
+            ("the proposal's parameters (exact)", lambda c: inverse(c["theta_p"]), "a", "b"),
+            ("the chain's current, a proposal moving u_b only",
+             lambda c: inverse(c["theta_c"]), "a_u", "b_u"))
+    for label, prec, a, b in rows:
+        its = np.mean([pcg_iterations(c[a], c[b], c["x0"], f32(prec(c))) for c in cases])
+        print(f"| {label} | {its:.2f} |")
+
+    parts = _bisection_order(nodes[interior], args.levels)
+    perm = np.concatenate([(3 * q[:, None] + np.arange(3)).ravel() for q in parts])
+    back = np.argsort(perm)
+    offsets = np.r_[0, np.cumsum([3 * len(q) for q in parts])]
+    half = offsets[len(offsets) // 2]
+    print(f"\nThe chunk-start inverse compressed (HODLR, {2 ** args.levels} leaves of "
+          f"{np.diff(offsets).min()}-{np.diff(offsets).max()} DOFs):\n")
     print("| truncation | stored entries (of dense) | float32 MB | ranks of the two "
           "top blocks (of their size) | CG iterations per proposal |")
     print("|---|---|---|---|---|")
-    its = np.mean([pcg_iterations(a, b, x0, f32(inv)) for a, b, x0 in cases])
+    its = np.mean([pcg_iterations(c["a"], c["b"], c["x0"], f32(ref_inv[c["ref"]])) for c in cases])
     print(f"| none (the sampler's dense inverse) | 1.00 | {n * n * 4 / 1e6:.2f} | | {its:.2f} |")
-    global_norm = np.linalg.norm(inv, 2)
-    half = offsets[len(offsets) // 2]
-    for label, scale in (("of the block", lambda s: s[0]), ("of the matrix", lambda s: global_norm)):
+    inv_p = [inv[np.ix_(perm, perm)] for inv in ref_inv]
+    for label, rel in (("of the block", True), ("of the matrix", False)):
         for eps in (1e-4, 1e-3, 1e-2):
-            approx, stored, top, _ = hodlr(inv_p, offsets, eps, scale)
-            m = f32(approx[np.ix_(back, back)])
-            its = np.mean([pcg_iterations(a, b, x0, m) for a, b, x0 in cases])
+            forms = []
+            for inv, ip in zip(ref_inv, inv_p):
+                g = np.linalg.norm(inv, 2)
+                forms.append(hodlr(ip, offsets, eps, (lambda s: s[0]) if rel else (lambda s, g=g: g)))
+            ms = [f32(f[0][np.ix_(back, back)]) for f in forms]
+            its = np.mean([pcg_iterations(c["a"], c["b"], c["x0"], ms[c["ref"]]) for c in cases])
+            stored, top = np.mean([f[1] for f in forms]), forms[0][2]
             print(f"| {eps:g} {label} | {stored / n / n:.2f} | {stored * 4 / 1e6:.2f} | "
                   f"{top[0]}, {top[1]} ({half}) | {its:.2f} |")
 
     if args.time is not None:
-        _, _, _, ranks = hodlr(inv_p, offsets, args.time, lambda s: s[0])
-        drift = (1.0, 1.05, 1.1)  # three chains' preconditioners
-        invs = [inv] + [np.linalg.inv(blocks(theta0 * f)[0].toarray()) for f in drift[1:]]
+        _, _, _, ranks = hodlr(inv_p[0], offsets, args.time, lambda s: s[0])
+        theta0 = refs[0][0]
+        invs = (ref_inv + [inverse(theta0 * f) for f in (1.05, 1.1)])[:3]  # three chains'
         rows = time_products(invs, perm, np.diff(offsets), ranks)
         print(f"\nproducts, HODLR at {args.time:g} of each block (ranks per level {ranks}), "
               "us per product:")
