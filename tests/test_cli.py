@@ -129,6 +129,10 @@ def test_version_prints_the_package_version(capsys):
         main(["--version"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"bayesreg {bayesreg.__version__}"
+    # the one in pyproject.toml, as installed (the two cannot drift apart)
+    from importlib import metadata
+
+    assert bayesreg.__version__ == metadata.version("bayesreg")
 
 
 def test_cli_bad_config_fails_with_message(tmp_path, capsys):
