@@ -34,10 +34,15 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
+from bayesreg import _xla
 
-from bayesreg import fem
-from bayesreg.labels import TISSUES
+_xla.configure()
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bayesreg import fem, solver  # noqa: E402
+from bayesreg.labels import TISSUES  # noqa: E402
 
 
 def _floats(text, n, name):
@@ -60,81 +65,86 @@ def _bisection_order(points, levels):
     return split(np.arange(len(points)), levels)
 
 
-def hodlr(a, offsets, eps, scale):
+def _block_tree(n_leaves):
+    """Off-diagonal blocks of a HODLR tree, level by level.
+
+    Yields ``(level, b, t, (r0, r1), (c0, c1))`` in leaf units: block ``b`` of the level
+    splits leaves ``r0 .. c1`` in halves, ``t = 0`` its upper right, ``t = 1`` its lower left.
+    """
+    levels = int(np.log2(n_leaves))
+    for level in range(levels):
+        w = 2 ** (levels - level)
+        for b in range(2 ** level):
+            lo, mid, hi = b * w, b * w + w // 2, (b + 1) * w
+            yield level, b, 0, (lo, mid), (mid, hi)
+            yield level, b, 1, (mid, hi), (lo, mid)
+
+
+def block_svds(a, offsets):
+    """SVD of every off-diagonal block of ``a``: ``[(level, b, t, rows, cols, (u, s, vt))]``."""
+    out = []
+    for level, b, t, (r0, r1), (c0, c1) in _block_tree(len(offsets) - 1):
+        rs, cs = slice(offsets[r0], offsets[r1]), slice(offsets[c0], offsets[c1])
+        out.append((level, b, t, rs, cs, np.linalg.svd(a[rs, cs], full_matrices=False)))
+    return out
+
+
+def hodlr(a, offsets, svds, eps, scale):
     """HODLR approximation of ``a`` (dense leaves, off-diagonal blocks truncated).
 
-    Singular values below ``eps * scale(block)`` are dropped; returns the approximation,
-    the number of stored entries, the ranks of the first level's blocks and the largest
-    rank of each level.
+    Singular values below ``eps * scale`` are dropped (``scale=None``: each block's largest);
+    returns the approximation, the number of stored entries, the ranks of the first level's
+    blocks and the largest rank of each level.
     """
     out = np.zeros_like(a)
-    stored, top, ranks = 0, [], {}
-    leaves = len(offsets) - 1
-
-    def rec(lo, hi, level):
-        nonlocal stored
-        r = slice(offsets[lo], offsets[hi])
-        if hi - lo == 1:
-            out[r, r] = a[r, r]
-            stored += (offsets[hi] - offsets[lo]) ** 2
-            return
-        mid = (lo + hi) // 2
-        for r0, r1, c0, c1 in ((lo, mid, mid, hi), (mid, hi, lo, mid)):
-            rs, cs = slice(offsets[r0], offsets[r1]), slice(offsets[c0], offsets[c1])
-            u, s, vt = np.linalg.svd(a[rs, cs], full_matrices=False)
-            k = int(np.sum(s > eps * scale(s)))
-            out[rs, cs] = (u[:, :k] * s[:k]) @ vt[:k]
-            stored += k * (sum(a[rs, cs].shape))
-            ranks[level] = max(ranks.get(level, 0), k)
-            if level == 0:
-                top.append(k)
-        rec(lo, mid, level + 1)
-        rec(mid, hi, level + 1)
-
-    rec(0, leaves, 0)
+    stored, ranks = 0, {}
+    for j in range(len(offsets) - 1):
+        r = slice(offsets[j], offsets[j + 1])
+        out[r, r] = a[r, r]
+        stored += (offsets[j + 1] - offsets[j]) ** 2
+    top = []
+    for level, _, _, rs, cs, (u, s, vt) in svds:
+        k = int(np.sum(s > eps * (s[0] if scale is None else scale)))
+        out[rs, cs] = (u[:, :k] * s[:k]) @ vt[:k]
+        stored += k * (u.shape[0] + vt.shape[1])
+        ranks[level] = max(ranks.get(level, 0), k)
+        if level == 0:
+            top.append(k)
     return out, stored, top, [ranks[i] for i in sorted(ranks)]
 
 
-def _padded_factors(inv_p, sizes, ranks):
+def _padded_factors(inv_p, offsets, svds, ranks):
     """The HODLR form of ``inv_p`` as padded float32 arrays for a batched JAX product."""
-    levels = len(ranks)
-    offsets = np.r_[0, np.cumsum(sizes)]
+    sizes = np.diff(offsets)
     s = max(sizes)
     pos = np.concatenate([j * s + np.arange(m) for j, m in enumerate(sizes)])
     leaves = np.zeros((len(sizes), s, s), np.float32)
     for j, m in enumerate(sizes):
         leaves[j, :m, :m] = inv_p[offsets[j]:offsets[j + 1], offsets[j]:offsets[j + 1]]
-    factors = []
-    for level, k in enumerate(ranks):
-        nb, w = 2 ** level, 2 ** (levels - level)
-        u_f = np.zeros((nb, 2, w // 2 * s, k), np.float32)
-        v_f = np.zeros_like(u_f)
-        for b in range(nb):
-            lo, mid, hi = b * w, b * w + w // 2, (b + 1) * w
-            for t, (r0, r1, c0, c1) in enumerate(((lo, mid, mid, hi), (mid, hi, lo, mid))):
-                blk = inv_p[offsets[r0]:offsets[r1], offsets[c0]:offsets[c1]]
-                u, sv, vt = np.linalg.svd(blk, full_matrices=False)
-                u_f[b, t][pos[offsets[r0]:offsets[r1]] - r0 * s] = u[:, :k] * sv[:k]
-                v_f[b, t][pos[offsets[c0]:offsets[c1]] - c0 * s] = vt[:k].T
-        factors.append((u_f, v_f))
+    levels = len(ranks)
+    factors = [(np.zeros((2 ** lv, 2, 2 ** (levels - lv - 1) * s, k), np.float32),
+                np.zeros((2 ** lv, 2, 2 ** (levels - lv - 1) * s, k), np.float32))
+               for lv, k in enumerate(ranks)]
+    for (level, b, t, rs, cs, (u, sv, vt)), (_, _, _, (r0, _), (c0, _)) in zip(
+            svds, _block_tree(len(sizes))):
+        k = ranks[level]
+        u_f, v_f = factors[level]
+        u_f[b, t][pos[rs] - r0 * s] = u[:, :k] * sv[:k]
+        v_f[b, t][pos[cs] - c0 * s] = vt[:k].T
     return pos, leaves, factors
 
 
-def time_products(invs, perm, sizes, ranks, n_products=2000):
-    """Microseconds per product: dense float32 against HODLR, 1 thread and 3 at once."""
+def time_products(invs, forms, perm, n_products=2000):
+    """Microseconds per product: dense float32 against HODLR, 1 thread and 3 at once.
+
+    ``forms`` are the matrices' :func:`_padded_factors` in the bisection order ``perm``.
+    """
     import threading
     import time
 
-    from bayesreg import _xla
-
-    _xla.configure()
-    import jax
-    import jax.numpy as jnp
-
     n = len(perm)
-    forms = [_padded_factors(inv[np.ix_(perm, perm)], sizes, ranks) for inv in invs]
-    pos = forms[0][0]
-    g_in = np.full(len(sizes) * max(sizes), n)
+    pos, leaves = forms[0][0], forms[0][1]
+    g_in = np.full(leaves.shape[0] * leaves.shape[1], n)
     g_in[pos] = perm
     g_out = np.empty(n, int)
     g_out[perm] = pos
@@ -180,27 +190,18 @@ def time_products(invs, perm, sizes, ranks, n_products=2000):
     return rows
 
 
-def pcg_iterations(a, b, x0, m, rtol=1e-8, maxiter=500):
-    """Iterations of preconditioned CG (as ``bayesreg.solver.pcg``) to ``rtol``."""
-    x = x0.copy()
-    r = b - a @ x
-    bn = np.linalg.norm(b)
-    if np.linalg.norm(r) <= rtol * bn:
-        return 0
-    z = m @ r
-    p, rz = z.copy(), r @ z
-    for it in range(1, maxiter + 1):
-        ap = a @ p
-        alpha = rz / (p @ ap)
-        x += alpha * p
-        r -= alpha * ap
-        if np.linalg.norm(r) <= rtol * bn:
-            return it
-        z = m @ r
-        rz_new = r @ z
-        p = z + (rz_new / rz) * p
-        rz = rz_new
-    return maxiter
+@jax.jit
+def _cg_iterations(a, b, x0, m):
+    _, info = solver.pcg(lambda v: a @ v, b, x0, lambda r: m @ r, rtol=1e-8, maxiter=500)
+    return info.iterations
+
+
+def cg_iterations(a, b, x0, m):
+    """Iterations of the sampler's CG (:func:`bayesreg.solver.pcg`, rtol 1e-8) on dense ``a``
+    (sparse or dense), preconditioned by ``m`` rounded to float32 as the sampler stores it."""
+    a = a.toarray() if hasattr(a, "toarray") else a
+    m32 = np.asarray(m, np.float32).astype(np.float64)
+    return int(_cg_iterations(jnp.asarray(a), jnp.asarray(b), jnp.asarray(x0), jnp.asarray(m32)))
 
 
 def _chain_states(path, boundary, chunk_draws, n_refs, per_ref, rng):
@@ -273,11 +274,8 @@ def main(argv=None):
     db = (3 * boundary[:, None] + np.arange(3)).ravel()
 
     def blocks(theta):
-        k = fem.stiffness_matrix(nodes, tets, theta[:3][tissue], theta[3:][tissue]).tocsr()
-        return k[di][:, di], k[di][:, db]
-
-    def inverse(theta):
-        return np.linalg.inv(blocks(theta)[0].toarray())
+        k = fem.stiffness_matrix(nodes, tets, theta[:3][tissue], theta[3:][tissue]).tocsr()[di]
+        return k[:, di].toarray(), k[:, db]
 
     rng = np.random.default_rng(args.seed)
     if args.posterior:
@@ -296,41 +294,42 @@ def main(argv=None):
         refs = [(theta0, states)]
         source = "random walks of up to 500 steps from --lam, --mu, at the truth's u_b"
 
+    ref_inv = [np.linalg.inv(blocks(theta0)[0]) for theta0, _ in refs]
+    n = ref_inv[0].shape[0]
+    print(f"{args.problem}: {n} interior DOFs, {len(db)} boundary DOFs; "
+          f"{sum(len(st) for _, st in refs)} proposals from {source}")
+
     # each case: a proposal of the paper's joint kernel from a chain's state, warm-started
-    # from the chain's interior (exact at its state, as the sampler's is to 1e-8)
-    cases = []
+    # from the chain's interior (exact at its state, as the sampler's is to 1e-8), solved
+    # with the preconditioner at each of the rows' parameters
+    labels = ("the chunk's start (the sampler's)", "the chain's current parameters",
+              "the chain's, with the proposal's CSF parameters",
+              "the proposal's parameters (exact)",
+              "the chain's current, a proposal moving u_b only")
+    cases, its = [], []
     for r, (theta0, states) in enumerate(refs):
         for theta_c, u_c in states:
             theta_p = np.maximum(theta_c + step * rng.normal(size=6), 1e-6)
             u_p = u_c + s_u * rng.normal(size=u_c.size)
-            ki, kb = blocks(theta_c)
-            x0 = np.linalg.solve(ki.toarray(), -kb @ u_c)
-            kp, kbp = blocks(theta_p)
+            k_c, kb_c = blocks(theta_c)
+            x0 = np.linalg.solve(k_c, -kb_c @ u_c)
+            k_p, kb_p = blocks(theta_p)
+            b_p = -kb_p @ u_p
             csf = theta_c.copy()
             csf[[0, 3]] = theta_p[[0, 3]]
-            cases.append(dict(ref=r, a=kp, b=-kbp @ u_p, x0=x0, a_u=ki, b_u=-kb @ u_p,
-                              theta_c=theta_c, theta_p=theta_p, theta_csf=csf))
-
-    def f32(a):
-        return a.astype(np.float32).astype(np.float64)
-
-    ref_inv = [inverse(theta0) for theta0, _ in refs]
-    n = ref_inv[0].shape[0]
-    print(f"{args.problem}: {n} interior DOFs, {len(db)} boundary DOFs; {len(cases)} "
-          f"proposals from {source}")
+            inv_c = np.linalg.inv(k_c)
+            its.append([cg_iterations(k_p, b_p, x0, ref_inv[r]),
+                        cg_iterations(k_p, b_p, x0, inv_c),
+                        cg_iterations(k_p, b_p, x0, np.linalg.inv(blocks(csf)[0])),
+                        cg_iterations(k_p, b_p, x0, np.linalg.inv(k_p)),
+                        cg_iterations(k_c, -kb_c @ u_p, x0, inv_c)])
+            cases.append((r, k_p, b_p, x0))
+    its = np.mean(its, axis=0)
 
     print("\nWhere the CG iterations come from (the preconditioner at ...):\n")
     print("| preconditioner | CG iterations per proposal |\n|---|---|")
-    rows = (("the chunk's start (the sampler's)", lambda c: ref_inv[c["ref"]], "a", "b"),
-            ("the chain's current parameters", lambda c: inverse(c["theta_c"]), "a", "b"),
-            ("the chain's, with the proposal's CSF parameters",
-             lambda c: inverse(c["theta_csf"]), "a", "b"),
-            ("the proposal's parameters (exact)", lambda c: inverse(c["theta_p"]), "a", "b"),
-            ("the chain's current, a proposal moving u_b only",
-             lambda c: inverse(c["theta_c"]), "a_u", "b_u"))
-    for label, prec, a, b in rows:
-        its = np.mean([pcg_iterations(c[a], c[b], c["x0"], f32(prec(c))) for c in cases])
-        print(f"| {label} | {its:.2f} |")
+    for label, it in zip(labels, its):
+        print(f"| {label} | {it:.2f} |")
 
     parts = _bisection_order(nodes[interior], args.levels)
     perm = np.concatenate([(3 * q[:, None] + np.arange(3)).ravel() for q in parts])
@@ -342,26 +341,30 @@ def main(argv=None):
     print("| truncation | stored entries (of dense) | float32 MB | ranks of the two "
           "top blocks (of their size) | CG iterations per proposal |")
     print("|---|---|---|---|---|")
-    its = np.mean([pcg_iterations(c["a"], c["b"], c["x0"], f32(ref_inv[c["ref"]])) for c in cases])
-    print(f"| none (the sampler's dense inverse) | 1.00 | {n * n * 4 / 1e6:.2f} | | {its:.2f} |")
+    print(f"| none (the sampler's dense inverse) | 1.00 | {n * n * 4 / 1e6:.2f} | | {its[0]:.2f} |")
     inv_p = [inv[np.ix_(perm, perm)] for inv in ref_inv]
+    svds = [block_svds(ip, offsets) for ip in inv_p]
+    norms = [np.linalg.norm(inv, 2) for inv in ref_inv]
     for label, rel in (("of the block", True), ("of the matrix", False)):
         for eps in (1e-4, 1e-3, 1e-2):
-            forms = []
-            for inv, ip in zip(ref_inv, inv_p):
-                g = np.linalg.norm(inv, 2)
-                forms.append(hodlr(ip, offsets, eps, (lambda s: s[0]) if rel else (lambda s, g=g: g)))
-            ms = [f32(f[0][np.ix_(back, back)]) for f in forms]
-            its = np.mean([pcg_iterations(c["a"], c["b"], c["x0"], ms[c["ref"]]) for c in cases])
+            forms = [hodlr(ip, offsets, sv, eps, None if rel else g)
+                     for ip, sv, g in zip(inv_p, svds, norms)]
+            ms = [f[0][np.ix_(back, back)] for f in forms]
+            it = np.mean([cg_iterations(a, b, x0, ms[r]) for r, a, b, x0 in cases])
             stored, top = np.mean([f[1] for f in forms]), forms[0][2]
             print(f"| {eps:g} {label} | {stored / n / n:.2f} | {stored * 4 / 1e6:.2f} | "
-                  f"{top[0]}, {top[1]} ({half}) | {its:.2f} |")
+                  f"{top[0]}, {top[1]} ({half}) | {it:.2f} |")
 
     if args.time is not None:
-        _, _, _, ranks = hodlr(inv_p[0], offsets, args.time, lambda s: s[0])
-        theta0 = refs[0][0]
-        invs = (ref_inv + [inverse(theta0 * f) for f in (1.05, 1.1)])[:3]  # three chains'
-        rows = time_products(invs, perm, np.diff(offsets), ranks)
+        ranks = hodlr(inv_p[0], offsets, svds[0], args.time, None)[3]
+        # three chains' matrices: the chunk starts, or the first one's parameters scaled
+        extra = [np.linalg.inv(blocks(refs[0][0] * f)[0])
+                 for f in (1.05, 1.1)[:max(0, 3 - len(ref_inv))]]
+        invs = (ref_inv + extra)[:3]
+        invs_p = (inv_p + [e[np.ix_(perm, perm)] for e in extra])[:3]
+        svds_t = svds + [block_svds(ip, offsets) for ip in invs_p[len(svds):]]
+        forms = [_padded_factors(ip, offsets, sv, ranks) for ip, sv in zip(invs_p, svds_t)]
+        rows = time_products(invs, forms, perm)
         print(f"\nproducts, HODLR at {args.time:g} of each block (ranks per level {ranks}), "
               "us per product:")
         print("| form | 1 thread | 3 threads at once |\n|---|---|---|")
