@@ -129,7 +129,7 @@ def test_version_prints_the_package_version(capsys):
         main(["--version"])
     assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"bayesreg {bayesreg.__version__}"
-    # the one in pyproject.toml, as installed (the two cannot drift apart)
+    # the installed metadata's, which pyproject.toml reads from bayesreg.__version__
     from importlib import metadata
 
     assert bayesreg.__version__ == metadata.version("bayesreg")
