@@ -117,19 +117,25 @@ def _launch(args, *, pin: int, chain: int, threads: int) -> subprocess.Popen:
                             env=env)
 
 
+def _line(p: subprocess.Popen, is_it) -> str:
+    """The first line of a worker's output that ``is_it``; an error if it exits first."""
+    for line in p.stdout:
+        if is_it(line.strip()):
+            return line
+    p.wait()
+    raise SystemExit(f"a worker exited with status {p.returncode} before it was done (its errors above)")
+
+
 def _together(procs) -> list[dict]:
     """Wait until every worker has compiled, start them at once, collect their chains."""
     for p in procs:
-        line = p.stdout.readline()
-        if line.strip() != "ready":
-            p.wait()
-            raise SystemExit(f"a worker failed before it was ready (exit status {p.returncode})")
+        _line(p, lambda s: s == "ready")
     for p in procs:
         p.stdin.write("go\n")
         p.stdin.flush()
     out = []
     for p in procs:
-        out += json.loads(p.stdout.readline())
+        out += json.loads(_line(p, lambda s: s.startswith("[")))
         p.wait()
     return out
 
