@@ -157,6 +157,8 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--chain", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.rounds < 1 or args.chunks < 1:
+        p.error("--rounds and --chunks must be >= 1")
     if args.steps % 10 or args.steps < 10:
         p.error("--steps must be a positive multiple of 10 (the sampler's thinning)")
     if not hasattr(os, "sched_setaffinity"):
@@ -172,29 +174,30 @@ def main(argv=None) -> list[dict]:
     if not 2 <= workers <= len(cores):
         p.error(f"--workers must be between 2 and the {len(cores)} cores available")
     rows = []
-    tmp = tempfile.TemporaryDirectory(prefix="bayesreg-cores-")
-    args.cache = tmp.name
-    print(f"{args.model} on {args.problem}: {workers} chains at once on {len(cores)} cores, "
-          f"{args.chunks} x {args.steps} steps per chain", flush=True)
-    for r in range(1, args.rounds + 1):
-        alone = _together([_launch(args, pin=cores[0], chain=0, threads=1)])
-        procs = _together([_launch(args, pin=cores[w], chain=w, threads=1) for w in range(workers)])
-        threaded = _together([_launch(args, pin=-1, chain=0, threads=workers)])
-        base = alone[0]["steps_per_s"]
-        for layout, chains in (("alone", alone), ("processes", procs), ("threads", threaded)):
-            rates = [c["steps_per_s"] for c in chains]
-            row = {"round": r, "layout": layout, "steps_per_s_per_chain": rates, "total": sum(rates),
-                   "total_over_alone": sum(rates) / base,
-                   "acceptance": [c["acceptance"] for c in chains],
-                   "cg_iterations": [c["cg_iterations"] for c in chains]}
-            rows.append(row)
-            print(f"round {r} {layout:>9}: " + ", ".join(f"{x:.0f}" for x in rates)
-                  + f" steps/s per chain, {row['total']:.0f} in total ({row['total_over_alone']:.2f}x alone)",
-                  flush=True)
-    if args.out:
-        Path(args.out).write_text(json.dumps({"problem": args.problem, "model": args.model,
-                                              "workers": workers, "rows": rows}, indent=1))
-    tmp.cleanup()
+    with tempfile.TemporaryDirectory(prefix="bayesreg-cores-") as cache:
+        args.cache = cache
+        print(f"{args.model} on {args.problem}: {workers} chains at once on {len(cores)} cores, "
+              f"{args.chunks} x {args.steps} steps per chain", flush=True)
+        for r in range(1, args.rounds + 1):
+            alone = _together([_launch(args, pin=cores[0], chain=0, threads=1)])
+            procs = _together([_launch(args, pin=cores[w], chain=w, threads=1) for w in range(workers)])
+            threaded = _together([_launch(args, pin=-1, chain=0, threads=workers)])
+            base = alone[0]["steps_per_s"]
+            for layout, chains in (("alone", alone), ("processes", procs), ("threads", threaded)):
+                rates = [c["steps_per_s"] for c in chains]
+                row = {"round": r, "layout": layout, "steps_per_s_per_chain": rates, "total": sum(rates),
+                       "total_over_alone": sum(rates) / base,
+                       "acceptance": [c["acceptance"] for c in chains],
+                       "cg_iterations": [c["cg_iterations"] for c in chains]}
+                rows.append(row)
+                print(f"round {r} {layout:>9}: " + ", ".join(f"{x:.0f}" for x in rates)
+                      + f" steps/s per chain, {row['total']:.0f} in total ({row['total_over_alone']:.2f}x alone)",
+                      flush=True)
+        if args.out:  # written whole, then moved into place
+            tmp = Path(f"{args.out}.tmp-{os.getpid()}")
+            tmp.write_text(json.dumps({"problem": args.problem, "model": args.model,
+                                       "workers": workers, "rows": rows}, indent=1))
+            os.replace(tmp, args.out)
     return rows
 
 
