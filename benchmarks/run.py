@@ -28,7 +28,9 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    ``K``'s blocks by :func:`bayesreg.posterior.stiffness_blocks`), the similarity
    (:func:`bayesreg.similarity.ssd` of a full displacement), the whole log-density (warm),
    and the proposal (a Normal draw times the jumping-kernel scale: the paper's vector
-   ``sigma``, the blocked kernel's dense Laplace factor).
+   ``sigma``, the blocked kernel's dense Laplace factor).  The solves use the paper-joint
+   sampler's CG preconditioner (its dense ``K_ii^-1``, whose build, once per chunk, is timed
+   too; else spectral or block Jacobi), so they are the pieces of its step.
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
@@ -87,6 +89,7 @@ import numpy as np  # noqa: E402
 from bayesreg import pipeline  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
 from bayesreg.posterior import (  # noqa: E402
+    _precond_at,  # the solve's preconditioner, chosen as log_density chooses it
     elastic_groups,
     full_displacement,
     log_density,
@@ -417,12 +420,17 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
     """Solve, similarity, whole log-density and proposal, each jitted and timed alone.
 
     Each piece runs ``n_items`` times inside one ``lax.scan`` on inputs that differ by a
-    tiny jitter (``1e-9`` of the kernel's scale), and the time per item is reported.
+    tiny jitter (``1e-9`` of the kernel's scale), and the time per item is reported.  The
+    solves and the log-density use the paper-joint sampler's CG preconditioner (dense
+    ``K_ii^-1`` built once at ``x``, as a chain builds it at each chunk start; spectral or
+    block Jacobi otherwise), so that they are the pieces of its MH step; the dense
+    inverse's build is timed as a piece of its own (once per chunk, not per step).
     """
     post = problem.posterior
     rtol, maxiter = cfg.solver.rtol, cfg.solver.maxiter
     zeros = jnp.zeros((post.op.n_interior, 3))
-    joint_sigma = setups["paper-joint"]["sigma"][0]
+    joint = setups["paper-joint"]
+    joint_sigma = joint["sigma"][0]
     rng = np.random.default_rng(2)
     x = np.asarray(x)
     x2 = x + joint_sigma * rng.standard_normal(x.shape)  # one paper-kernel move away
@@ -430,11 +438,15 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
     def jitter(a, scale):
         return jnp.asarray(a[None] + 1e-9 * scale * rng.standard_normal((n_items,) + a.shape))
 
+    build = None if joint["preconditioner"] is None else joint["preconditioner"].build
+    precond = None if build is None else block(jax.jit(build)(jnp.asarray(x)))
+
     def solve(theta, guess):
         u_b, phi = split_position(post, theta)
         lam_g, mu_g = elastic_groups(post, phi)
         return solve_interior_blocks(post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, guess,
-                                     rtol=rtol, maxiter=maxiter)
+                                     rtol=rtol, maxiter=maxiter,
+                                     precond=_precond_at(post, precond, lam_g, mu_g))
 
     u_i, _ = block(jax.jit(solve)(jnp.asarray(x), zeros))
     u = np.asarray(full_displacement(post, split_position(post, jnp.asarray(x))[0], u_i))
@@ -442,10 +454,13 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
         "solve_cold": (lambda th: jnp.sum(solve(th, zeros)[0]), jitter(x, joint_sigma)),
         "solve_warm": (lambda th: jnp.sum(solve(th, u_i)[0]), jitter(x2, joint_sigma)),
         "similarity": (lambda uu: ssd(post.ssd, uu[post.tets]), jitter(u, 1.0)),
-        "logdensity_warm": (lambda th: log_density(post, th, u_i, rtol=rtol, maxiter=maxiter)[0],
+        "logdensity_warm": (lambda th: log_density(post, th, u_i, rtol=rtol, maxiter=maxiter,
+                                                   precond=precond)[0],
                             jitter(x2, joint_sigma)),
     }
-    out = {}
+    if build is not None:
+        pieces["preconditioner_build"] = (lambda th: jnp.sum(build(th).inverse), jitter(x, joint_sigma))
+    out = {"preconditioner": joint["cg_preconditioner"]}
     for name, (fn, xs) in pieces.items():
         t = time_call(_in_scan(fn), xs, target_s=args.time_target_s)
         out[name] = {"ms": 1e3 * t["mean_s"] / n_items}
@@ -465,7 +480,8 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
         t = time_call(_in_scan(draw), keys, target_s=args.time_target_s)
         out[f"proposal_{kernel}"] = {"ms": 1e3 * t["mean_s"] / len(keys),
                                      "factor_shape": [list(np.shape(s)) for s in setup["sigma"]]}
-    log("  split: " + ", ".join(f"{k} {v['ms']:.3g} ms" for k, v in out.items()))
+    log(f"  split ({out['preconditioner']} CG): "
+        + ", ".join(f"{k} {v['ms']:.3g} ms" for k, v in out.items() if isinstance(v, dict)))
     return out
 
 
@@ -738,10 +754,11 @@ def markdown(res: dict) -> str:
                          f"{w['cg_iterations_mean']:.0f} / {w['cg_iterations_max']} |")
 
     lines += ["", "## Time split of one step (single position, ms)", "",
-              "| nodes | solve cold (CG it) | solve warm (CG it) | similarity | log-density warm | "
+              "| nodes | CG preconditioner (its build, once per chunk) | solve cold (CG it) | "
+              "solve warm (CG it) | similarity | log-density warm | "
               "proposal paper-joint | proposal blocked-laplace | paper-joint MH step (1 chain) | "
               "solve / SSD / proposal / rest of the step |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in meshes:
         s = r.get("split")
         if not s:
@@ -755,7 +772,10 @@ def markdown(res: dict) -> str:
             parts.append(step_ms - sum(parts))
             shares = " / ".join(f"{100 * p / step_ms:.0f}%" for p in parts)
         lap = s.get("proposal_blocked-laplace", {}).get("ms")
-        lines.append(f"| {r['problem']['nodes']} | {s['solve_cold']['ms']:.3g} ({s['solve_cold']['cg_iterations']}) | "
+        pre = s.get("preconditioner", "block-jacobi")  # (results before 2026-11-26 timed block Jacobi)
+        if "preconditioner_build" in s:
+            pre += f" ({s['preconditioner_build']['ms']:.3g})"
+        lines.append(f"| {r['problem']['nodes']} | {pre} | {s['solve_cold']['ms']:.3g} ({s['solve_cold']['cg_iterations']}) | "
                      f"{s['solve_warm']['ms']:.3g} ({s['solve_warm']['cg_iterations']}) | {s['similarity']['ms']:.3g} | "
                      f"{s['logdensity_warm']['ms']:.3g} | {s['proposal_paper-joint']['ms']:.3g} | {_f(lap)} | "
                      f"{_f(step_ms)} | {shares} |")
