@@ -255,8 +255,9 @@ class SolverConfig(_Strict):
         "reports), dense (K_ii^-1 in float32 at each chain's parameters, "
         "rebuilt at every chunk start: 2-3 CG iterations instead of 40-180 at the paper's "
         "size), block-jacobi (3x3 blocks, no memory), or auto: spectral for one group and "
-        "dense for more where 3 n_i <= 4096 (and, for dense, the chains' inverses take at "
-        "most 2 GiB: 4 (3 n_i)^2 bytes each), else block-jacobi.  Any choice meets the same "
+        "dense for more where 3 n_i <= 4096 (and, for dense, the chains' inverses, 4 (3 n_i)^2 "
+        "bytes each, take at most 2 GiB on a CPU, a sixteenth of an accelerator's memory, "
+        "at least 2 GiB), else block-jacobi.  Any choice meets the same "
         "tolerance (rtol): the posterior does not depend on it")
 
 

@@ -57,7 +57,8 @@ __all__ = [
     "Problem", "make_data", "assemble", "prepare", "save_problem", "load_problem", "start_center",
     "start_check",
     "find_mode", "laplace_precision", "initial_positions", "proposal_scale", "Initialisation",
-    "initialise", "dense_preconditioning", "cg_preconditioner", "sample_problem", "run",
+    "initialise", "dense_budget_bytes", "dense_preconditioning", "cg_preconditioner",
+    "sample_problem", "run",
 ]
 
 
@@ -437,14 +438,39 @@ def make_logdensity(problem: Problem, cfg: Config, *, preconditioned: bool = Fal
     return lambda theta, interior: logdensity(theta, interior)
 
 
+DENSE_HOST_BUDGET = 2 * 2**30  # bytes of the chains' float32 K_ii^-1 together, on a CPU
+
+
+def dense_budget_bytes() -> int:
+    """Bytes that the chains' dense preconditioners (float32 ``K_ii^-1``) may take together.
+
+    On a CPU :data:`DENSE_HOST_BUDGET` (2 GiB).  On an accelerator that reports its memory
+    (``memory_stats()['bytes_limit']`` of the default device), a sixteenth of it and at
+    least 2 GiB: building the inverses peaks at about 4 times their float32 size (float64
+    ``K_ii`` and its factor; measured on an H200, 2026-11-26: 36.0 GB at 1,024 chains of
+    8.75 MB inverses), so the build stays within a quarter of the device.  On that H200
+    (a 112.6 GB limit: 7.0 GB, 800 chains at the paper's size) the dense preconditioner
+    ran 2.0-7.2x the MH steps/s of block Jacobi from 1 to 256 chains and 0.98x at 1,024,
+    where both run about 30,000 steps/s in total (``benchmarks/README.md``, GPU).
+    """
+    if jax.default_backend() == "cpu":
+        return DENSE_HOST_BUDGET
+    try:
+        limit = int((jax.devices()[0].memory_stats() or {})["bytes_limit"])
+    except (KeyError, TypeError, ValueError, RuntimeError, NotImplementedError):
+        return DENSE_HOST_BUDGET  # a backend that does not report its memory
+    return max(DENSE_HOST_BUDGET, limit // 16)
+
+
 def dense_preconditioning(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> bool:
     """Whether the samplers' CG solves use the dense preconditioner (``solver.preconditioner``).
 
     ``auto``: not where the posterior has the spectral one (one parameter group, see
     :func:`cg_preconditioner`); else where ``3 n_i <= DENSE_MAX_DOFS`` (4096) and the
-    chains' float32 inverses, ``4 (3 n_i)^2`` bytes each, take at most 2 GiB together (the
-    paper's size: 7.5 MB a chain; the 3,400-node mesh, 7,200 interior DOFs, stays with
-    block Jacobi).  ``n_chains`` defaults to ``sampler.chains``.
+    chains' float32 inverses, ``4 (3 n_i)^2`` bytes each, fit :func:`dense_budget_bytes`
+    together (2 GiB on a CPU; the paper's size: 7.5-8.75 MB a chain; the 3,400-node mesh,
+    7,200 interior DOFs, stays with block Jacobi).  ``n_chains`` defaults to
+    ``sampler.chains``.
     """
     choice = cfg.solver.preconditioner
     if choice != "auto":
@@ -453,7 +479,7 @@ def dense_preconditioning(problem: Problem, cfg: Config, *, n_chains: int | None
         return False
     n = 3 * problem.posterior.op.n_interior
     chains = cfg.sampler.chains if n_chains is None else n_chains
-    return n <= DENSE_MAX_DOFS and chains * 4 * n * n <= 2 * 2**30
+    return n <= DENSE_MAX_DOFS and chains * 4 * n * n <= dense_budget_bytes()
 
 
 def cg_preconditioner(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> str:

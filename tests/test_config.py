@@ -148,6 +148,41 @@ def test_preconditioner_choice_follows_size_and_memory():
     assert not dense_preconditioning(problem(457), off)
     with pytest.raises(ConfigError, match=r"solver\.preconditioner"):
         load_config(None, overrides=["solver.preconditioner=ilu"])
+
+
+def test_dense_budget_follows_the_device_memory(monkeypatch):
+    """``auto``'s budget for the chains' dense inverses: 2 GiB on a CPU; on an accelerator a
+    sixteenth of the memory it reports (the H200 of 2026-11-26: dense at 256 chains of the
+    paper's size, where it ran 2x block Jacobi, block Jacobi at 1,024), at least 2 GiB, and
+    2 GiB where the device reports no memory."""
+    from types import SimpleNamespace
+
+    import jax
+
+    from bayesreg import pipeline
+
+    post = SimpleNamespace(op=SimpleNamespace(n_interior=493), spectral=None)  # 1,479 DOFs
+    problem = SimpleNamespace(posterior=post)
+    cfg = load_config("configs/paper_three_compartment.yaml")
+    assert pipeline.dense_budget_bytes() == 2 * 2**30  # the tests run on a CPU
+    assert pipeline.dense_preconditioning(problem, cfg, n_chains=245)  # 2.14 GB <= 2 GiB
+    assert not pipeline.dense_preconditioning(problem, cfg, n_chains=256)  # 2.24 GB
+
+    def device(stats):
+        return SimpleNamespace(memory_stats=lambda: stats)
+
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "devices", lambda *a: [device({"bytes_limit": 112_583_507_968})])
+    assert pipeline.dense_budget_bytes() == 112_583_507_968 // 16
+    assert pipeline.dense_preconditioning(problem, cfg, n_chains=256)
+    assert pipeline.dense_preconditioning(problem, cfg, n_chains=800)  # 7.0 GB
+    assert not pipeline.dense_preconditioning(problem, cfg, n_chains=1024)  # 8.96 GB
+    assert pipeline.cg_preconditioner(problem, cfg, n_chains=1024) == "block-jacobi"
+    monkeypatch.setattr(jax, "devices", lambda *a: [device({"bytes_limit": 8 * 2**30})])
+    assert pipeline.dense_budget_bytes() == 2 * 2**30  # a small device: never below the CPU's
+    for stats in (None, {}, {"bytes_in_use": 0}):
+        monkeypatch.setattr(jax, "devices", lambda *a, stats=stats: [device(stats)])
+        assert pipeline.dense_budget_bytes() == 2 * 2**30
     with pytest.raises(ConfigError, match=r"spectral needs one parameter group"):
         load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=spectral"])
     load_config("configs/paper_uniform.yaml", overrides=["solver.preconditioner=spectral"])
