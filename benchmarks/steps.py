@@ -92,7 +92,7 @@ def main(argv=None) -> dict:
     n_i = problem.posterior.op.n_interior
     logdensity = pipeline.make_logdensity(problem, cfg)
     pre = (pipeline._preconditioner_rw(problem, cfg)
-           if pipeline.dense_preconditioning(problem, cfg) else None)
+           if pipeline.dense_preconditioning(problem, cfg, n_chains=args.chains) else None)
     states = CACHE / f"steps-{args.model}{tag}.npz"
     if args.from_starts or args.rebuild or not states.is_file():  # the config's starts and scales
         init = pipeline.initialise(problem, cfg)
@@ -126,7 +126,8 @@ def main(argv=None) -> dict:
            "steps_per_s_per_chain": rate, "acceptance": float(res.acceptance[:, 100:].mean()),
            "cg_iterations_per_step": float(res.cg_iterations[:, 100:].mean()),
            # (a checkout older than cg_preconditioner knew only dense and block Jacobi)
-           "cg_preconditioner": (pipeline.cg_preconditioner(problem, cfg) if hasattr(pipeline, "cg_preconditioner")
+           "cg_preconditioner": (pipeline.cg_preconditioner(problem, cfg, n_chains=args.chains)
+                                 if hasattr(pipeline, "cg_preconditioner")
                                  else "dense" if pre is not None else "block-jacobi")}
     out["chains"] = args.chains
     print(f"{REPO.name} {args.model} ({out['states']}, {args.chains} chains): {rate:.1f} MH steps/s "
