@@ -148,6 +148,9 @@ def test_preconditioner_choice_follows_size_and_memory():
     assert not dense_preconditioning(problem(457), off)
     with pytest.raises(ConfigError, match=r"solver\.preconditioner"):
         load_config(None, overrides=["solver.preconditioner=ilu"])
+    with pytest.raises(ConfigError, match=r"spectral needs one parameter group"):
+        load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=spectral"])
+    load_config("configs/paper_uniform.yaml", overrides=["solver.preconditioner=spectral"])
 
 
 def test_dense_budget_follows_the_device_memory(monkeypatch):
@@ -183,9 +186,6 @@ def test_dense_budget_follows_the_device_memory(monkeypatch):
     for stats in (None, {}, {"bytes_in_use": 0}):
         monkeypatch.setattr(jax, "devices", lambda *a, stats=stats: [device(stats)])
         assert pipeline.dense_budget_bytes() == 2 * 2**30
-    with pytest.raises(ConfigError, match=r"spectral needs one parameter group"):
-        load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=spectral"])
-    load_config("configs/paper_uniform.yaml", overrides=["solver.preconditioner=spectral"])
 
 
 def test_paper_configs_mesh_to_the_papers_node_count():
