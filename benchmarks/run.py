@@ -36,9 +36,12 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
    Gauss-Newton Laplace factor, then the elastic parameters, two log-densities per step).
    :func:`bayesreg.sampler.sample` runs with no warm-up, a fixed number of draws (``min_draws
-   = max_draws``), thinning 10, and ``chunk_draws`` sized from figure 1 so that a chunk lasts
-   about ``--chunk-seconds``; the first chunk (which compiles) is excluded by timing the
-   chunks after it (``on_chunk`` time stamps).  A step is one transition of every block.
+   = max_draws``), thinning 10, and ``chunk_draws`` sized so that a chunk lasts about
+   ``--chunk-seconds`` (from figure 1's rate, or the total steps/s of the kernel's previous
+   chain count where that is higher), but never so short that the chains' chunk-start build
+   of their dense ``K_ii^-1`` exceeds about a tenth of a chunk; the
+   first chunk (which compiles) is excluded by timing the chunks after it (``on_chunk``
+   time stamps).  A step is one transition of every block.
    ``sample`` needs two chains or more (R-hat): one chain runs the same kernel
    (:func:`bayesreg.sampler.build_kernel`) in a jitted ``scan`` here (``--compare-vmap``: the
    same for every chain count, the chains vmapped on one device).
@@ -109,6 +112,10 @@ PAPER_CONFIG = REPO / "configs" / "paper_three_compartment.yaml"
 QUICKSTART_CONFIG = REPO / "configs" / "quickstart.yaml"
 PAPER_STEPS_PER_S = 5.0  # per chain (paper Sec. 4)
 THINNING = 10
+#: a chunk lasts at least this many times one chain's chunk-start build of its dense
+#: ``K_ii^-1``: the sampler rebuilds it per chunk (1,000 steps in the configs, where the
+#: build is 3% of a chunk at the paper's size); shorter chunks time the builds, not the steps
+AMORTISE_BUILD = 10
 
 KERNELS = {
     "paper-joint": ["sampler.blocked=false", "sampler.proposal=isotropic"],
@@ -574,11 +581,21 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
     return stamps, acc, cg, fail, how
 
 
-def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
+def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> list[dict]:
     """MH steps/s per chain and in total for each chain count (one kernel).
 
     ``sample`` for two chains or more, :func:`_plain_run` for one; with ``--compare-vmap`` also
     :func:`_plain_run` (every chain vmapped on one device) for two or more, as extra rows.
+
+    The chunks are sized to last about ``--chunk-seconds``, from the larger of two estimates
+    of a chain's steps/s: figure 1's (``jit(vmap(logdensity))``, block-Jacobi CG unless the
+    posterior has a spectral preconditioner) and the total of the kernel's previous chain
+    count divided by ``C`` (on a CPU the chains share the cores, and figure 1's vmapped
+    batches ran 2-3x slower per evaluation than one position at a time: sized from it alone,
+    16 chains of the paper's size ran chunks of 10 steps).  Where the kernel builds a cache
+    per chunk (``build_s``: one chain's dense ``K_ii^-1``, seconds), a chunk has at least
+    :data:`AMORTISE_BUILD` times the steps one chain runs in that time, and such
+    lengthened chunks are timed once (``timed_chunks`` in the row).
     """
     logdensity = pipeline.make_logdensity(problem, setup["cfg"])
     interior0 = jnp.zeros((problem.posterior.op.n_interior, 3))
@@ -587,18 +604,30 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
     runs = [(c, _sample_run if c >= 2 else _plain_run) for c in chains]
     if args.compare_vmap:
         runs += [(c, _plain_run) for c in chains if c >= 2]
+    ev1 = next((e for e in evals if e["chains"] == 1 and "warm" in e), None)
     for c, runner in runs:
         row = {"kernel": kernel, "chains": c, "runner": "sample" if runner is _sample_run else "plain"}
         try:
             ev = next((e for e in evals if e["chains"] == c and "warm" in e), None)
             rate = ev["warm"]["evals_per_s"] / c / setup["n_blocks"] if ev else 10.0
+            done = [r for r in rows if "steps_per_s_total" in r]
+            if done:
+                rate = max(rate, done[-1]["steps_per_s_total"] / c)
             n_chunks = 1 + args.timed_chunks
             # the draws' positions and interiors are kept on the host: at most ~2 GB of them
             per_draw = 8 * c * n_chunks * (3 * post.op.n_interior + post.dim)
             cap = max(1, int(2 * 2**30 // per_draw))
             # --chunk-draws: a fixed window, acceptance comparable across chain counts
             wanted = args.chunk_draws or round(args.chunk_seconds * rate / THINNING)
-            chunk_draws = int(np.clip(wanted, 1, min(1000, cap)))
+            floor = 1
+            if build_s and not args.chunk_draws:
+                # one chain's steps/s alone: the 1-chain row, else figure 1 at one position
+                single = next((r["steps_per_s_per_chain"] for r in done if r["chains"] == 1),
+                              ev1["warm"]["evals_per_s"] / setup["n_blocks"] if ev1 else rate)
+                floor = math.ceil(AMORTISE_BUILD * build_s * single / THINNING)
+            chunk_draws = int(np.clip(max(wanted, floor), 1, min(1000, cap)))
+            timed_chunks = args.timed_chunks if chunk_draws <= wanted else 1
+            n_chunks = 1 + timed_chunks
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
             t0 = time.perf_counter()
             stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
@@ -609,12 +638,13 @@ def bench_sampler(problem, setup, chains, evals, args, kernel) -> list[dict]:
             wall = time.perf_counter() - t0
             seconds = stamps[-1] - stamps[0]
             row["warmup_steps"] = args.warmup_steps
-            steps = args.timed_chunks * chunk_draws * THINNING
+            steps = timed_chunks * chunk_draws * THINNING
             per_chain = steps / seconds
             row.update({
                 "steps_per_s_per_chain": per_chain, "steps_per_s_total": per_chain * c,
                 "vs_paper_5_per_s": per_chain / PAPER_STEPS_PER_S,
                 "timed_seconds": seconds, "timed_steps_per_chain": steps, "chunk_draws": chunk_draws,
+                "timed_chunks": timed_chunks, "chunk_build_s": build_s,
                 "first_chunk_incl_compile_s": wall - seconds, "acceptance": acc.tolist(),
                 "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["cg_solves"],
                 "solve_failures": fail, "how": how, "surrogate_factor": setup["surrogate_factor"],
@@ -782,8 +812,8 @@ def markdown(res: dict) -> str:
 
     lines += ["", "## MH steps per second (`bayesreg.sampler.sample`, thinning 10, compile excluded)", "",
               "| nodes | kernel | C | steps/s per chain | steps/s total | x paper (5/s per chain) | "
-              "acceptance | CG per solve | timed s |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "acceptance | CG per solve | steps per chunk x timed chunks | timed s |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in meshes:
         for x in r.get("sampler", []):
             name = x["kernel"] + (" (surrogate factor)" if x.get("surrogate_factor") else "")
@@ -792,12 +822,13 @@ def markdown(res: dict) -> str:
             if x.get("runner") == "plain" and x["chains"] > 1:
                 name += " (plain vmap, not sample)"
             if "error" in x:
-                lines.append(f"| {r['problem']['nodes']} | {name} | {x['chains']} | {x['error']} | | | | | |")
+                lines.append(f"| {r['problem']['nodes']} | {name} | {x['chains']} | {x['error']} | | | | | | |")
                 continue
             lines.append(f"| {r['problem']['nodes']} | {name} | {x['chains']} | {x['steps_per_s_per_chain']:.1f} | "
                          f"{x['steps_per_s_total']:.1f} | {x['vs_paper_5_per_s']:.1f} | "
                          f"{' / '.join(f'{a:.2f}' for a in x['acceptance'])} | "
-                         f"{x['cg_iterations_per_solve']:.0f} | {x['timed_seconds']:.1f} |")
+                         f"{x['cg_iterations_per_solve']:.0f} | "
+                         f"{x['chunk_draws'] * THINNING} x {x.get('timed_chunks', '-')} | {x['timed_seconds']:.1f} |")
 
     if any(r.get("reference") for r in meshes):
         lines += ["", "## NumPy/SciPy reference (paper-joint kernel, 1 chain)", "",
@@ -960,7 +991,13 @@ def main(argv=None) -> dict:
         entry["split"] = bench_split(problem, cfg, joint["x0"][0], setups, args)
         entry["sampler"] = []
         for k, s in setups.items():
-            entry["sampler"] += bench_sampler(problem, s, args.chain_counts, entry["logdensity"], args, k)
+            # each chain's chunk-start build of the dense K_ii^-1 (timed in the split; the opt-in
+            # condensed kernel's per-chunk condensation is not timed, so not accounted for)
+            build_ms = (entry["split"].get("preconditioner_build", {}).get("ms")
+                        if s["preconditioner"] is not None else None)
+            build_s = build_ms / 1e3 if build_ms else None
+            entry["sampler"] += bench_sampler(problem, s, args.chain_counts, entry["logdensity"], args, k,
+                                              build_s=build_s)
             res["memory"].append(memory_snapshot(f"sampler {k} {p['nodes']} nodes"))
         if not args.no_reference and p["nodes"] <= args.reference_max_nodes:
             try:
