@@ -591,7 +591,7 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
     of a chain's steps/s: figure 1's (``jit(vmap(logdensity))``, block-Jacobi CG unless the
     posterior has a spectral preconditioner) and the total of the kernel's previous chain
     count divided by ``C`` (on a CPU the chains share the cores, and figure 1's vmapped
-    batches ran 2-3x slower per evaluation than one position at a time: sized from it alone,
+    batches ran 1.2-3x slower per evaluation than one position at a time: sized from it alone,
     16 chains of the paper's size ran chunks of 10 steps).  Where the kernel builds a cache
     per chunk (``build_s``: one chain's dense ``K_ii^-1``, seconds), a chunk has at least
     :data:`AMORTISE_BUILD` times the steps one chain runs in that time, and such
