@@ -613,9 +613,9 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
             done = [r for r in rows if "steps_per_s_total" in r]
             if done:
                 rate = max(rate, done[-1]["steps_per_s_total"] / c)
-            n_chunks = 1 + args.timed_chunks
-            # the draws' positions and interiors are kept on the host: at most ~2 GB of them
-            per_draw = 8 * c * n_chunks * (3 * post.op.n_interior + post.dim)
+            # the draws' positions and interiors are kept on the host: at most ~2 GB of them (for
+            # the most chunks this row may run)
+            per_draw = 8 * c * (1 + args.timed_chunks) * (3 * post.op.n_interior + post.dim)
             cap = max(1, int(2 * 2**30 // per_draw))
             # --chunk-draws: a fixed window, acceptance comparable across chain counts
             wanted = args.chunk_draws or round(args.chunk_seconds * rate / THINNING)
