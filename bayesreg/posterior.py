@@ -85,6 +85,7 @@ __all__ = [
     "energies",
     "stiffness_blocks",
     "MAX_GROUPED",
+    "SCOPES",
     "from_unconstrained",
     "to_unconstrained",
     "log_normaliser",
@@ -96,6 +97,17 @@ __all__ = [
 #: (:class:`bayesreg.fem.GroupBlocks`, ``144 G n_i (S_i + S_b)`` bytes); more (the
 #: per-element model) assemble ``K`` from the elements at each evaluation.
 MAX_GROUPED = 16
+
+#: Names (:func:`jax.named_scope`) of the parts of :func:`log_density`, carried into the
+#: compiled program's metadata (no cost at run time): a profile of the compiled step can
+#: then attribute its time to them (``benchmarks/profile_step.py``).
+SCOPES = {
+    "stiffness": "bayesreg_stiffness",  # K_ii, K_ib blocks at the position's lam, mu
+    "solve": "bayesreg_solve",  # the interior CG solve
+    "similarity": "bayesreg_similarity",  # E_s at the Gauss points (Eq. 1)
+    "strain_energy": "bayesreg_strain_energy",  # E_r (Eqs. 2-7)
+    "constraints": "bayesreg_constraints",  # prior support, inverted elements, skull, barrier
+}
 
 
 class ParamLayout(NamedTuple):
@@ -597,9 +609,11 @@ def energies(post: Posterior, u, phi):
     _check_shape("phi", phi, (post.n_free,), "the free elastic parameters")
     lam_g, mu_g = elastic_groups(post, phi)
     u_e = u[post.tets]
-    e_r = element_strain_energy(post.grads, post.volumes, u_e, lam_g[post.group], mu_g[post.group])
-    r = ssd_residuals(post.ssd, u_e)
-    return jnp.sum(r * r), e_r
+    with jax.named_scope(SCOPES["strain_energy"]):
+        e_r = element_strain_energy(post.grads, post.volumes, u_e, lam_g[post.group], mu_g[post.group])
+    with jax.named_scope(SCOPES["similarity"]):
+        r = ssd_residuals(post.ssd, u_e)
+        return jnp.sum(r * r), e_r
 
 
 def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
@@ -646,15 +660,19 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
     """
     u_b, phi = split_position(post, theta)
     _check_shape("u_i0", u_i0, (post.op.n_interior, 3), "warm start, one row per interior node")
-    log_prior, in_support = _log_prior(post, phi)
-    phi_solve = jnp.where(in_support, phi, post.phi_ref)
-    allowed = in_support & ~jnp.any(_node_forbidden(post, post.nodes[post.boundary] + u_b))
+    with jax.named_scope(SCOPES["constraints"]):
+        log_prior, in_support = _log_prior(post, phi)
+        phi_solve = jnp.where(in_support, phi, post.phi_ref)
+        allowed = in_support & ~jnp.any(_node_forbidden(post, post.nodes[post.boundary] + u_b))
 
     def evaluate(_):
         lam_g, mu_g = elastic_groups(post, phi_solve)
-        u_i, info = solve_interior_blocks(
-            post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol,
-            maxiter=jnp.where(allowed, maxiter, 0), precond=_precond_at(post, precond, lam_g, mu_g))
+        with jax.named_scope(SCOPES["stiffness"]):
+            blocks = stiffness_blocks(post, lam_g, mu_g)
+        with jax.named_scope(SCOPES["solve"]):
+            u_i, info = solve_interior_blocks(
+                post.op, *blocks, u_b, u_i0, rtol=rtol, maxiter=jnp.where(allowed, maxiter, 0),
+                precond=_precond_at(post, precond, lam_g, mu_g))
         info = SolveInfo(info.iterations, info.residual, info.converged | ~allowed)
         return _finish(post, u_b, u_i, info, phi_solve, allowed, log_prior)
 
@@ -679,19 +697,21 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
     """Energies, hard constraints and ``log p`` from the boundary and interior displacements."""
     u = full_displacement(post, u_b, u_i)
     e_s, e_r = energies(post, u, phi_solve)
-    x = (post.nodes + u)[post.tets]
-    det = jnp.einsum(
-        "mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]
-    )
-    ok = (
-        in_support
-        & info.converged
-        & jnp.all(det > 0)
-        & ~jnp.any(_node_forbidden(post, post.nodes + u))
-        & jnp.isfinite(e_s)
-        & jnp.isfinite(e_r)
-    )
-    logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior + skull_barrier(post, post.nodes + u)
+    with jax.named_scope(SCOPES["constraints"]):
+        x = (post.nodes + u)[post.tets]
+        det = jnp.einsum(
+            "mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]
+        )
+        ok = (
+            in_support
+            & info.converged
+            & jnp.all(det > 0)
+            & ~jnp.any(_node_forbidden(post, post.nodes + u))
+            & jnp.isfinite(e_s)
+            & jnp.isfinite(e_r)
+        )
+        barrier = skull_barrier(post, post.nodes + u)
+    logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior + barrier
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
 
 

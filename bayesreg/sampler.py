@@ -43,6 +43,11 @@ __all__ = [
 ]
 
 
+#: :func:`jax.named_scope` names of the random walk's proposal and accept/reject (see
+#: :data:`bayesreg.posterior.SCOPES`; ``benchmarks/profile_step.py``).
+PROPOSAL_SCOPE = "bayesreg_proposal"
+ACCEPT_SCOPE = "bayesreg_accept"
+
 class RWMHState(NamedTuple):
     """State of one chain.
 
@@ -173,14 +178,16 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
 
     def update(rng_key, state: RWMHState, idx, sigma, density):
         key_prop, key_acc = jax.random.split(rng_key)
-        sub = state.position[idx]
-        move = normal_jumping_kernel(sigma)(key_prop, sub)
-        proposal = state.position.at[idx].set(sub + move)
+        with jax.named_scope(PROPOSAL_SCOPE):
+            sub = state.position[idx]
+            move = normal_jumping_kernel(sigma)(key_prop, sub)
+            proposal = state.position.at[idx].set(sub + move)
         logp, aux = density(proposal, state)
-        log_ratio = logp - state.logdensity
-        log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
-        new = RWMHState(proposal, logp, aux.interior)
-        state, (accepted, p_accept, _) = static_binomial_sampling(key_acc, log_ratio, state, new)
+        with jax.named_scope(ACCEPT_SCOPE):
+            log_ratio = logp - state.logdensity
+            log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
+            new = RWMHState(proposal, logp, aux.interior)
+            state, (accepted, p_accept, _) = static_binomial_sampling(key_acc, log_ratio, state, new)
         return state, (p_accept, accepted, aux.solve.iterations, ~aux.solve.converged)
 
     def kernel(rng_key, state: RWMHState, sigmas, cache: KernelCache | None = None):

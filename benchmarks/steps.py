@@ -38,6 +38,7 @@ chains are the same (the line prints acceptance and CG iterations to show it):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
 import sys
 import time
@@ -59,7 +60,10 @@ CACHE = REPO / "benchmarks" / ".cache"
 STATES_WARMUP = 5000  # warm-up steps per chain of the cached tuned states
 
 
-def main(argv=None) -> dict:
+def main(argv=None, around_sampling=None) -> dict:
+    """Run the comparison; ``around_sampling()``, a context manager, wraps the timed
+    ``sample`` call alone (``profile_step.py`` profiles it; the tuned states' warm-up and
+    the problem's loading stay outside)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", choices=("three_compartment", "uniform"), default="three_compartment")
     p.add_argument("--from-starts", action="store_true", help="the config's starts and scales, untuned")
@@ -117,9 +121,10 @@ def main(argv=None) -> dict:
         if out is not None:
             stamps.append(time.perf_counter())
 
-    res = sample(jax.random.key(3), logdensity, x0, jnp.asarray(interior0), sigma, thinning=10,
-                 warmup_steps=0, max_draws=100 * args.chunks, min_draws=100 * args.chunks,
-                 chunk_draws=100, progress=False, preconditioner=pre, on_chunk=on_chunk)
+    with around_sampling() if around_sampling is not None else contextlib.nullcontext():
+        res = sample(jax.random.key(3), logdensity, x0, jnp.asarray(interior0), sigma, thinning=10,
+                     warmup_steps=0, max_draws=100 * args.chunks, min_draws=100 * args.chunks,
+                     chunk_draws=100, progress=False, preconditioner=pre, on_chunk=on_chunk)
     steps = 1000 * (args.chunks - 1)  # per chain
     rate = steps / (stamps[-1] - stamps[0])
     out = {"model": args.model, "states": "starts" if args.from_starts else "tuned",
@@ -130,6 +135,7 @@ def main(argv=None) -> dict:
                                  if hasattr(pipeline, "cg_preconditioner")
                                  else "dense" if pre is not None else "block-jacobi")}
     out["chains"] = args.chains
+    out["steps_total_per_chain"] = 1000 * args.chunks  # the compiling chunk's too
     print(f"{REPO.name} {args.model} ({out['states']}, {args.chains} chains): {rate:.1f} MH steps/s "
           f"per chain ({args.chains * rate:.0f} in total), acceptance {out['acceptance']:.3f}, "
           f"CG iterations per step {out['cg_iterations_per_step']:.2f} ({out['cg_preconditioner']})")

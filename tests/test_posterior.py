@@ -633,3 +633,24 @@ def test_build_posterior_rejects_bad_priors_references_and_forbidden_images(chan
     forbidden = kw.pop("forbidden", forbidden)
     with pytest.raises(ValueError, match=match):
         build_posterior(mesh, ssd_term, forbidden, **kw)
+
+
+def test_compiled_log_density_names_its_parts_for_the_profiler(small):
+    """Every part of :data:`bayesreg.posterior.SCOPES` (and the kernel's proposal and
+    accept scopes) reaches the optimised program's metadata, where
+    ``benchmarks/profile_step.py`` reads it to split a step's time."""
+    from bayesreg.posterior import SCOPES
+    from bayesreg.sampler import ACCEPT_SCOPE, PROPOSAL_SCOPE, build_kernel, init
+
+    mesh, post, theta = small
+    zeros = jnp.zeros((post.op.n_interior, 3))
+
+    def logdensity(x, guess):
+        return log_density(post, x, guess, rtol=1e-8)
+
+    kernel = build_kernel(logdensity)
+    state = init(jnp.asarray(theta), logdensity, zeros)
+    sigma = (jnp.full(theta.shape, 1e-3),)
+    text = jax.jit(kernel).lower(jax.random.key(0), state, sigma).compile().as_text()
+    for scope in (*SCOPES.values(), PROPOSAL_SCOPE, ACCEPT_SCOPE):
+        assert f"/{scope}/" in text, scope
