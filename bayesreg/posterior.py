@@ -613,7 +613,8 @@ def energies(post: Posterior, u, phi):
         e_r = element_strain_energy(post.grads, post.volumes, u_e, lam_g[post.group], mu_g[post.group])
     with jax.named_scope(SCOPES["similarity"]):
         r = ssd_residuals(post.ssd, u_e)
-        return jnp.sum(r * r), e_r
+        e_s = jnp.sum(r * r)
+    return e_s, e_r
 
 
 def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,

@@ -48,6 +48,7 @@ __all__ = [
 PROPOSAL_SCOPE = "bayesreg_proposal"
 ACCEPT_SCOPE = "bayesreg_accept"
 
+
 class RWMHState(NamedTuple):
     """State of one chain.
 

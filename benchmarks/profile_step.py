@@ -39,6 +39,7 @@ import glob
 import json
 import os
 import re
+import shutil
 import sys
 import tempfile
 import warnings
@@ -60,8 +61,8 @@ import jax  # noqa: E402
 from bayesreg.posterior import SCOPES  # noqa: E402
 from bayesreg.sampler import ACCEPT_SCOPE, PROPOSAL_SCOPE  # noqa: E402
 
-#: part of the step -> the named scope it was compiled under (first match wins, innermost
-#: scopes first: the CG solve's operations also sit inside the log-density's ``cond``)
+#: part of the step -> the named scope it was compiled under (these scopes do not nest: an
+#: operation's op_name holds at most one of them, under the jit/scan/cond path around it)
 PARTS = {name: scope for name, scope in SCOPES.items()}
 PARTS["proposal"] = PROPOSAL_SCOPE
 PARTS["accept"] = ACCEPT_SCOPE
@@ -171,6 +172,8 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], add_help=True)
     p.add_argument("--out", type=Path, help="write the figures as JSON")
     p.add_argument("--top", type=int, default=0, help="also list the N costliest operations")
+    p.add_argument("--keep", action="store_true",
+                   help="keep the profile and the HLO dump (their folders are in the JSON)")
     args, rest = p.parse_known_args(argv)
     trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
     options = jax.profiler.ProfileOptions()
@@ -188,7 +191,8 @@ def main(argv=None) -> dict:
     total = sum(ns.values())
     order = list(PARTS) + [CONTROL, OTHER]
     out = {
-        "steps_run": run, "dump_dir": _DUMP, "trace_dir": trace_dir,
+        "steps_run": run,
+        "kept": {"dump_dir": _DUMP, "trace_dir": trace_dir} if args.keep else None,
         "ms_per_step": {k: ns.get(k, 0) / 1e6 / n_steps for k in order},
         "share": {k: ns.get(k, 0) / total for k in order} if total else {},
         "op_ms_per_step_total": total / 1e6 / n_steps,
@@ -213,6 +217,9 @@ def main(argv=None) -> dict:
             print(f"  {v / 1e6 / n_steps:8.4f}  {part:14s} {op:32s} {name[-90:]}")
     if args.out:
         args.out.write_text(json.dumps(out, indent=2))
+    if not args.keep:
+        for folder in (trace_dir, _DUMP):
+            shutil.rmtree(folder, ignore_errors=True)
     return out
 
 
