@@ -74,8 +74,10 @@ _OP_NAME = re.compile(r'op_name="([^"]*)"')
 
 
 def hlo_index(dump_dir: str) -> dict:
-    """``(module name, instruction) -> (op_name metadata, is control flow)`` from the
-    after-optimisation HLO text that XLA dumped.
+    """``(program id, instruction) -> (module name, op_name metadata, is control flow)``
+    from the after-optimisation HLO text that XLA dumped (``module_<program id>.<name>...``;
+    the profile's events carry the same ``program_id``, so programs of one name, such as
+    the chunk compiled for two shapes, stay apart).
 
     An instruction that XLA made without metadata (the per-group combination of the
     stiffness blocks comes out as ``dot`` instructions with none) takes that of the nearest
@@ -85,9 +87,10 @@ def hlo_index(dump_dir: str) -> dict:
     for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
         text = Path(path).read_text()
         head = re.match(r"HloModule\s+([^\s,]+)", text)
-        if not head:
+        number = re.match(r"module_(\d+)\.", os.path.basename(path))
+        if not head or not number:
             continue
-        module = head.group(1)
+        module, program = head.group(1), int(number.group(1))
         names, users = {}, collections.defaultdict(list)
         for line in text.splitlines():
             m = _INSTR.match(line)
@@ -109,7 +112,7 @@ def hlo_index(dump_dir: str) -> dict:
                 seen.add(user)
                 op = names[user][0]
                 queue.extend(users.get(user, ()))
-            index[(module, name)] = (op, control)
+            index[(program, name)] = (module, op, control)
     return index
 
 
@@ -122,7 +125,8 @@ def part_of(op_name: str) -> str:
 
 def split_profile(trace_dir: str, index: dict, modules: set | None = None) -> dict:
     """Exclusive time (ns) per part, summed over threads, of the XLA operations in the
-    profile under ``trace_dir`` (only those of ``modules`` where given)."""
+    profile under ``trace_dir`` (only those of the programs named in ``modules`` where
+    given)."""
     path = glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True)
     if not path:
         raise RuntimeError(f"no profile written under {trace_dir}")
@@ -139,32 +143,32 @@ def split_profile(trace_dir: str, index: dict, modules: set | None = None) -> di
                     stats = dict(ev.stats)
                 if "hlo_op" not in stats:
                     continue
-                module = stats.get("hlo_module", "")
-                if modules is not None and module not in modules:
+                if modules is not None and stats.get("hlo_module", "") not in modules:
                     continue
-                events.append((ev.start_ns, ev.start_ns + ev.duration_ns, module, stats["hlo_op"]))
+                program = int(stats.get("program_id", -1))
+                events.append((ev.start_ns, ev.start_ns + ev.duration_ns, program, stats["hlo_op"]))
             events.sort(key=lambda e: (e[0], -e[1]))
             # exclusive time: subtract the events directly nested in each one (same thread)
             stack: list[list] = []
             done = []
-            for start, end, module, op in events:
+            for start, end, program, op in events:
                 while stack and stack[-1][1] <= start:
                     done.append(stack.pop())
                 if stack:
                     stack[-1][4] += min(end, stack[-1][1]) - start
-                stack.append([start, end, module, op, 0])
+                stack.append([start, end, program, op, 0])
             done.extend(stack)
-            for start, end, module, op, nested in done:
+            for start, end, program, op, nested in done:
                 own = max(0, (end - start) - nested)
-                info = index.get((module, op))
-                per_op[(module, op)] += own
+                info = index.get((program, op))
+                per_op[(program, op)] += own
                 if info is None:
                     unknown[op] += own
                     totals[OTHER] += own
-                elif info[1]:
+                elif info[2]:
                     totals[CONTROL] += own
                 else:
-                    totals[part_of(info[0])] += own
+                    totals[part_of(info[1])] += own
     return {"ns": dict(totals), "unmatched_ns": sum(unknown.values()), "per_op_ns": per_op}
 
 
@@ -184,7 +188,7 @@ def main(argv=None) -> dict:
 
     run = steps.main(rest, around_sampling=around_sampling)
     index = hlo_index(_DUMP)
-    chunk_modules = {m for m, _ in index if m.startswith("jit_mapped")}
+    chunk_modules = {m for m, _, _ in index.values() if m.startswith("jit_mapped")}
     prof = split_profile(trace_dir, index, chunk_modules or None)
     n_steps = run["chains"] * run["steps_total_per_chain"]
     ns = prof["ns"]
@@ -211,8 +215,8 @@ def main(argv=None) -> dict:
           f"{out['unmatched_ms_per_step']:.3f} ms per step")
     if args.top:
         print(f"\nThe {args.top} costliest operations (ms per step, part, op_name):")
-        for (module, op), v in prof["per_op_ns"].most_common(args.top):
-            name, control = index.get((module, op), ("?", False))
+        for (program, op), v in prof["per_op_ns"].most_common(args.top):
+            _, name, control = index.get((program, op), ("?", "?", False))
             part = CONTROL if control else part_of(name)
             print(f"  {v / 1e6 / n_steps:8.4f}  {part:14s} {op:32s} {name[-90:]}")
     if args.out:
