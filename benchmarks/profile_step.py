@@ -63,7 +63,7 @@ from bayesreg.sampler import ACCEPT_SCOPE, PROPOSAL_SCOPE  # noqa: E402
 
 #: part of the step -> the named scope it was compiled under (these scopes do not nest: an
 #: operation's op_name holds at most one of them, under the jit/scan/cond path around it)
-PARTS = {name: scope for name, scope in SCOPES.items()}
+PARTS = dict(SCOPES)
 PARTS["proposal"] = PROPOSAL_SCOPE
 PARTS["accept"] = ACCEPT_SCOPE
 CONTROL = "control flow"
@@ -132,7 +132,6 @@ def split_profile(trace_dir: str, index: dict, modules: set | None = None) -> di
         raise RuntimeError(f"no profile written under {trace_dir}")
     data = jax.profiler.ProfileData.from_file(path[0])
     totals = collections.Counter()
-    unknown = collections.Counter()
     per_op = collections.Counter()
     for plane in data.planes:
         for line in plane.lines:
@@ -163,13 +162,13 @@ def split_profile(trace_dir: str, index: dict, modules: set | None = None) -> di
                 info = index.get((program, op))
                 per_op[(program, op)] += own
                 if info is None:
-                    unknown[op] += own
                     totals[OTHER] += own
                 elif info[2]:
                     totals[CONTROL] += own
                 else:
                     totals[part_of(info[1])] += own
-    return {"ns": dict(totals), "unmatched_ns": sum(unknown.values()), "per_op_ns": per_op}
+    unmatched = sum(v for key, v in per_op.items() if key not in index)
+    return {"ns": dict(totals), "unmatched_ns": unmatched, "per_op_ns": per_op}
 
 
 def main(argv=None) -> dict:
