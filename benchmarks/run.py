@@ -21,7 +21,7 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    from the interior solution of a position one paper-kernel proposal away); with the CG
    iterations per solve (mean and max over the ``C`` positions).  Under ``vmap`` a
    ``while_loop`` runs until its slowest member has converged.
-2. **Time split** of one step, each piece jitted alone and run 20 times inside one
+2. **The pieces of a step timed alone**, each jitted and run 20 times inside one
    ``lax.scan`` (as in the sampler: no dispatch per call) on slightly jittered inputs, timed
    after warm-up calls with ``block_until_ready``: the interior solve
    (:func:`bayesreg.solver.solve_interior_blocks`, cold and warm, including the assembly of
@@ -30,7 +30,18 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    and the proposal (a Normal draw times the jumping-kernel scale: the paper's vector
    ``sigma``, the blocked kernel's dense Laplace factor).  The solves use the paper-joint
    sampler's CG preconditioner (its dense ``K_ii^-1``, whose build, once per chunk, is timed
-   too; else spectral or block Jacobi), so they are the pieces of its step.
+   too; else spectral or block Jacobi), so they are the pieces of its step.  Alone, a piece
+   has the caches to itself: in the running chains the same pieces cost several times more
+   (figure 2b), so they do not add up to a step.
+
+   2b. **Time split inside the sampler**: after each row's timed chunks of figure 3, one more
+   chunk runs under :func:`jax.profiler` (Python tracing off), and every XLA operation's
+   exclusive time is filed under the part of the step it was compiled from (the
+   :func:`jax.named_scope` names of the log-density and the kernel: stiffness combination,
+   solve, similarity, strain energy, constraints, proposal, accept; then control flow and
+   the rest), read from the HLO that XLA dumps (``benchmarks/profiling.py``).  Milliseconds
+   per MH step summed over threads, their shares, and the profiled chunk's wall time per
+   step beside the timed chunks' (the profiler's own cost).  ``--no-split-profile`` skips it.
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
@@ -82,7 +93,13 @@ import time
 import traceback
 from pathlib import Path
 
-from bayesreg import _xla
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import profiling  # noqa: E402  (benchmarks/profiling.py)
+
+# figure 2b reads the compiled programs' HLO: XLA dumps it from its first backend on
+HLO_DUMP = profiling.enable_hlo_dump()
+
+from bayesreg import _xla  # noqa: E402
 
 _xla.configure()  # XLA flags must be set before JAX starts
 import jax  # noqa: E402
@@ -103,7 +120,6 @@ from bayesreg.sampler import sample  # noqa: E402
 from bayesreg.similarity import ssd  # noqa: E402
 from bayesreg.solver import solve_interior_blocks  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference import ReferencePosterior, reference_mh  # noqa: E402
 from samplers import cache_tag  # noqa: E402
 
@@ -497,7 +513,7 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
 # ---------------------------------------------------------------------------------------------
 
 def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
-               preconditioner=None, warmup_steps=0):
+               preconditioner=None, warmup_steps=0, profiler=None):
     """The sampler's kernel (:func:`bayesreg.sampler.build_kernel`) in a plain jitted ``scan``.
 
     Used for one chain (``sample`` needs two or more, for R-hat): the chain is not vmapped,
@@ -505,6 +521,8 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
     device (the layout ``sample`` replaces by sharding).  A kernel with a cache (condensation,
     preconditioner) builds it at each chunk start, as ``sample`` does.  No warm-up: a
     ``warmup_steps`` other than 0 is an error (``sample`` tunes the scales, this runner cannot).
+    With a ``profiler`` (:class:`profiling.ChunkProfiler`), one more chunk runs under it
+    after the ``n_chunks`` (its time stamp is the last; its figures are not in the others).
     """
     if warmup_steps:
         raise ValueError("--warmup-steps needs sample(): two chains or more")
@@ -534,11 +552,15 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
         chunk = jax.jit(jax.vmap(one_chain))
         state = jax.jit(jax.vmap(lambda x: init(x, logdensity, interior0)))(jnp.asarray(x0))
     stamps, acc, cg, fail = [], [], [], []
-    for k in range(n_chunks):
+    for k in range(n_chunks + (profiler is not None)):
+        if k == n_chunks:
+            profiler.start()
         state, info = chunk(jax.random.split(jax.random.fold_in(key, k), n), state)
         block(state)
         stamps.append(time.perf_counter())
-        if k:
+        if k == n_chunks:
+            profiler.stop()
+        elif k:
             a = np.asarray(info.acceptance_rate)
             acc.append(a.reshape(-1, a.shape[-1]).mean(axis=0))
             cg.append(float(np.asarray(info.cg_iterations).mean()))
@@ -548,17 +570,22 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
 
 
 def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
-                preconditioner=None, warmup_steps=0):
+                preconditioner=None, warmup_steps=0, profiler=None):
     """``bayesreg.sampler.sample`` with a fixed number of draws after ``warmup_steps`` (tuning
-    the scales, not timed); time stamps per chunk."""
+    the scales, not timed); time stamps per chunk.  With a ``profiler``
+    (:class:`profiling.ChunkProfiler`), one more chunk runs under it after the ``n_chunks``
+    (its time stamp is the last; its acceptance and CG figures are not in the others)."""
     stamps: list[float] = []
+    total = n_chunks + (profiler is not None)
 
     def on_chunk(_ckpt, out):
         if out is not None:
             stamps.append(time.perf_counter())
+            if profiler is not None and len(stamps) == n_chunks:
+                profiler.start()
 
-    kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=warmup_steps, max_draws=n_chunks * chunk_draws,
-              min_draws=n_chunks * chunk_draws, chunk_draws=chunk_draws, progress=False,
+    kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=warmup_steps, max_draws=total * chunk_draws,
+              min_draws=total * chunk_draws, chunk_draws=chunk_draws, progress=False,
               rhat_threshold=1.2)
     if condensation is not None:
         kw["condensation"] = condensation
@@ -566,15 +593,11 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
         kw["preconditioner"] = preconditioner
     try:
         res = sample(key, logdensity, x0, interior0, sigma, on_chunk=on_chunk, **kw)
-        how = "sample(), on_chunk time stamps"
-    except TypeError:  # no on_chunk: difference of two runs' sampling_s (1 chunk vs n_chunks)
-        one = sample(key, logdensity, x0, interior0, sigma, **{**kw, "max_draws": chunk_draws,
-                                                                "min_draws": chunk_draws})
-        res = sample(key, logdensity, x0, interior0, sigma, **kw)
-        stamps = [0.0, res.timings["sampling_s"] - one.timings["sampling_s"]]
-        stamps = [stamps[0]] * (n_chunks - 1) + [stamps[1]]
-        how = "sample(), difference of sampling_s of a 1-chunk and an n-chunk run"
-    timed = slice(chunk_draws, None)
+    finally:
+        if profiler is not None:
+            profiler.stop()
+    how = "sample(), on_chunk time stamps"
+    timed = slice(chunk_draws, n_chunks * chunk_draws)
     acc = np.asarray(res.acceptance)[:, timed].reshape(-1, np.shape(res.acceptance)[-1]).mean(axis=0)
     cg = float(np.asarray(res.cg_iterations)[:, timed].mean())
     fail = int(np.asarray(res.solve_failures)[:, timed].sum())
@@ -614,8 +637,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
             if done:
                 rate = max(rate, done[-1]["steps_per_s_total"] / c)
             # the draws' positions and interiors are kept on the host: at most ~2 GB of them (for
-            # the most chunks this row may run)
-            per_draw = 8 * c * (1 + args.timed_chunks) * (3 * post.op.n_interior + post.dim)
+            # the most chunks this row may run, the profiled one included)
+            per_draw = 8 * c * (2 + args.timed_chunks) * (3 * post.op.n_interior + post.dim)
             cap = max(1, int(2 * 2**30 // per_draw))
             # --chunk-draws: a fixed window, acceptance comparable across chain counts
             wanted = args.chunk_draws or round(args.chunk_seconds * rate / THINNING)
@@ -629,14 +652,25 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
             timed_chunks = args.timed_chunks if chunk_draws <= wanted else 1
             n_chunks = 1 + timed_chunks
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
+            profiler = None if args.no_split_profile else profiling.ChunkProfiler(HLO_DUMP)
             t0 = time.perf_counter()
-            stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
-                                                chunk_draws, n_chunks, jax.random.key(4),
-                                                condensation=setup["condensation"],
-                                                preconditioner=setup["preconditioner"],
-                                                warmup_steps=args.warmup_steps)
-            wall = time.perf_counter() - t0
-            seconds = stamps[-1] - stamps[0]
+            try:
+                stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
+                                                    chunk_draws, n_chunks, jax.random.key(4),
+                                                    condensation=setup["condensation"],
+                                                    preconditioner=setup["preconditioner"],
+                                                    warmup_steps=args.warmup_steps, profiler=profiler)
+                wall = stamps[n_chunks - 1] - t0  # the chunks before the profiled one
+                if profiler is not None:
+                    # the extra chunk, after the timed ones: the step's parts where they ran
+                    split = profiler.split(c * chunk_draws * THINNING)
+                    split["wall_ms_per_step_per_chain"] = 1e3 * (stamps[n_chunks] - stamps[n_chunks - 1]) / (
+                        chunk_draws * THINNING)
+                    row["split_profiled"] = split
+            finally:
+                if profiler is not None:
+                    profiler.close()
+            seconds = stamps[n_chunks - 1] - stamps[0]
             row["warmup_steps"] = args.warmup_steps
             steps = timed_chunks * chunk_draws * THINNING
             per_chain = steps / seconds
@@ -652,6 +686,10 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
             })
             log(f"  {kernel} C={c} ({how}): {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
                 f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['cg_solves']:.0f} ({seconds:.1f} s timed)")
+            if "split_profiled" in row:
+                sp = row["split_profiled"]
+                log("    profiled chunk: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in sp["share"].items() if v >= 0.005)
+                    + f" of {sp['op_ms_per_step_total']:.3g} ms of operations per step")
         except Exception as exc:  # noqa: BLE001 - keep the other figures
             row["error"] = f"{type(exc).__name__}: {exc}"
             log(f"  {kernel} C={c}: {row['error']}")
@@ -783,12 +821,11 @@ def markdown(res: dict) -> str:
                          f"{c['cg_iterations_mean']:.0f} / {c['cg_iterations_max']} | "
                          f"{w['cg_iterations_mean']:.0f} / {w['cg_iterations_max']} |")
 
-    lines += ["", "## Time split of one step (single position, ms)", "",
+    lines += ["", "## The pieces of a step, each timed alone (single position, ms)", "",
               "| nodes | CG preconditioner (its build, once per chunk) | solve cold (CG it) | "
               "solve warm (CG it) | similarity | log-density warm | "
-              "proposal paper-joint | proposal blocked-laplace | paper-joint MH step (1 chain) | "
-              "solve / SSD / proposal / rest of the step |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "proposal paper-joint | proposal blocked-laplace | paper-joint MH step (1 chain) |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for r in meshes:
         s = r.get("split")
         if not s:
@@ -796,11 +833,6 @@ def markdown(res: dict) -> str:
         step = next((x for x in r.get("sampler", []) if x["kernel"] == "paper-joint"
                      and x["chains"] == 1 and "error" not in x), None)
         step_ms = 1e3 / step["steps_per_s_per_chain"] if step else None
-        shares = "-"
-        if step_ms:
-            parts = [s["solve_warm"]["ms"], s["similarity"]["ms"], s["proposal_paper-joint"]["ms"]]
-            parts.append(step_ms - sum(parts))
-            shares = " / ".join(f"{100 * p / step_ms:.0f}%" for p in parts)
         lap = s.get("proposal_blocked-laplace", {}).get("ms")
         pre = s.get("preconditioner", "block-jacobi")  # (results before 2026-11-26 timed block Jacobi)
         if "preconditioner_build" in s:
@@ -808,7 +840,23 @@ def markdown(res: dict) -> str:
         lines.append(f"| {r['problem']['nodes']} | {pre} | {s['solve_cold']['ms']:.3g} ({s['solve_cold']['cg_iterations']}) | "
                      f"{s['solve_warm']['ms']:.3g} ({s['solve_warm']['cg_iterations']}) | {s['similarity']['ms']:.3g} | "
                      f"{s['logdensity_warm']['ms']:.3g} | {s['proposal_paper-joint']['ms']:.3g} | {_f(lap)} | "
-                     f"{_f(step_ms)} | {shares} |")
+                     f"{_f(step_ms)} |")
+
+    names = profiling.order()
+    lines += ["", "## Time split inside the sampler (one profiled chunk after the timed ones; "
+                  "ms per MH step summed over threads, share)", "",
+              "| nodes | kernel | C | " + " | ".join(names) + " | all operations | "
+              "wall ms per step per chain (profiled / timed) |",
+              "|---|---|---|" + "---|" * len(names) + "---|---|"]
+    for r in meshes:
+        for x in r.get("sampler", []):
+            sp = x.get("split_profiled")
+            if not sp or "error" in x:
+                continue
+            cells = [f"{sp['ms_per_step'][k]:.3g} ({100 * sp['share'].get(k, 0):.0f}%)" for k in names]
+            lines.append(f"| {r['problem']['nodes']} | {x['kernel']} | {x['chains']} | " + " | ".join(cells)
+                         + f" | {sp['op_ms_per_step_total']:.3g} | {sp['wall_ms_per_step_per_chain']:.3g} / "
+                         f"{1e3 / x['steps_per_s_per_chain']:.3g} |")
 
     lines += ["", "## MH steps per second (`bayesreg.sampler.sample`, thinning 10, compile excluded)", "",
               "| nodes | kernel | C | steps/s per chain | steps/s total | x paper (5/s per chain) | "
@@ -905,6 +953,8 @@ def parse_args(argv=None):
     p.add_argument("--preconditioner", choices=("auto", "dense", "spectral", "block-jacobi"), default="auto",
                    help="solver.preconditioner of the sampler's solves (default auto, as the configs)")
     p.add_argument("--no-reference", action="store_true", help="skip the NumPy/SciPy reference")
+    p.add_argument("--no-split-profile", action="store_true",
+                   help="skip figure 2b (each sampler row's extra chunk run under jax.profiler)")
     p.add_argument("--reference-max-nodes", type=int, default=10**9,
                    help="skip the reference on meshes with more nodes")
     p.add_argument("--laplace-max-gb", type=float, default=6.0,
@@ -1028,4 +1078,7 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    finally:
+        profiling.remove(HLO_DUMP)

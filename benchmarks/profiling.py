@@ -1,0 +1,266 @@
+"""The time of a step, split by part, from a profile of the sampler's compiled programs.
+
+Shared by ``profile_step.py`` and ``run.py``'s figure 2b.  The log-density and the random
+walk carry :func:`jax.named_scope` names (:data:`bayesreg.posterior.SCOPES`,
+:data:`bayesreg.sampler.PROPOSAL_SCOPE`, :data:`bayesreg.sampler.ACCEPT_SCOPE`) into the
+``op_name`` metadata of the optimised HLO.  A :func:`jax.profiler` trace names, for each
+operation it ran, the HLO instruction and the program (``hlo_op``, ``program_id``); the HLO
+that XLA dumps (``--xla_dump_to``, :func:`enable_hlo_dump`) maps the instruction to its
+metadata, so every operation's time is filed under the part of the step it was compiled
+from, measured where it ran: beside the other chains' threads, with each other's data in the
+caches.
+
+What is counted: the exclusive time of each operation (an event's duration less that of the
+events nested in it on the same thread), so that a ``conditional`` or a ``while`` executed by
+the runtime counts only its own overhead, filed as "control flow"; a small ``while`` that
+XLA:CPU compiles into one kernel (``xla_cpu_small_call``, the CG loop) counts whole, under the
+scope it was called from.  Summed over threads, the operations' time exceeds the wall time
+where XLA runs independent operations of one chain on both cores at once.
+"""
+
+from __future__ import annotations
+
+import collections
+import glob
+import os
+import re
+import shutil
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+CONTROL = "control flow"
+OTHER = "other"
+
+_INSTR = re.compile(r"^\s*(?:ROOT\s+)?%([^\s=]+)\s*=\s*(.*)$")
+_OP_NAME = re.compile(r'op_name="([^"]*)"')
+
+
+def enable_hlo_dump() -> str:
+    """Make XLA dump every compiled program's HLO as text into a new temporary folder
+    (returned).  Must run before JAX starts its backend (XLA reads ``XLA_FLAGS`` once),
+    so before :mod:`bayesreg` is imported.
+
+    Raises
+    ------
+    RuntimeError
+        A JAX backend has already started (its programs would not be dumped).
+    """
+    # (not through bayesreg, whose import starts the backend: BlackJAX computes at import)
+    if "jax" in sys.modules:
+        from jax._src import xla_bridge
+
+        if xla_bridge.backends_are_initialized():
+            raise RuntimeError("enable_hlo_dump() after JAX started its backend: XLA would "
+                               "not dump the programs; call it before importing bayesreg")
+    folder = tempfile.mkdtemp(prefix="bayesreg-hlo-")
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + f" --xla_dump_to={folder} --xla_dump_hlo_as_text").strip()
+    return folder
+
+
+def parts() -> dict:
+    """Part of the step -> the named scope it was compiled under.  The scopes do not nest:
+    an operation's ``op_name`` holds at most one of them, under the jit/scan/cond path."""
+    from bayesreg.posterior import SCOPES
+    from bayesreg.sampler import ACCEPT_SCOPE, PROPOSAL_SCOPE
+
+    out = dict(SCOPES)
+    out["proposal"] = PROPOSAL_SCOPE
+    out["accept"] = ACCEPT_SCOPE
+    return out
+
+
+def order() -> list[str]:
+    """The parts in the order the tables list them, then control flow and the rest."""
+    return list(parts()) + [CONTROL, OTHER]
+
+
+def part_of(op_name: str) -> str:
+    for name, scope in parts().items():
+        if scope in op_name:
+            return name
+    return OTHER
+
+
+def hlo_index(dump_dir: str) -> dict:
+    """``(program id, instruction) -> (module name, op_name metadata, is control flow)``
+    from the after-optimisation HLO text that XLA dumped (``module_<program id>.<name>...``;
+    the profile's events carry the same ``program_id``, so programs of one name, such as
+    the chunk compiled for two shapes, stay apart).
+
+    An instruction that XLA made without metadata (the per-group combination of the
+    stiffness blocks comes out as ``dot`` instructions with none) takes that of the nearest
+    instruction using its result that has one.
+    """
+    index = {}
+    for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
+        text = Path(path).read_text()
+        head = re.match(r"HloModule\s+([^\s,]+)", text)
+        number = re.match(r"module_(\d+)\.", os.path.basename(path))
+        if not head or not number:
+            continue
+        module, program = head.group(1), int(number.group(1))
+        names, users = {}, collections.defaultdict(list)
+        for line in text.splitlines():
+            m = _INSTR.match(line)
+            if not m:
+                continue
+            name, rest = m.group(1), m.group(2)
+            op = _OP_NAME.search(rest)
+            small = 'xla_cpu_small_call="true"' in rest
+            control = (not small) and bool(re.search(r"\s(conditional|while|call)\(", rest))
+            names[name] = (op.group(1) if op else "", control)
+            for operand in set(re.findall(r"%([^\s,()=]+)", rest.split(" metadata=")[0])):
+                users[operand].append(name)
+        for name, (op, control) in names.items():
+            seen, queue = {name}, list(users.get(name, ()))
+            while not op and queue:  # breadth-first over the users
+                user = queue.pop(0)
+                if user in seen or user not in names:
+                    continue
+                seen.add(user)
+                op = names[user][0]
+                queue.extend(users.get(user, ()))
+            index[(program, name)] = (module, op, control)
+    return index
+
+
+def step_programs(index: dict) -> set[int]:
+    """Ids of the programs that hold a part of the step (a named scope): the sampler's
+    chunks, not the diagnostics or the setup around them."""
+    scopes = tuple(parts().values())
+    return {program for (program, _), (_, op, _) in index.items()
+            if any(s in op for s in scopes)}
+
+
+def split_profile(trace_dir: str, index: dict, programs: set[int] | None = None) -> dict:
+    """Exclusive time (ns) per part, summed over threads, of the XLA operations in the
+    profile under ``trace_dir`` (only those of the programs in ``programs`` where given).
+
+    Returns ``{"ns": {part: ns}, "unmatched_ns": ns of operations with no HLO found,
+    "per_op_ns": Counter((program id, instruction) -> ns)}``.
+
+    Raises
+    ------
+    RuntimeError
+        No profile was written under ``trace_dir``.
+    """
+    import jax
+
+    path = glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True)
+    if not path:
+        raise RuntimeError(f"no profile written under {trace_dir}")
+    data = jax.profiler.ProfileData.from_file(path[0])
+    # where the operations ran: the host's threads on a CPU; on an accelerator its own
+    # planes (the host's launch events there carry the same names and would count twice)
+    device = jax.default_backend() != "cpu"
+    first_program = {}
+    for program, op in sorted(index):
+        first_program.setdefault((index[(program, op)][0], op), program)
+    totals = collections.Counter()
+    per_op = collections.Counter()
+    for plane in data.planes:
+        if plane.name.startswith("/device:") != device:
+            continue
+        for line in plane.lines:
+            events = []
+            for ev in line.events:
+                with warnings.catch_warnings():  # jaxlib's event_stats type, on iteration
+                    warnings.simplefilter("ignore", DeprecationWarning)
+                    stats = dict(ev.stats)
+                if "hlo_op" not in stats:
+                    continue
+                if "program_id" in stats:
+                    program = int(stats["program_id"])
+                else:  # no program id on the event: the first program of its module's name
+                    program = first_program.get((stats.get("hlo_module"), stats["hlo_op"]), -1)
+                if programs is not None and program not in programs:
+                    continue
+                events.append((ev.start_ns, ev.start_ns + ev.duration_ns, program, stats["hlo_op"]))
+            events.sort(key=lambda e: (e[0], -e[1]))
+            # exclusive time: subtract the events directly nested in each one (same thread)
+            stack: list[list] = []
+            done = []
+            for start, end, program, op in events:
+                while stack and stack[-1][1] <= start:
+                    done.append(stack.pop())
+                if stack:
+                    stack[-1][4] += min(end, stack[-1][1]) - start
+                stack.append([start, end, program, op, 0])
+            done.extend(stack)
+            for start, end, program, op, nested in done:
+                own = max(0, (end - start) - nested)
+                info = index.get((program, op))
+                per_op[(program, op)] += own
+                if info is None:
+                    totals[OTHER] += own
+                elif info[2]:
+                    totals[CONTROL] += own
+                else:
+                    totals[part_of(info[1])] += own
+    unmatched = sum(v for key, v in per_op.items() if key not in index)
+    return {"ns": dict(totals), "unmatched_ns": unmatched, "per_op_ns": per_op}
+
+
+def per_step(prof: dict, n_steps: int) -> dict:
+    """Milliseconds per MH step of each part (summed over threads), their shares, the
+    operations' total and the unmatched time, from :func:`split_profile`."""
+    ns = prof["ns"]
+    total = sum(ns.values())
+    names = order()
+    return {
+        "ms_per_step": {k: ns.get(k, 0) / 1e6 / n_steps for k in names},
+        "share": {k: ns.get(k, 0) / total for k in names} if total else {},
+        "op_ms_per_step_total": total / 1e6 / n_steps,
+        "unmatched_ms_per_step": prof["unmatched_ns"] / 1e6 / n_steps,
+    }
+
+
+class ChunkProfiler:
+    """Profile a stretch of a run (:func:`jax.profiler.start_trace` / ``stop_trace``, Python
+    tracing off) and split it by part.  ``dump_dir`` is :func:`enable_hlo_dump`'s folder.
+
+    ``start()`` and ``stop()`` bracket the chunks to profile; ``split(n_steps)`` reads the
+    trace and the HLO dumped so far, keeps the step's programs (:func:`step_programs`) and
+    returns :func:`per_step`'s figures.  ``close()`` removes the trace (the dump stays for
+    the next profile; :func:`remove` deletes a folder).
+    """
+
+    def __init__(self, dump_dir: str):
+        self.dump_dir = dump_dir
+        self.trace_dir = None
+        self.running = False
+
+    def start(self) -> None:
+        import jax
+
+        self.trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
+        options = jax.profiler.ProfileOptions()
+        options.python_tracer_level = 0  # XLA's operations only (Python tracing slows the run)
+        jax.profiler.start_trace(self.trace_dir, profiler_options=options)
+        self.running = True
+
+    def stop(self) -> None:
+        import jax
+
+        if self.running:
+            jax.profiler.stop_trace()
+            self.running = False
+
+    def split(self, n_steps: int) -> dict:
+        index = hlo_index(self.dump_dir)
+        prof = split_profile(self.trace_dir, index, step_programs(index) or None)
+        return per_step(prof, n_steps)
+
+    def close(self) -> None:
+        self.stop()
+        if self.trace_dir:
+            remove(self.trace_dir)
+            self.trace_dir = None
+
+
+def remove(folder: str | None) -> None:
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
