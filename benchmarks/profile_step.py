@@ -48,7 +48,7 @@ def main(argv=None) -> dict:
     p.add_argument("--keep", action="store_true",
                    help="keep the profile and the HLO dump (their folders are in the JSON)")
     args, rest = p.parse_known_args(argv)
-    profiler = profiling.ChunkProfiler(_DUMP)
+    profiler = profiling.ChunkProfiler(_DUMP, max_seconds=None)  # the whole sample() call
 
     @contextlib.contextmanager
     def around_sampling():

@@ -27,6 +27,8 @@ import re
 import shutil
 import sys
 import tempfile
+import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -222,16 +224,28 @@ class ChunkProfiler:
     """Profile a stretch of a run (:func:`jax.profiler.start_trace` / ``stop_trace``, Python
     tracing off) and split it by part.  ``dump_dir`` is :func:`enable_hlo_dump`'s folder.
 
-    ``start()`` and ``stop()`` bracket the chunks to profile; ``split(n_steps)`` reads the
-    trace and the HLO dumped so far, keeps the step's programs (:func:`step_programs`) and
-    returns :func:`per_step`'s figures.  ``close()`` removes the trace (the dump stays for
-    the next profile; :func:`remove` deletes a folder).
+    ``start()`` and ``stop()`` bracket the chunk to profile.  The profiler keeps every event
+    in memory until it stops (about 1 kB each: a 90-second chunk of 64 chains at the paper's
+    size took 8.5 GB), so a profile lasts at most ``max_seconds`` (``None``: no limit): a
+    timer thread stops it then, and the chunk runs on unprofiled.  ``split(n_steps, steps_per_s)`` reads the trace
+    and the HLO dumped so far, keeps the step's programs (:func:`step_programs`) and returns
+    :func:`per_step`'s figures, with ``n_steps`` (all chains' steps of the chunk) where the
+    whole chunk was profiled, else the steps that ``steps_per_s`` (all chains' rate over the
+    chunk) gives for the profiled window (``"window_s"``, ``"steps_estimated"`` in the
+    result).  ``close()`` removes the trace (the dump stays for the next profile;
+    :func:`remove` deletes a folder).
     """
 
-    def __init__(self, dump_dir: str):
+    def __init__(self, dump_dir: str, max_seconds: float | None = 3.0):
         self.dump_dir = dump_dir
+        self.max_seconds = max_seconds
         self.trace_dir = None
         self.running = False
+        self.cut = False  # stopped by the timer, before the chunk's end
+        self.window_s = None
+        self._lock = threading.Lock()
+        self._timer = None
+        self._t0 = None
 
     def start(self) -> None:
         import jax
@@ -239,20 +253,38 @@ class ChunkProfiler:
         self.trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
         options = jax.profiler.ProfileOptions()
         options.python_tracer_level = 0  # XLA's operations only (Python tracing slows the run)
-        jax.profiler.start_trace(self.trace_dir, profiler_options=options)
-        self.running = True
+        with self._lock:
+            jax.profiler.start_trace(self.trace_dir, profiler_options=options)
+            self._t0 = time.perf_counter()
+            self.running = True
+        if self.max_seconds is not None:
+            self._timer = threading.Timer(self.max_seconds, self._stop, kwargs={"cut": True})
+            self._timer.daemon = True
+            self._timer.start()
 
-    def stop(self) -> None:
+    def _stop(self, cut: bool) -> None:
         import jax
 
-        if self.running:
+        with self._lock:
+            if not self.running:
+                return
+            self.window_s = time.perf_counter() - self._t0
             jax.profiler.stop_trace()
             self.running = False
+            self.cut = cut
 
-    def split(self, n_steps: int) -> dict:
+    def stop(self) -> None:
+        """End the profile (if the timer has not), at the end of the profiled chunk."""
+        if self._timer is not None:
+            self._timer.cancel()
+        self._stop(cut=False)
+
+    def split(self, n_steps: int, steps_per_s: float) -> dict:
         index = hlo_index(self.dump_dir)
         prof = split_profile(self.trace_dir, index, step_programs(index) or None)
-        return per_step(prof, n_steps)
+        steps = steps_per_s * self.window_s if self.cut else n_steps
+        return {**per_step(prof, steps), "window_s": self.window_s, "steps_estimated": self.cut,
+                "steps_profiled": steps}
 
     def close(self) -> None:
         self.stop()

@@ -652,7 +652,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
             timed_chunks = args.timed_chunks if chunk_draws <= wanted else 1
             n_chunks = 1 + timed_chunks
             x0 = setup["x0"][np.arange(c) % len(setup["x0"])]
-            profiler = None if args.no_split_profile else profiling.ChunkProfiler(HLO_DUMP)
+            profiler = (None if args.no_split_profile
+                        else profiling.ChunkProfiler(HLO_DUMP, max_seconds=args.split_profile_seconds))
             t0 = time.perf_counter()
             try:
                 stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
@@ -663,9 +664,9 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
                 wall = stamps[n_chunks - 1] - t0  # the chunks before the profiled one
                 if profiler is not None:
                     # the extra chunk, after the timed ones: the step's parts where they ran
-                    split = profiler.split(c * chunk_draws * THINNING)
-                    split["wall_ms_per_step_per_chain"] = 1e3 * (stamps[n_chunks] - stamps[n_chunks - 1]) / (
-                        chunk_draws * THINNING)
+                    chunk_s = stamps[n_chunks] - stamps[n_chunks - 1]
+                    split = profiler.split(c * chunk_draws * THINNING, c * chunk_draws * THINNING / chunk_s)
+                    split["wall_ms_per_step_per_chain"] = 1e3 * chunk_s / (chunk_draws * THINNING)
                     row["split_profiled"] = split
             finally:
                 if profiler is not None:
@@ -955,6 +956,9 @@ def parse_args(argv=None):
     p.add_argument("--no-reference", action="store_true", help="skip the NumPy/SciPy reference")
     p.add_argument("--no-split-profile", action="store_true",
                    help="skip figure 2b (each sampler row's extra chunk run under jax.profiler)")
+    p.add_argument("--split-profile-seconds", type=float, default=3.0,
+                   help="profile at most this many seconds of figure 2b's chunk (the profiler holds "
+                        "every event in memory: about 1 kB each)")
     p.add_argument("--reference-max-nodes", type=int, default=10**9,
                    help="skip the reference on meshes with more nodes")
     p.add_argument("--laplace-max-gb", type=float, default=6.0,
