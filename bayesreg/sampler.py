@@ -47,6 +47,9 @@ __all__ = [
 #: :data:`bayesreg.posterior.SCOPES`; ``benchmarks/profile_step.py``).
 PROPOSAL_SCOPE = "bayesreg_proposal"
 ACCEPT_SCOPE = "bayesreg_accept"
+#: ... and of the builds of a chain's :class:`KernelCache` (at each chunk start, and the
+#: condensation's after an accepted elastic move)
+CACHE_SCOPE = "bayesreg_cache"
 
 
 class RWMHState(NamedTuple):
@@ -216,8 +219,9 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
             else:
                 state, o = update(keys[b], state, idx, sigmas[b], full)
                 if condensation is not None:
-                    condensed = jax.lax.cond(o[1], lambda: condensation.build(state.position),
-                                             lambda: cache.condensed)
+                    with jax.named_scope(CACHE_SCOPE):
+                        condensed = jax.lax.cond(o[1], lambda: condensation.build(state.position),
+                                                 lambda: cache.condensed)
                     cache = cache._replace(condensed=condensed)
                 out.append(o)
         info = RWMHInfo(
@@ -232,9 +236,10 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
     kernel.preconditioner = preconditioner
     if condensation is not None or preconditioner is not None:
         def init_cache(state: RWMHState) -> KernelCache:
-            return KernelCache(
-                None if condensation is None else condensation.build(state.position),
-                None if preconditioner is None else preconditioner.build(state.position))
+            with jax.named_scope(CACHE_SCOPE):
+                return KernelCache(
+                    None if condensation is None else condensation.build(state.position),
+                    None if preconditioner is None else preconditioner.build(state.position))
 
         kernel.init_cache = init_cache
     return kernel

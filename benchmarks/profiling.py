@@ -63,14 +63,16 @@ def enable_hlo_dump() -> str:
 
 
 def parts() -> dict:
-    """Part of the step -> the named scope it was compiled under.  The scopes do not nest:
-    an operation's ``op_name`` holds at most one of them, under the jit/scan/cond path."""
+    """Part of the step -> the named scope it was compiled under.  The scopes do not nest
+    (the log-density's and the kernel's; the cache build holds no log-density): an
+    operation's ``op_name`` holds at most one of them, under the jit/scan/cond path."""
     from bayesreg.posterior import SCOPES
-    from bayesreg.sampler import ACCEPT_SCOPE, PROPOSAL_SCOPE
+    from bayesreg.sampler import ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE
 
     out = dict(SCOPES)
     out["proposal"] = PROPOSAL_SCOPE
     out["accept"] = ACCEPT_SCOPE
+    out["cache build"] = CACHE_SCOPE  # each chain's K_ii^-1 (or condensation) per chunk
     return out
 
 
@@ -224,66 +226,95 @@ class ChunkProfiler:
     """Profile a stretch of a run (:func:`jax.profiler.start_trace` / ``stop_trace``, Python
     tracing off) and split it by part.  ``dump_dir`` is :func:`enable_hlo_dump`'s folder.
 
-    ``start()`` and ``stop()`` bracket the chunk to profile.  The profiler keeps every event
-    in memory until it stops (about 1 kB each: a 90-second chunk of 64 chains at the paper's
-    size took 8.5 GB), so a profile lasts at most ``max_seconds`` (``None``: no limit): a
-    timer thread stops it then, and the chunk runs on unprofiled.  ``split(n_steps, steps_per_s)`` reads the trace
-    and the HLO dumped so far, keeps the step's programs (:func:`step_programs`) and returns
-    :func:`per_step`'s figures, with ``n_steps`` (all chains' steps of the chunk) where the
-    whole chunk was profiled, else the steps that ``steps_per_s`` (all chains' rate over the
-    chunk) gives for the profiled window (``"window_s"``, ``"steps_estimated"`` in the
+    ``start(expected_s)`` and ``stop()`` bracket the chunk to profile.  The profiler keeps
+    every event in memory until it stops (about 1 kB each: a 90-second chunk of 64 chains
+    at the paper's size took 8.5 GB), so a profile lasts at most ``max_seconds`` (``None``:
+    no limit).  A chunk expected to last longer (``expected_s``, the timed chunks' length)
+    is profiled in a window of ``max_seconds`` that opens a third of the way in, past the
+    chains' chunk-start cache builds, so that the window holds steps only; a timer thread
+    opens and closes it while the chunk runs.  ``split(n_steps, steps_per_s)`` reads the
+    trace and the HLO dumped so far, keeps the step's programs (:func:`step_programs`) and
+    returns :func:`per_step`'s figures over ``n_steps`` (all chains' steps of the chunk)
+    where the whole chunk was profiled, else over the steps that ``steps_per_s`` (all
+    chains' rate over the chunk, builds included: the builds are at most about a tenth of a
+    chunk in ``run.py``) gives for the window (``"window_s"``, ``"steps_estimated"`` in the
     result).  ``close()`` removes the trace (the dump stays for the next profile;
     :func:`remove` deletes a folder).
     """
 
-    def __init__(self, dump_dir: str, max_seconds: float | None = 3.0):
+    def __init__(self, dump_dir: str, max_seconds: float | None = 1.0):
         self.dump_dir = dump_dir
         self.max_seconds = max_seconds
         self.trace_dir = None
         self.running = False
-        self.cut = False  # stopped by the timer, before the chunk's end
+        self.window = False  # a window of the chunk, not the whole of it
         self.window_s = None
         self._lock = threading.Lock()
-        self._timer = None
+        self._timers = []
         self._t0 = None
+        self._closed = False
 
-    def start(self) -> None:
+    def start(self, expected_s: float | None = None) -> None:
+        self.trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
+        if self.max_seconds is None:
+            self._begin()
+            return
+        delay = 0.0
+        if expected_s is not None and expected_s > 1.5 * self.max_seconds:
+            delay, self.window = expected_s / 3, True
+        else:
+            self._begin()
+        for at, fn in ((delay, self._begin), (delay + self.max_seconds, self._end)):
+            if at > 0:
+                t = threading.Timer(at, fn)
+                t.daemon = True
+                t.start()
+                self._timers.append(t)
+
+    def _begin(self) -> None:
         import jax
 
-        self.trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
-        options = jax.profiler.ProfileOptions()
-        options.python_tracer_level = 0  # XLA's operations only (Python tracing slows the run)
         with self._lock:
+            if self.running or self._closed or self.window_s is not None:
+                return
+            options = jax.profiler.ProfileOptions()
+            options.python_tracer_level = 0  # XLA's operations only (Python tracing slows the run)
             jax.profiler.start_trace(self.trace_dir, profiler_options=options)
             self._t0 = time.perf_counter()
             self.running = True
-        if self.max_seconds is not None:
-            self._timer = threading.Timer(self.max_seconds, self._stop, kwargs={"cut": True})
-            self._timer.daemon = True
-            self._timer.start()
 
-    def _stop(self, cut: bool) -> None:
+    def _end(self, at_chunk_end: bool = False) -> None:
         import jax
 
         with self._lock:
+            self._closed = True  # a window not yet opened stays shut
             if not self.running:
                 return
             self.window_s = time.perf_counter() - self._t0
             jax.profiler.stop_trace()
             self.running = False
-            self.cut = cut
+            self.window = self.window or not at_chunk_end
 
     def stop(self) -> None:
-        """End the profile (if the timer has not), at the end of the profiled chunk."""
-        if self._timer is not None:
-            self._timer.cancel()
-        self._stop(cut=False)
+        """End the profile at the end of the profiled chunk (if its window has not)."""
+        for t in self._timers:
+            t.cancel()
+        self._end(at_chunk_end=True)
 
     def split(self, n_steps: int, steps_per_s: float) -> dict:
+        """Per-step figures of the profile (:func:`per_step`), with the window's length.
+
+        Raises
+        ------
+        RuntimeError
+            Nothing was profiled (the chunk ended before its window opened).
+        """
+        if self.window_s is None:
+            raise RuntimeError("the chunk ended before its profile window opened")
         index = hlo_index(self.dump_dir)
         prof = split_profile(self.trace_dir, index, step_programs(index) or None)
-        steps = steps_per_s * self.window_s if self.cut else n_steps
-        return {**per_step(prof, steps), "window_s": self.window_s, "steps_estimated": self.cut,
+        steps = steps_per_s * self.window_s if self.window else n_steps
+        return {**per_step(prof, steps), "window_s": self.window_s, "steps_estimated": self.window,
                 "steps_profiled": steps}
 
     def close(self) -> None:

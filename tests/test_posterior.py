@@ -636,11 +636,12 @@ def test_build_posterior_rejects_bad_priors_references_and_forbidden_images(chan
 
 
 def test_compiled_log_density_names_its_parts_for_the_profiler(small):
-    """Every part of :data:`bayesreg.posterior.SCOPES` (and the kernel's proposal and
-    accept scopes) reaches the optimised program's metadata, where
-    ``benchmarks/profile_step.py`` reads it to split a step's time."""
-    from bayesreg.posterior import SCOPES
-    from bayesreg.sampler import ACCEPT_SCOPE, PROPOSAL_SCOPE, build_kernel, init
+    """Every part of :data:`bayesreg.posterior.SCOPES` (and the kernel's proposal, accept
+    and cache-build scopes) reaches the optimised program's metadata, where
+    ``benchmarks/profiling.py`` reads it to split a step's time."""
+    from bayesreg.posterior import SCOPES, preconditioner
+    from bayesreg.sampler import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner,
+                                  build_kernel, init)
 
     mesh, post, theta = small
     zeros = jnp.zeros((post.op.n_interior, 3))
@@ -654,3 +655,9 @@ def test_compiled_log_density_names_its_parts_for_the_profiler(small):
     text = jax.jit(kernel).lower(jax.random.key(0), state, sigma).compile().as_text()
     for scope in (*SCOPES.values(), PROPOSAL_SCOPE, ACCEPT_SCOPE):
         assert f"/{scope}/" in text, scope
+    assert f"/{CACHE_SCOPE}/" not in text  # no cache: nothing built
+    pre = Preconditioner(lambda x, guess, p: log_density(post, x, guess, rtol=1e-8, precond=p),
+                         lambda x: preconditioner(post, x))
+    cached = build_kernel(logdensity, preconditioner=pre)
+    text = jax.jit(cached.init_cache).lower(state).compile().as_text()
+    assert f"/{CACHE_SCOPE}/" in text  # each chain's K_ii^-1, built at every chunk start
