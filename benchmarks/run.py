@@ -38,15 +38,14 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    chunk runs under :func:`jax.profiler` (Python tracing off), and every XLA operation's
    exclusive time is filed under the part of the step it was compiled from (the
    :func:`jax.named_scope` names of the log-density and the kernel: stiffness combination,
-   solve, similarity, strain energy, constraints, proposal, accept; then control flow and
-   the rest), read from the HLO that XLA dumps (``benchmarks/profiling.py``).  Milliseconds
-   per MH step summed over threads, their shares, and the profiled chunk's wall time per
-   step beside the timed chunks' (the profiler's own cost).  At most
-   ``--split-profile-seconds`` of the chunk are profiled (the profiler keeps every event in
-   memory): a longer chunk in a window that opens a third of the way in (past the chains'
-   chunk-start builds of their ``K_ii^-1``, the "cache build" part), its steps taken from
-   the chunk's rate.
-   ``--no-split-profile`` skips it.
+   solve, similarity, strain energy, constraints, proposal, accept, the chunk-start cache
+   build; then control flow and the rest), read from the HLO that XLA dumps
+   (``benchmarks/profiling.py``).  Milliseconds per MH step summed over threads, their
+   shares, and the profiled chunk's wall time per step beside the timed chunks' (the
+   profiler's own cost).  At most ``--split-profile-seconds`` of the chunk are profiled
+   (the profiler keeps every event in memory): a longer chunk in a window that opens a
+   third of the way in (past the chains' chunk-start builds of their ``K_ii^-1``), its
+   steps taken from the chunk's rate.  ``--no-split-profile`` skips it.
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
