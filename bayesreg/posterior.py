@@ -100,7 +100,8 @@ MAX_GROUPED = 16
 
 #: Names (:func:`jax.named_scope`) of the parts of :func:`log_density`, carried into the
 #: compiled program's metadata (no cost at run time): a profile of the compiled step can
-#: then attribute its time to them (``benchmarks/profile_step.py``).
+#: then attribute its time to them (``benchmarks/profiling.py``: ``run.py``'s figure 2b,
+#: ``profile_step.py``).
 SCOPES = {
     "stiffness": "bayesreg_stiffness",  # K_ii, K_ib blocks at the position's lam, mu
     "solve": "bayesreg_solve",  # the interior CG solve

@@ -44,7 +44,7 @@ __all__ = [
 
 
 #: :func:`jax.named_scope` names of the random walk's proposal and accept/reject (see
-#: :data:`bayesreg.posterior.SCOPES`; ``benchmarks/profile_step.py``).
+#: :data:`bayesreg.posterior.SCOPES`; ``benchmarks/profiling.py``).
 PROPOSAL_SCOPE = "bayesreg_proposal"
 ACCEPT_SCOPE = "bayesreg_accept"
 #: ... and of the builds of a chain's :class:`KernelCache` (at each chunk start, and the
