@@ -242,9 +242,10 @@ class ChunkProfiler:
     :func:`remove` deletes a folder).
     """
 
-    def __init__(self, dump_dir: str, max_seconds: float | None = 1.0):
+    def __init__(self, dump_dir: str, max_seconds: float | None = 1.0, on_begin=None):
         self.dump_dir = dump_dir
         self.max_seconds = max_seconds
+        self.on_begin = on_begin  # called as the profile opens (run.py: keep the peak RSS so far)
         self.trace_dir = None
         self.running = False
         self.window = False  # a window of the chunk, not the whole of it
@@ -277,6 +278,8 @@ class ChunkProfiler:
         with self._lock:
             if self.running or self._closed or self.window_s is not None:
                 return
+            if self.on_begin is not None:
+                self.on_begin()
             options = jax.profiler.ProfileOptions()
             options.python_tracer_level = 0  # XLA's operations only (Python tracing slows the run)
             jax.profiler.start_trace(self.trace_dir, profiler_options=options)
