@@ -2,7 +2,8 @@
 
 Shared by ``profile_step.py`` and ``run.py``'s figure 2b.  The log-density and the random
 walk carry :func:`jax.named_scope` names (:data:`bayesreg.posterior.SCOPES`,
-:data:`bayesreg.sampler.PROPOSAL_SCOPE`, :data:`bayesreg.sampler.ACCEPT_SCOPE`) into the
+:data:`bayesreg.sampler.PROPOSAL_SCOPE`, :data:`bayesreg.sampler.ACCEPT_SCOPE`,
+:data:`bayesreg.sampler.CACHE_SCOPE`) into the
 ``op_name`` metadata of the optimised HLO.  A :func:`jax.profiler` trace names, for each
 operation it ran, the HLO instruction and the program (``hlo_op``, ``program_id``); the HLO
 that XLA dumps (``--xla_dump_to``, :func:`enable_hlo_dump`) maps the instruction to its
@@ -81,8 +82,10 @@ def order() -> list[str]:
     return list(parts()) + [CONTROL, OTHER]
 
 
-def part_of(op_name: str) -> str:
-    for name, scope in parts().items():
+def part_of(op_name: str, scopes: dict | None = None) -> str:
+    """The part whose scope ``op_name`` holds (``scopes``: :func:`parts`, given by a caller
+    that asks for many), else "other"."""
+    for name, scope in (scopes or parts()).items():
         if scope in op_name:
             return name
     return OTHER
@@ -163,6 +166,9 @@ def split_profile(trace_dir: str, index: dict, programs: set[int] | None = None)
     first_program = {}
     for program, op in sorted(index):
         first_program.setdefault((index[(program, op)][0], op), program)
+    scopes = parts()  # each instruction's part, once (not once per event)
+    part_at = {key: CONTROL if control else part_of(name, scopes)
+               for key, (_, name, control) in index.items()}
     totals = collections.Counter()
     per_op = collections.Counter()
     for plane in data.planes:
@@ -196,14 +202,8 @@ def split_profile(trace_dir: str, index: dict, programs: set[int] | None = None)
             done.extend(stack)
             for start, end, program, op, nested in done:
                 own = max(0, (end - start) - nested)
-                info = index.get((program, op))
                 per_op[(program, op)] += own
-                if info is None:
-                    totals[OTHER] += own
-                elif info[2]:
-                    totals[CONTROL] += own
-                else:
-                    totals[part_of(info[1])] += own
+                totals[part_at.get((program, op), OTHER)] += own
     unmatched = sum(v for key, v in per_op.items() if key not in index)
     return {"ns": dict(totals), "unmatched_ns": unmatched, "per_op_ns": per_op}
 

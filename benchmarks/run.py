@@ -193,8 +193,7 @@ def peak_rss_mib() -> float:
 def profile_memory_begin() -> None:
     """Before a profile: keep the peak so far (the profiler holds its events in memory)."""
     global _PEAK_BEFORE_RESET
-    _PEAK_BEFORE_RESET = max(_PEAK_BEFORE_RESET, peak_rss_mib() if _PEAK_RESETTABLE else
-                             resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+    _PEAK_BEFORE_RESET = max(_PEAK_BEFORE_RESET, peak_rss_mib())
 
 
 def profile_memory_end() -> None:
