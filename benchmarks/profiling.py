@@ -38,6 +38,8 @@ OTHER = "other"
 
 _INSTR = re.compile(r"^\s*(?:ROOT\s+)?%([^\s=]+)\s*=\s*(.*)$")
 _OP_NAME = re.compile(r'op_name="([^"]*)"')
+_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%([^\s(]+)\s*\(.*\{\s*$")
+_CALLS = re.compile(r"\bcalls=%([^\s,}]+)")
 
 
 def enable_hlo_dump() -> str:
@@ -97,9 +99,11 @@ def hlo_index(dump_dir: str) -> dict:
     the profile's events carry the same ``program_id``, so programs of one name, such as
     the chunk compiled for two shapes, stay apart).
 
-    An instruction that XLA made without metadata (the per-group combination of the
-    stiffness blocks comes out as ``dot`` instructions with none) takes that of the nearest
-    instruction using its result that has one.
+    An instruction that XLA made without metadata takes that of the computation it calls
+    (a GPU fusion: the root of its fused computation, else the first of its instructions
+    that has one), else that of the nearest instruction using its result that has one (the
+    per-group combination of the stiffness blocks comes out as ``dot`` instructions with
+    none on a CPU).
     """
     index = {}
     for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
@@ -110,7 +114,13 @@ def hlo_index(dump_dir: str) -> dict:
             continue
         module, program = head.group(1), int(number.group(1))
         names, users = {}, collections.defaultdict(list)
+        calls, computation_ops = {}, collections.defaultdict(list)  # root's op_name first
+        computation = None
         for line in text.splitlines():
+            start = _COMPUTATION.match(line)
+            if start:
+                computation = start.group(1)
+                continue
             m = _INSTR.match(line)
             if not m:
                 continue
@@ -119,9 +129,19 @@ def hlo_index(dump_dir: str) -> dict:
             small = 'xla_cpu_small_call="true"' in rest
             control = (not small) and bool(re.search(r"\s(conditional|while|call)\(", rest))
             names[name] = (op.group(1) if op else "", control)
+            if op and computation is not None:
+                if line.lstrip().startswith("ROOT"):
+                    computation_ops[computation].insert(0, op.group(1))
+                else:
+                    computation_ops[computation].append(op.group(1))
+            called = _CALLS.search(rest)
+            if called:
+                calls[name] = called.group(1)
             for operand in set(re.findall(r"%([^\s,()=]+)", rest.split(" metadata=")[0])):
                 users[operand].append(name)
         for name, (op, control) in names.items():
+            if not op and name in calls and computation_ops.get(calls[name]):
+                op = computation_ops[calls[name]][0]
             seen, queue = {name}, list(users.get(name, ()))
             while not op and queue:  # breadth-first over the users
                 user = queue.pop(0)
@@ -142,12 +162,60 @@ def step_programs(index: dict) -> set[int]:
             if any(s in op for s in scopes)}
 
 
+_ANNOTATION = {key: re.compile(rf"{key}=([^,#]+)") for key in ("hlo_op", "hlo_module", "program_id")}
+
+
+def event_op(stats: dict) -> tuple:
+    """``(module name, program id, HLO instruction)`` of one profiled event, each ``None``
+    where the event does not say.
+
+    On a CPU the events carry ``hlo_op``, ``hlo_module`` and ``program_id`` stats.  On a
+    GPU (JAX 0.11.2, an H200) the device's kernels and copies carry the same stats, from
+    the annotations that XLA's runtime had open at the launch: no ``hlo_module`` or
+    ``program_id`` where the trace began inside the program.  A collector that leaves
+    those annotations as one ``kernel_annotation`` string, such as
+    ``XlaModule:#prefix=...,hlo_module=jit_chunk,program_id=12#::Thunk:#name=...,hlo_op=loop_fusion.3#``
+    (``xla/backends/gpu/runtime/annotation.cc``), is read too: the innermost instruction.
+    """
+    if "hlo_op" in stats:
+        program = stats.get("program_id")
+        return stats.get("hlo_module"), None if program is None else int(program), str(stats["hlo_op"])
+    text = stats.get("kernel_annotation")
+    if not isinstance(text, str) or "hlo_op=" not in text:
+        return None, None, None
+    found = {key: pattern.findall(text) for key, pattern in _ANNOTATION.items()}
+    module = found["hlo_module"][-1] if found["hlo_module"] else None
+    program = int(found["program_id"][-1]) if found["program_id"] else None
+    return module, program, found["hlo_op"][-1]
+
+
+def _on_device() -> bool:
+    import jax
+
+    return jax.default_backend() != "cpu"
+
+
+def _kernel_name(instruction: str) -> str:
+    """The name XLA:GPU gives the kernel it emits for an instruction (``.`` and ``-`` made
+    ``_``: ``input_reduce_fusion.2`` runs as ``input_reduce_fusion_2``)."""
+    return re.sub(r"[^0-9A-Za-z_]", "_", instruction)
+
+
 def split_profile(trace_dir: str, index: dict, programs: set[int] | None = None) -> dict:
     """Exclusive time (ns) per part, summed over threads, of the XLA operations in the
     profile under ``trace_dir`` (only those of the programs in ``programs`` where given).
 
+    On an accelerator the device's own kernels and copies are read.  Those that XLA:GPU
+    runs inside a command buffer (a CUDA graph) carry the buffer's name
+    (``command_buffer_57``), not their instruction's: the kernel's own name gives the
+    instruction (:func:`_kernel_name`; a kernel that XLA reuses for an identical fusion
+    elsewhere counts under the first).  Events that name no program (a trace that began
+    while a program ran) are given the one among ``programs`` (else all in ``index``)
+    whose instructions account for the most of them.
+
     Returns ``{"ns": {part: ns}, "unmatched_ns": ns of operations with no HLO found,
-    "per_op_ns": Counter((program id, instruction) -> ns)}``.
+    "per_op_ns": Counter((program id, instruction) -> ns), "program": the program voted
+    for where one was, else None}``.
 
     Raises
     ------
@@ -162,50 +230,83 @@ def split_profile(trace_dir: str, index: dict, programs: set[int] | None = None)
     data = jax.profiler.ProfileData.from_file(path[0])
     # where the operations ran: the host's threads on a CPU; on an accelerator its own
     # planes (the host's launch events there carry the same names and would count twice)
-    device = jax.default_backend() != "cpu"
+    device = _on_device()
     first_program = {}
     for program, op in sorted(index):
         first_program.setdefault((index[(program, op)][0], op), program)
     scopes = parts()  # each instruction's part, once (not once per event)
     part_at = {key: CONTROL if control else part_of(name, scopes)
                for key, (_, name, control) in index.items()}
-    totals = collections.Counter()
-    per_op = collections.Counter()
+    lines_events = []  # per line: [start, end, program or None, instruction, kernel name]
     for plane in data.planes:
         if plane.name.startswith("/device:") != device:
             continue
-        for line in plane.lines:
+        lines = list(plane.lines)
+        if device and any(line.name.startswith("Stream") for line in lines):
+            # the streams' kernels and copies, not the lines derived from them
+            # ("XLA Ops", "XLA Modules", ... where a post-processing wrote them)
+            lines = [line for line in lines if line.name.startswith("Stream")]
+        for line in lines:
             events = []
             for ev in line.events:
                 with warnings.catch_warnings():  # jaxlib's event_stats type, on iteration
                     warnings.simplefilter("ignore", DeprecationWarning)
                     stats = dict(ev.stats)
-                if "hlo_op" not in stats:
+                module, program, op = event_op(stats)
+                if device and op is not None and op.startswith("command_buffer"):
+                    op = None  # the kernel's own name says more (below)
+                if op is None and not device:
                     continue
-                if "program_id" in stats:
-                    program = int(stats["program_id"])
-                else:  # no program id on the event: the first program of its module's name
-                    program = first_program.get((stats.get("hlo_module"), stats["hlo_op"]), -1)
-                if programs is not None and program not in programs:
-                    continue
-                events.append((ev.start_ns, ev.start_ns + ev.duration_ns, program, stats["hlo_op"]))
-            events.sort(key=lambda e: (e[0], -e[1]))
-            # exclusive time: subtract the events directly nested in each one (same thread)
-            stack: list[list] = []
-            done = []
-            for start, end, program, op in events:
-                while stack and stack[-1][1] <= start:
-                    done.append(stack.pop())
-                if stack:
-                    stack[-1][4] += min(end, stack[-1][1]) - start
-                stack.append([start, end, program, op, 0])
-            done.extend(stack)
-            for start, end, program, op, nested in done:
-                own = max(0, (end - start) - nested)
-                per_op[(program, op)] += own
-                totals[part_at.get((program, op), OTHER)] += own
+                if program is None and module is not None and op is not None:
+                    program = first_program.get((module, op))  # the first of its module's name
+                events.append([ev.start_ns, ev.start_ns + ev.duration_ns, program, op, ev.name])
+            lines_events.append(events)
+    voted = None
+    if device:
+        kernels = collections.defaultdict(dict)  # program -> kernel name -> instruction
+        for program, op in index:
+            kernels[program].setdefault(_kernel_name(op), op)
+
+        def resolve(program, op, kernel):
+            if op is not None and (program, op) in index:
+                return op
+            return kernels[program].get(_kernel_name(kernel), op or kernel)
+
+        unknown = collections.Counter((op, kernel) for events in lines_events
+                                      for _, _, program, op, kernel in events if program is None)
+        if unknown:
+            candidates = programs if programs else {program for program, _ in index}
+            score = {p: sum(n for (op, kernel), n in unknown.items() if (p, resolve(p, op, kernel)) in index)
+                     for p in candidates}
+            voted = max(sorted(score), key=score.get) if score else -1
+        for events in lines_events:
+            for ev in events:
+                if ev[2] is None:
+                    ev[2] = voted
+                ev[3] = resolve(ev[2], ev[3], ev[4])
+    totals = collections.Counter()
+    per_op = collections.Counter()
+    for events in lines_events:
+        events = [(a, b, program, op) for a, b, program, op, _ in events
+                  if program is not None and op is not None
+                  and (programs is None or program in programs)]
+        events.sort(key=lambda e: (e[0], -e[1]))
+        # exclusive time: subtract the events directly nested in each one (same thread)
+        stack: list[list] = []
+        done = []
+        for start, end, program, op in events:
+            while stack and stack[-1][1] <= start:
+                done.append(stack.pop())
+            if stack:
+                stack[-1][4] += min(end, stack[-1][1]) - start
+            stack.append([start, end, program, op, 0])
+        done.extend(stack)
+        for start, end, program, op, nested in done:
+            own = max(0, (end - start) - nested)
+            per_op[(program, op)] += own
+            totals[part_at.get((program, op), OTHER)] += own
     unmatched = sum(v for key, v in per_op.items() if key not in index)
-    return {"ns": dict(totals), "unmatched_ns": unmatched, "per_op_ns": per_op}
+    return {"ns": dict(totals), "unmatched_ns": unmatched, "per_op_ns": per_op, "program": voted}
 
 
 def per_step(prof: dict, n_steps: int) -> dict:
@@ -238,7 +339,13 @@ class ChunkProfiler:
     where the whole chunk was profiled, else over the steps that ``steps_per_s`` (all
     chains' rate over the chunk, builds included: the builds are at most about a tenth of a
     chunk in ``run.py``) gives for the window (``"window_s"``, ``"steps_estimated"`` in the
-    result).  ``close()`` removes the trace (the dump stays for the next profile;
+    result).  On an accelerator the whole chunk is profiled whatever its length, and
+    :func:`split_profile` looks for its kernels in the programs compiled since the profiler
+    was made (the chunk's own, where it compiled for this profiler's row): a trace stopped
+    while the device runs can leave its CUDA context broken (an H200 here, 2026-11-26:
+    ``CUDA_ERROR_LAUNCH_FAILED`` at the next synchronisation, as in jax-ml/jax#40260), and
+    it is started and stopped only while the device is idle (before the chunk's launch,
+    after its results are on the host).  ``close()`` removes the trace (the dump stays for the next profile;
     :func:`remove` deletes a folder).
     """
 
@@ -254,11 +361,12 @@ class ChunkProfiler:
         self._timers = []
         self._t0 = None
         self._closed = False
+        self._dumped_before = set(glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")))
 
     def start(self, expected_s: float | None = None) -> None:
         self.trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
-        if self.max_seconds is None:
-            self._begin()
+        if self.max_seconds is None or _on_device():
+            self._begin()  # the whole chunk (on an accelerator: never while the device runs)
             return
         delay = 0.0
         if expected_s is not None and expected_s > 1.5 * self.max_seconds:
@@ -305,26 +413,61 @@ class ChunkProfiler:
         self._end(at_chunk_end=True)
 
     def split(self, n_steps: int, steps_per_s: float) -> dict:
-        """Per-step figures of the profile (:func:`per_step`), with the window's length.
+        """Per-step figures of the profile (:func:`per_step`), with the window's length and
+        ``busy``: seconds of operations per second of the window (on a CPU the mean number
+        of busy threads; on a GPU the share of the time a kernel or copy runs).
 
         Raises
         ------
         RuntimeError
-            Nothing was profiled (the chunk ended before its window opened).
+            Nothing was profiled (the chunk ended before its window opened), or the profile
+            holds no operation of the step's programs.
         """
         if self.window_s is None:
             raise RuntimeError("the chunk ended before its profile window opened")
         index = hlo_index(self.dump_dir)
-        prof = split_profile(self.trace_dir, index, step_programs(index) or None)
+        programs = step_programs(index)
+        if _on_device():  # the programs compiled since this profiler was made: the chunk's own
+            new = set()
+            for path in set(glob.glob(os.path.join(self.dump_dir, "*after_optimizations.txt"))) - self._dumped_before:
+                number = re.match(r"module_(\d+)\.", os.path.basename(path))
+                if number and int(number.group(1)) in programs:
+                    new.add(int(number.group(1)))
+            programs = new or programs
+        prof = split_profile(self.trace_dir, index, programs or None)
+        busy_s = sum(prof["ns"].values()) / 1e9
+        if not busy_s:
+            raise RuntimeError("the profile holds no operation of the step's programs "
+                               f"({'device' if _on_device() else 'host'} planes read)")
         steps = steps_per_s * self.window_s if self.window else n_steps
         return {**per_step(prof, steps), "window_s": self.window_s, "steps_estimated": self.window,
-                "steps_profiled": steps}
+                "steps_profiled": steps, "busy": busy_s / self.window_s}
 
-    def close(self) -> None:
+    def close(self, keep: str | os.PathLike | None = None) -> None:
+        """End the profile and remove its trace, or move it to ``keep`` (a folder that
+        TensorBoard's profile plugin or Perfetto, via ``xprof``, opens)."""
         self.stop()
         if self.trace_dir:
+            if keep is not None and self.window_s is not None:
+                remove(keep)
+                Path(keep).parent.mkdir(parents=True, exist_ok=True)
+                shutil.move(self.trace_dir, keep)
             remove(self.trace_dir)
             self.trace_dir = None
+
+
+def keep_hlo(dump_dir: str, folder: str | os.PathLike) -> int:
+    """Copy the after-optimisation HLO of the programs that hold a part of the step
+    (:func:`step_programs`) from ``dump_dir`` into ``folder``; returns how many."""
+    programs = step_programs(hlo_index(dump_dir))
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    n = 0
+    for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
+        number = re.match(r"module_(\d+)\.", os.path.basename(path))
+        if number and int(number.group(1)) in programs:
+            shutil.copy(path, folder)
+            n += 1
+    return n
 
 
 def remove(folder: str | None) -> None:

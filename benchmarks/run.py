@@ -41,11 +41,16 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    solve, similarity, strain energy, constraints, proposal, accept, the chunk-start cache
    build; then control flow and the rest), read from the HLO that XLA dumps
    (``benchmarks/profiling.py``).  Milliseconds per MH step summed over threads, their
-   shares, and the profiled chunk's wall time per step beside the timed chunks' (the
-   profiler's own cost).  At most ``--split-profile-seconds`` of the chunk are profiled
-   (the profiler keeps every event in memory): a longer chunk in a window that opens a
-   third of the way in (past the chains' chunk-start builds of their ``K_ii^-1``), its
-   steps taken from the chunk's rate.  ``--no-split-profile`` skips it.
+   shares, the profiled chunk's wall time per step beside the timed chunks' (the
+   profiler's own cost), and "busy", seconds of operations per second profiled (on a CPU
+   the mean number of busy threads; on a GPU, where the device's own kernels and copies
+   are read, the share of the time the device works).  At most
+   ``--split-profile-seconds`` of the chunk are profiled (the profiler keeps every event
+   in memory): a longer chunk in a window that opens a third of the way in (past the
+   chains' chunk-start builds of their ``K_ii^-1``), its steps taken from the chunk's
+   rate; on an accelerator the whole chunk, since a trace stopped while the device runs
+   can break its context (``profiling.ChunkProfiler``).  ``--no-split-profile`` skips it; ``--keep-profiles DIR`` keeps the traces and
+   the step's compiled HLO.
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
@@ -656,7 +661,7 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
     return stamps, acc, cg, fail, how
 
 
-def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> list[dict]:
+def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None, mesh="mesh") -> list[dict]:
     """MH steps/s per chain and in total for each chain count (one kernel).
 
     ``sample`` for two chains or more, :func:`_plain_run` for one; with ``--compare-vmap`` also
@@ -670,7 +675,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
     16 chains of the paper's size ran chunks of 10 steps).  Where the kernel builds a cache
     per chunk (``build_s``: one chain's dense ``K_ii^-1``, seconds), a chunk has at least
     :data:`AMORTISE_BUILD` times the steps one chain runs in that time, and such
-    lengthened chunks are timed once (``timed_chunks`` in the row).
+    lengthened chunks are timed once (``timed_chunks`` in the row).  ``mesh`` names the
+    mesh in the folders of ``--keep-profiles``.
     """
     logdensity = pipeline.make_logdensity(problem, setup["cfg"])
     interior0 = jnp.zeros((problem.posterior.op.n_interior, 3))
@@ -720,14 +726,18 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
                     chunk_s = stamps[n_chunks] - stamps[n_chunks - 1]
                     try:
                         split = profiler.split(c * chunk_draws * THINNING, c * chunk_draws * THINNING / chunk_s)
-                        split["wall_ms_per_step_per_chain"] = 1e3 * chunk_s / (chunk_draws * THINNING)
+                        # a whole profiled chunk: its own length (on a GPU the chunk's time stamps
+                        # also hold the profiler's start, seconds of CUPTI's set-up)
+                        length = chunk_s if split["steps_estimated"] else split["window_s"]
+                        split["wall_ms_per_step_per_chain"] = 1e3 * length / (chunk_draws * THINNING)
                         row["split_profiled"] = split
                     except RuntimeError as exc:  # keep the row's other figures
                         row["split_profiled_error"] = str(exc)
                         log(f"    profiled chunk: {exc}")
             finally:
                 if profiler is not None:
-                    profiler.close()
+                    profiler.close(keep=None if args.keep_profiles is None else
+                                   args.keep_profiles / f"{mesh}-{kernel}-C{c}-{row['runner']}")
                     profile_memory_end()
             seconds = stamps[n_chunks - 1] - stamps[0]
             row["warmup_steps"] = args.warmup_steps
@@ -748,7 +758,7 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None) -> 
             if "split_profiled" in row:
                 sp = row["split_profiled"]
                 log("    profiled chunk: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in sp["share"].items() if v >= 0.005)
-                    + f" of {sp['op_ms_per_step_total']:.3g} ms of operations per step")
+                    + f" of {sp['op_ms_per_step_total']:.3g} ms of operations per step (busy {sp['busy']:.2f})")
         except Exception as exc:  # noqa: BLE001 - keep the other figures
             row["error"] = f"{type(exc).__name__}: {exc}"
             log(f"  {kernel} C={c}: {row['error']}")
@@ -905,8 +915,8 @@ def markdown(res: dict) -> str:
     lines += ["", "## Time split inside the sampler (one profiled chunk after the timed ones; "
                   "ms per MH step summed over threads, share)", "",
               "| nodes | kernel | C | " + " | ".join(names) + " | all operations | "
-              "wall ms per step per chain (profiled / timed) |",
-              "|---|---|---|" + "---|" * len(names) + "---|---|"]
+              "wall ms per step per chain (profiled / timed) | busy (s of operations per s) |",
+              "|---|---|---|" + "---|" * len(names) + "---|---|---|"]
     for r in meshes:
         for x in r.get("sampler", []):
             sp = x.get("split_profiled")
@@ -915,7 +925,8 @@ def markdown(res: dict) -> str:
             cells = [f"{sp['ms_per_step'][k]:.3g} ({100 * sp['share'].get(k, 0):.0f}%)" for k in names]
             lines.append(f"| {r['problem']['nodes']} | {x['kernel']} | {x['chains']} | " + " | ".join(cells)
                          + f" | {sp['op_ms_per_step_total']:.3g} | {sp['wall_ms_per_step_per_chain']:.3g} / "
-                         f"{1e3 / x['steps_per_s_per_chain']:.3g} |")
+                         f"{1e3 / x['steps_per_s_per_chain']:.3g} | "
+                         + (f"{sp['busy']:.2f} |" if "busy" in sp else "|"))
 
     lines += ["", "## MH steps per second (`bayesreg.sampler.sample`, thinning 10, compile excluded)", "",
               "| nodes | kernel | C | steps/s per chain | steps/s total | x paper (5/s per chain) | "
@@ -1017,7 +1028,11 @@ def parse_args(argv=None):
     p.add_argument("--split-profile-seconds", type=float, default=1.0,
                    help="profile at most this many seconds of figure 2b's chunk, a window a third of "
                         "the way into a longer one (the profiler holds every event in memory: about "
-                        "1 kB each)")
+                        "1 kB each); on a GPU the whole chunk (--chunk-seconds), started and stopped "
+                        "with the device idle")
+    p.add_argument("--keep-profiles", type=Path, default=None, metavar="DIR",
+                   help="keep figure 2b's traces in DIR/MESH-KERNEL-CCHAINS-RUNNER/ (TensorBoard's "
+                        "profile plugin opens them) and the step's compiled HLO in DIR/hlo/")
     p.add_argument("--reference-max-nodes", type=int, default=10**9,
                    help="skip the reference on meshes with more nodes")
     p.add_argument("--laplace-max-gb", type=float, default=6.0,
@@ -1111,7 +1126,7 @@ def main(argv=None) -> dict:
                         if s["preconditioner"] is not None else None)
             build_s = build_ms / 1e3 if build_ms else None
             entry["sampler"] += bench_sampler(problem, s, args.chain_counts, entry["logdensity"], args, k,
-                                              build_s=build_s)
+                                              build_s=build_s, mesh=f"{p['nodes']}nodes")
             res["memory"].append(memory_snapshot(f"sampler {k} {p['nodes']} nodes"))
         if not args.no_reference and p["nodes"] <= args.reference_max_nodes:
             try:
@@ -1128,6 +1143,9 @@ def main(argv=None) -> dict:
             res["quickstart"] = {"error": f"{type(exc).__name__}: {exc}"}
             traceback.print_exc()
         res["memory"].append(memory_snapshot("quickstart"))
+    if args.keep_profiles is not None and not args.no_split_profile:
+        n = profiling.keep_hlo(HLO_DUMP, args.keep_profiles / "hlo")
+        log(f"kept figure 2b's traces and the step's HLO ({n} programs) in {args.keep_profiles}")
     res["total_s"] = time.perf_counter() - t_start
 
     host = "".join(ch for ch in machine["host"].split(".")[0] if ch.isalnum() or ch == "-")[:16] or "host"
