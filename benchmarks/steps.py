@@ -31,6 +31,8 @@ chains are the same (the line prints acceptance and CG iterations to show it):
 * ``--problem RUN/checkpoint/problem.npz``: a real run's problem instead (the config as it
   is: the paper's constrained truth, where the tuned chains accept about a quarter of
   their proposals and solve nearly all of them);
+* ``--set KEY=VALUE`` (repeatable): a config override on top of those, such as
+  ``solver.rtol=1e-6`` (the tuned states stay those of the cached file);
 * the timing: 3 chains (``--chains``) x ``--chunks`` chunks of 100 draws (thinning 10, the
   configs' chunk), the first chunk (compilation) excluded, between ``on_chunk`` time stamps.
 """
@@ -74,6 +76,8 @@ def main(argv=None, around_sampling=None) -> dict:
     p.add_argument("--problem", help="a run's checkpoint/problem.npz instead of the cached 16 mm "
                    "problem, sampled with the config unchanged (its own truth and kernel); tuned "
                    "states cached beside the others as steps-<model>-<name of the run>.npz")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override on top of the script's (e.g. solver.rtol=1e-6)")
     args = p.parse_args(argv)
     if args.chunks < 2:
         p.error("--chunks must be >= 2 (the first chunk compiles and is not timed)")
@@ -81,13 +85,13 @@ def main(argv=None, around_sampling=None) -> dict:
         p.error("--chains must be >= 2 (sample() needs two chains for R-hat)")
 
     if args.problem:
-        cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml")
+        cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml", overrides=args.set)
         found = [args.problem]
         tag = f"-{Path(args.problem).resolve().parents[1].name}"
     else:
         cfg = load_config(REPO / "configs" / f"paper_{args.model}.yaml",
                           overrides=["mesh.edge_length_mm=16", "mesh.target_nodes=null", "data.resolution_mm=2", "synthetic.truth=smooth",
-                                     "sampler.blocked=false", "sampler.proposal=isotropic"])
+                                     "sampler.blocked=false", "sampler.proposal=isotropic", *args.set])
         found = sorted(glob.glob(str(CACHE / "paper-e16-r2-smooth-*.npz")))
         tag = ""
     if not found:
