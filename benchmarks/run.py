@@ -49,8 +49,8 @@ Figures, per mesh (see ``benchmarks/README.md`` for how to read them):
    in memory): a longer chunk in a window that opens a third of the way in (past the
    chains' chunk-start builds of their ``K_ii^-1``), its steps taken from the chunk's
    rate; on an accelerator the whole chunk, since a trace stopped while the device runs
-   can break its context (``profiling.ChunkProfiler``).  ``--no-split-profile`` skips it; ``--keep-profiles DIR`` keeps the traces and
-   the step's compiled HLO.
+   can break its context (``profiling.ChunkProfiler``).  ``--no-split-profile`` skips
+   it; ``--keep-profiles DIR`` keeps the traces and the step's compiled HLO.
 3. **MH steps per second**, per chain and in total, for each chain count and two kernels:
    ``paper-joint`` (the paper's joint isotropic proposal, Eq. 14: ``sampler.blocked=false,
    proposal=isotropic``) and ``blocked-laplace`` (the blocked random walk: ``u_b`` with the
