@@ -17,6 +17,12 @@ the runtime counts only its own overhead, filed as "control flow"; a small ``whi
 XLA:CPU compiles into one kernel (``xla_cpu_small_call``, the CG loop) counts whole, under the
 scope it was called from.  Summed over threads, the operations' time exceeds the wall time
 where XLA runs independent operations of one chain on both cores at once.
+
+On a GPU the device's own kernels and copies are read instead (the host's launch events
+would count them twice), the kernels inside command buffers by their own names
+(:func:`split_profile`), and a chunk is profiled whole, with the device idle at the
+trace's start and stop (:class:`ChunkProfiler`).  Measured on an H200 (2026-11-26,
+``benchmarks/README.md``).
 """
 
 from __future__ import annotations
