@@ -99,6 +99,17 @@ def part_of(op_name: str, scopes: dict | None = None) -> str:
     return OTHER
 
 
+def _dumped(dump_dir: str) -> dict[int, str]:
+    """Program id -> its after-optimisation HLO text (``module_<program id>.<name>...``)
+    among the files that XLA dumped into ``dump_dir``."""
+    out = {}
+    for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
+        number = re.match(r"module_(\d+)\.", os.path.basename(path))
+        if number:
+            out[int(number.group(1))] = path
+    return out
+
+
 def hlo_index(dump_dir: str) -> dict:
     """``(program id, instruction) -> (module name, op_name metadata, is control flow)``
     from the after-optimisation HLO text that XLA dumped (``module_<program id>.<name>...``;
@@ -112,13 +123,12 @@ def hlo_index(dump_dir: str) -> dict:
     none on a CPU).
     """
     index = {}
-    for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
+    for program, path in _dumped(dump_dir).items():
         text = Path(path).read_text()
         head = re.match(r"HloModule\s+([^\s,]+)", text)
-        number = re.match(r"module_(\d+)\.", os.path.basename(path))
-        if not head or not number:
+        if not head:
             continue
-        module, program = head.group(1), int(number.group(1))
+        module = head.group(1)
         names, users = {}, collections.defaultdict(list)
         calls, computation_ops = {}, collections.defaultdict(list)  # root's op_name first
         computation = None
@@ -351,8 +361,8 @@ class ChunkProfiler:
     while the device runs can leave its CUDA context broken (an H200 here, 2026-11-26:
     ``CUDA_ERROR_LAUNCH_FAILED`` at the next synchronisation, as in jax-ml/jax#40260), and
     it is started and stopped only while the device is idle (before the chunk's launch,
-    after its results are on the host).  ``close()`` removes the trace (the dump stays for the next profile;
-    :func:`remove` deletes a folder).
+    after its results are on the host).  ``close()`` removes the trace (the dump stays for
+    the next profile; :func:`remove` deletes a folder).
     """
 
     def __init__(self, dump_dir: str, max_seconds: float | None = 1.0, on_begin=None):
@@ -367,7 +377,7 @@ class ChunkProfiler:
         self._timers = []
         self._t0 = None
         self._closed = False
-        self._dumped_before = set(glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")))
+        self._dumped_before = set(_dumped(dump_dir))  # program ids compiled before this row
 
     def start(self, expected_s: float | None = None) -> None:
         self.trace_dir = tempfile.mkdtemp(prefix="bayesreg-trace-")
@@ -434,12 +444,7 @@ class ChunkProfiler:
         index = hlo_index(self.dump_dir)
         programs = step_programs(index)
         if _on_device():  # the programs compiled since this profiler was made: the chunk's own
-            new = set()
-            for path in set(glob.glob(os.path.join(self.dump_dir, "*after_optimizations.txt"))) - self._dumped_before:
-                number = re.match(r"module_(\d+)\.", os.path.basename(path))
-                if number and int(number.group(1)) in programs:
-                    new.add(int(number.group(1)))
-            programs = new or programs
+            programs = (set(_dumped(self.dump_dir)) - self._dumped_before) & programs or programs
         prof = split_profile(self.trace_dir, index, programs or None)
         busy_s = sum(prof["ns"].values()) / 1e9
         if not busy_s:
@@ -467,13 +472,10 @@ def keep_hlo(dump_dir: str, folder: str | os.PathLike) -> int:
     (:func:`step_programs`) from ``dump_dir`` into ``folder``; returns how many."""
     programs = step_programs(hlo_index(dump_dir))
     Path(folder).mkdir(parents=True, exist_ok=True)
-    n = 0
-    for path in glob.glob(os.path.join(dump_dir, "*after_optimizations.txt")):
-        number = re.match(r"module_(\d+)\.", os.path.basename(path))
-        if number and int(number.group(1)) in programs:
-            shutil.copy(path, folder)
-            n += 1
-    return n
+    kept = [path for program, path in _dumped(dump_dir).items() if program in programs]
+    for path in kept:
+        shutil.copy(path, folder)
+    return len(kept)
 
 
 def remove(folder: str | None) -> None:
