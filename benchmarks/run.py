@@ -408,7 +408,12 @@ def laplace_bytes(problem) -> float:
 
 
 def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int, args) -> dict:
-    """Config, starts and jumping-kernel scales of one kernel (via :func:`pipeline.initialise`).
+    """Config, starts, jumping-kernel scales and CG preconditioners of one kernel.
+
+    The starts and scales come from :func:`pipeline.initialise`; the CG preconditioner of each
+    of ``--chains``' counts from :func:`pipeline.cg_preconditioner` for that count, so a row
+    samples as ``sample`` would with that many chains (until stop 37 every row took the
+    largest count's: block Jacobi for all of a run that went to 1,024 chains on a GPU).
 
     ``blocked-laplace`` needs the dense Gauss-Newton precision; where that would exceed
     ``--laplace-max-gb`` a *surrogate* dense factor ``diag(sigma_u)`` of the same shape is used
@@ -432,12 +437,14 @@ def kernel_setup(problem, base_overrides: list[str], kernel: str, n_chains: int,
     condensation = None
     if init.blocked and cfg.sampler.use_condensed:  # as bayesreg.pipeline.sample_problem builds it
         condensation = pipeline._condensed_rw(problem, cfg)
-    dense = pipeline.dense_preconditioning(problem, cfg, n_chains=max(args.chain_counts))
-    cg_name = pipeline.cg_preconditioner(problem, cfg, n_chains=max(args.chain_counts))
-    preconditioner = pipeline._preconditioner_rw(problem, cfg) if dense else None
+    # each chain count's CG preconditioner, as `sample` picks it for that many chains (`auto`
+    # gives up the dense inverses where the chains' copies would not fit the device's budget)
+    by_chains = {c: pipeline.cg_preconditioner(problem, cfg, n_chains=c) for c in args.chain_counts}
+    preconditioner = pipeline._preconditioner_rw(problem, cfg) if "dense" in by_chains.values() else None
     return {"cfg": cfg, "x0": np.asarray(init.x0), "sigma": sigma, "blocks": blocks,
             "condensation": condensation, "preconditioner": preconditioner,
-            "cg_preconditioner": cg_name,
+            # the fewest chains' (figure 2's pieces) and each chain count's (figure 3's rows)
+            "cg_preconditioner": by_chains[min(by_chains)], "cg_preconditioner_by_chains": by_chains,
             "n_blocks": 1 if blocks is None else len(blocks), "surrogate_factor": surrogate,
             # CG solves per step: one per block, but condensed u_b moves take no CG solve
             "cg_solves": (1 if blocks is None else len(blocks)) - (condensation is not None),
@@ -501,10 +508,10 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
 
     Each piece runs ``n_items`` times inside one ``lax.scan`` on inputs that differ by a
     tiny jitter (``1e-9`` of the kernel's scale), and the time per item is reported.  The
-    solves and the log-density use the paper-joint sampler's CG preconditioner (dense
-    ``K_ii^-1`` built once at ``x``, as a chain builds it at each chunk start; spectral or
-    block Jacobi otherwise), so that they are the pieces of its MH step; the dense
-    inverse's build is timed as a piece of its own (once per chunk, not per step).
+    solves and the log-density use the paper-joint sampler's CG preconditioner for the run's
+    fewest chains (dense ``K_ii^-1`` built once at ``x``, as a chain builds it at each chunk
+    start; spectral or block Jacobi otherwise), so that they are the pieces of its MH step;
+    the dense inverse's build is timed as a piece of its own (once per chunk, not per step).
     """
     post = problem.posterior
     rtol, maxiter = cfg.solver.rtol, cfg.solver.maxiter
@@ -675,7 +682,9 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None, mes
     16 chains of the paper's size ran chunks of 10 steps).  Where the kernel builds a cache
     per chunk (``build_s``: one chain's dense ``K_ii^-1``, seconds), a chunk has at least
     :data:`AMORTISE_BUILD` times the steps one chain runs in that time, and such
-    lengthened chunks are timed once (``timed_chunks`` in the row).  ``mesh`` names the
+    lengthened chunks are timed once (``timed_chunks`` in the row).  Each row samples with
+    its own chain count's CG preconditioner (``cg_preconditioner`` in the row; the dense
+    ``K_ii^-1`` and ``build_s`` only where that is ``dense``).  ``mesh`` names the
     mesh in the folders of ``--keep-profiles``.
     """
     logdensity = pipeline.make_logdensity(problem, setup["cfg"])
@@ -688,6 +697,8 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None, mes
     ev1 = next((e for e in evals if e["chains"] == 1 and "warm" in e), None)
     for c, runner in runs:
         row = {"kernel": kernel, "chains": c, "runner": "sample" if runner is _sample_run else "plain"}
+        cg_name = setup["cg_preconditioner_by_chains"][c]
+        dense = cg_name == "dense"
         try:
             ev = next((e for e in evals if e["chains"] == c and "warm" in e), None)
             rate = ev["warm"]["evals_per_s"] / c / setup["n_blocks"] if ev else 10.0
@@ -701,7 +712,7 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None, mes
             # --chunk-draws: a fixed window, acceptance comparable across chain counts
             wanted = args.chunk_draws or round(args.chunk_seconds * rate / THINNING)
             floor = 1
-            if build_s and not args.chunk_draws:
+            if dense and build_s and not args.chunk_draws:
                 # one chain's steps/s alone: the 1-chain row, else figure 1 at one position
                 single = next((r["steps_per_s_per_chain"] for r in done if r["chains"] == 1),
                               ev1["warm"]["evals_per_s"] / setup["n_blocks"] if ev1 else rate)
@@ -718,7 +729,7 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None, mes
                 stamps, acc, cg, fail, how = runner(logdensity, x0, interior0, setup["sigma"], setup["blocks"],
                                                     chunk_draws, n_chunks, jax.random.key(4),
                                                     condensation=setup["condensation"],
-                                                    preconditioner=setup["preconditioner"],
+                                                    preconditioner=setup["preconditioner"] if dense else None,
                                                     warmup_steps=args.warmup_steps, profiler=profiler)
                 wall = stamps[n_chunks - 1] - t0  # the chunks before the profiled one
                 if profiler is not None:
@@ -747,11 +758,11 @@ def bench_sampler(problem, setup, chains, evals, args, kernel, build_s=None, mes
                 "steps_per_s_per_chain": per_chain, "steps_per_s_total": per_chain * c,
                 "vs_paper_5_per_s": per_chain / PAPER_STEPS_PER_S,
                 "timed_seconds": seconds, "timed_steps_per_chain": steps, "chunk_draws": chunk_draws,
-                "timed_chunks": timed_chunks, "chunk_build_s": build_s,
+                "timed_chunks": timed_chunks, "chunk_build_s": build_s if dense else None,
                 "first_chunk_incl_compile_s": wall - seconds, "acceptance": acc.tolist(),
                 "cg_iterations_per_step": cg, "cg_iterations_per_solve": cg / setup["cg_solves"],
                 "solve_failures": fail, "how": how, "surrogate_factor": setup["surrogate_factor"],
-                "cg_preconditioner": setup["cg_preconditioner"],
+                "cg_preconditioner": cg_name,
             })
             log(f"  {kernel} C={c} ({how}): {per_chain:.1f} steps/s per chain, {per_chain * c:.1f} total, "
                 f"acc {np.round(acc, 2).tolist()}, CG/solve {cg / setup['cg_solves']:.0f} ({seconds:.1f} s timed)")
@@ -1110,7 +1121,7 @@ def main(argv=None) -> dict:
                 entry.setdefault("errors", []).append(f"setup {k}: {type(exc).__name__}: {exc}")
                 log(f"  setup {k}: {exc}")
         entry["kernels"] = {k: {"initialise_s": s["initialise_s"], "surrogate_factor": s["surrogate_factor"],
-                                "blocks": s["n_blocks"], "cg_preconditioner": s["cg_preconditioner"]}
+                                "blocks": s["n_blocks"], "cg_preconditioner": s["cg_preconditioner_by_chains"]}
                             for k, s in setups.items()}
         res["memory"].append(memory_snapshot(f"initialise {p['nodes']} nodes"))
         joint = setups["paper-joint"]
