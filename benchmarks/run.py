@@ -576,6 +576,12 @@ def bench_split(problem, cfg, x, setups, args, n_items: int = 20) -> dict:
 # 3. MH steps
 # ---------------------------------------------------------------------------------------------
 
+def _mean_chunk_s(stamps: list[float]) -> float:
+    """Mean seconds of the timed chunks, from the time stamps at the chunks' ends (the first
+    stamp ends the compiling chunk): the profiled chunk's expected length."""
+    return (stamps[-1] - stamps[0]) / (len(stamps) - 1)
+
+
 def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, key, condensation=None,
                preconditioner=None, warmup_steps=0, profiler=None):
     """The sampler's kernel (:func:`bayesreg.sampler.build_kernel`) in a plain jitted ``scan``.
@@ -618,7 +624,7 @@ def _plain_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks, 
     stamps, acc, cg, fail = [], [], [], []
     for k in range(n_chunks + (profiler is not None)):
         if k == n_chunks:
-            profiler.start(expected_s=(stamps[-1] - stamps[0]) / (n_chunks - 1))
+            profiler.start(expected_s=_mean_chunk_s(stamps))
         state, info = chunk(jax.random.split(jax.random.fold_in(key, k), n), state)
         block(state)
         stamps.append(time.perf_counter())
@@ -646,7 +652,7 @@ def _sample_run(logdensity, x0, interior0, sigma, blocks, chunk_draws, n_chunks,
         if out is not None:
             stamps.append(time.perf_counter())
             if profiler is not None and len(stamps) == n_chunks:
-                profiler.start(expected_s=(stamps[-1] - stamps[0]) / (n_chunks - 1))
+                profiler.start(expected_s=_mean_chunk_s(stamps))
 
     kw = dict(blocks=blocks, thinning=THINNING, warmup_steps=warmup_steps, max_draws=total * chunk_draws,
               min_draws=total * chunk_draws, chunk_draws=chunk_draws, progress=False,
