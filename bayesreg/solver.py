@@ -42,6 +42,9 @@ __all__ = [
     "SolveInfo",
     "DensePreconditioner",
     "dense_preconditioner",
+    "PACKED_BLOCK_ROWS",
+    "pack_symmetric",
+    "unpack_symmetric",
     "SpectralPreconditioner",
     "spectral_preconditioner",
     "DENSE_MAX_DOFS",
@@ -113,19 +116,72 @@ def _check_displacements(op: ElasticOperator, u_b, u_i0):
     _check_shape("u_i0", u_i0, (op.n_interior, 3), "warm start, one row per interior node")
 
 
+#: Block rows of the packed storage of :class:`DensePreconditioner` on a CPU (its lower block
+#: triangle, ``R (R + 1) / 2`` blocks): 8 at the paper's size gives blocks of 185 DOFs and
+#: 56% of the dense bytes.  On other backends the inverse stays dense (1: the form measured
+#: on the GPUs, where the chains' batched dense products run at the device's bandwidth).
+PACKED_BLOCK_ROWS = 8
+
+
+def _tril_blocks(n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Block rows and columns ``(R (R + 1) / 2,)`` of a packed lower block triangle."""
+    r = int(round((np.sqrt(8 * n_blocks + 1) - 1) / 2))
+    if r * (r + 1) // 2 != n_blocks:
+        raise ValueError(f"a packed lower block triangle has R (R + 1) / 2 blocks, got {n_blocks}")
+    return np.tril_indices(r)
+
+
+def pack_symmetric(matrix, block_rows: int):
+    """The lower block triangle of a symmetric ``(n, n)`` matrix, ``(R (R + 1) / 2, b, b)``.
+
+    ``b = ceil(n / R)``; the matrix is padded with zeros to ``R b``.  Blocks in row-major
+    order of the triangle (``numpy.tril_indices(R)``).  The blocks above the diagonal are
+    taken to be the transposes of those below (a float32 inverse ``L^-T L^-1`` is symmetric
+    to round-off only).  Inverse: :func:`unpack_symmetric`.
+    """
+    n = matrix.shape[0]
+    b = -(-n // block_rows)
+    m = jnp.pad(matrix, ((0, block_rows * b - n),) * 2)
+    m = m.reshape(block_rows, b, block_rows, b).transpose(0, 2, 1, 3)
+    rows, cols = np.tril_indices(block_rows)
+    return m[rows, cols]
+
+
+def unpack_symmetric(packed, n: int):
+    """The symmetric ``(n, n)`` matrix of a packed lower block triangle (:func:`pack_symmetric`)."""
+    rows, cols = _tril_blocks(packed.shape[0])
+    r, b = int(rows.max()) + 1, packed.shape[1]
+    full = jnp.zeros((r, r, b, b), packed.dtype).at[cols, rows].set(jnp.swapaxes(packed, 1, 2))
+    full = full.at[rows, cols].set(packed)  # the diagonal blocks as stored
+    return full.transpose(0, 2, 1, 3).reshape(r * b, r * b)[:n, :n]
+
+
 class DensePreconditioner(NamedTuple):
     """The inverse of ``K_ii`` at reference Lamé parameters, a preconditioner of the CG.
 
     Attributes
     ----------
-    inverse : (3 n_i, 3 n_i) float32 array
+    inverse : float32 array, (3 n_i, 3 n_i) or (R (R + 1) / 2, b, b)
         ``K_ii(lam_ref, mu_ref)^-1``, DOFs node-major (``3 * row + axis``, rows in the
         :class:`bayesreg.fem.ElasticOperator`'s interior order); symmetric positive
-        definite.  Applied as one float32 matrix-vector product per CG iteration.
+        definite.  Dense, or packed as its lower block triangle (:func:`pack_symmetric`,
+        ``R`` block rows of ``b`` DOFs, zero-padded to ``R b``), which
+        :func:`dense_preconditioner` builds on a CPU (:data:`PACKED_BLOCK_ROWS`).  Applied
+        as one float32 product per CG iteration: dense, one matrix-vector product; packed,
+        each block twice (itself and its transpose) in two batched products.
     fallback : () bool array
         The float32 factorisation failed (``K_ii`` at the reference not numerically
         positive definite) and ``inverse`` holds the 3x3 block-Jacobi inverse instead (the
         inverse of ``|diag K_ii|`` where those blocks are not positive definite either).
+
+    Notes
+    -----
+    Why packed on a CPU: XLA:CPU runs the batched products on all the cores it has, the
+    dense matrix-vector product on one.  At the paper's size (1,479 DOFs, 4.9 instead of
+    8.75 MB) a product took 0.134 against 0.218 ms on the 2-core CPU, and one chain ran
+    1.3-1.5x the MH steps/s; pinned to one core, or with a chain per core, the same as
+    dense (``benchmarks/README.md``, "The preconditioner packed", 2026-11-26).  The
+    preconditioned residuals agree with the dense form's to float32 round-off.
     """
 
     inverse: jax.Array
@@ -133,11 +189,30 @@ class DensePreconditioner(NamedTuple):
 
     def apply(self, r):
         """``M^-1 r`` for ``r`` ``(n_i, 3)`` float64 (computed in float32, returned float64)."""
-        z = self.inverse @ r.reshape(-1).astype(self.inverse.dtype)
-        return z.astype(r.dtype).reshape(r.shape)
+        x = r.reshape(-1).astype(self.inverse.dtype)
+        if self.inverse.ndim == 2:
+            return (self.inverse @ x).astype(r.dtype).reshape(r.shape)
+        rows, cols = _tril_blocks(self.inverse.shape[0])
+        n_rows, b = int(rows.max()) + 1, self.inverse.shape[1]
+        x = jnp.pad(x, (0, n_rows * b - x.size)).reshape(n_rows, b)
+        lower = jax.lax.dot_general(self.inverse, x[cols], (((2,), (1,)), ((0,), (0,))))
+        # the transposed blocks above the diagonal (the diagonal blocks' masked out: a slice
+        # of the off-diagonal ones would copy them at every product)
+        upper = jax.lax.dot_general(self.inverse, x[rows], (((1,), (1,)), ((0,), (0,))))
+        upper = upper * jnp.asarray(rows != cols, x.dtype)[:, None]
+        y = (jax.ops.segment_sum(lower, rows, n_rows, indices_are_sorted=True)
+             + jax.ops.segment_sum(upper, cols, n_rows))
+        return y.reshape(-1)[:r.size].astype(r.dtype).reshape(r.shape)
+
+    def matrix(self, n: int):
+        """The inverse as a dense symmetric ``(n, n)`` float32 matrix (``n = 3 n_i``)."""
+        if self.inverse.ndim == 2:
+            return self.inverse
+        return unpack_symmetric(self.inverse, n)
 
 
-def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
+def dense_preconditioner(op: ElasticOperator, b_ii, *, block_rows: int | None = None
+                         ) -> DensePreconditioner:
     """:class:`DensePreconditioner` of ``K_ii`` given as ELL blocks.
 
     ``K_ii`` is scaled to unit diagonal (``D^-1/2 K_ii D^-1/2``), factorised by Cholesky in
@@ -155,6 +230,9 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
     b_ii : tuple of (R_k, S_k, 3, 3) arrays
         Sliced ELL blocks of ``K_ii`` at the reference parameters
         (:func:`bayesreg.posterior.stiffness_blocks`).
+    block_rows : int, optional
+        Packed storage in this many block rows (:class:`DensePreconditioner`); 1 keeps the
+        inverse dense.  Default :data:`PACKED_BLOCK_ROWS` on a CPU backend, else 1.
 
     Returns
     -------
@@ -166,9 +244,13 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
     Raises
     ------
     ValueError
-        ``b_ii`` not of ``op``'s layout (a static shape check).
+        ``b_ii`` not of ``op``'s layout (a static shape check), or ``block_rows < 1``.
     """
     _check_blocks("b_ii", b_ii, op.cols_ii)
+    if block_rows is None:
+        block_rows = PACKED_BLOCK_ROWS if jax.default_backend() == "cpu" else 1
+    if block_rows < 1:
+        raise ValueError(f"block_rows must be >= 1, got {block_rows}")
     n = 3 * op.n_interior
     k = jax.lax.stop_gradient(ell_dense(b_ii, op.cols_ii, op.row_ii, op.n_interior))
     d = 1.0 / jnp.sqrt(jnp.abs(jnp.diag(k)))
@@ -187,7 +269,9 @@ def dense_preconditioner(op: ElasticOperator, b_ii) -> DensePreconditioner:
     rows = jnp.arange(op.n_interior)
     jacobi = jnp.zeros((op.n_interior, 3, op.n_interior, 3), jnp.float32)
     jacobi = jacobi.at[rows, :, rows, :].set(blocks).reshape(n, n)
-    return DensePreconditioner(jnp.where(ok, inv, jacobi), ~ok)
+    inverse = jnp.where(ok, inv, jacobi)
+    block_rows = min(block_rows, n)
+    return DensePreconditioner(inverse if block_rows == 1 else pack_symmetric(inverse, block_rows), ~ok)
 
 
 class SpectralPreconditioner(NamedTuple):
