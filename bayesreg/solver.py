@@ -123,12 +123,13 @@ def _check_displacements(op: ElasticOperator, u_b, u_i0):
 PACKED_BLOCK_ROWS = 8
 
 
-def _tril_blocks(n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Block rows and columns ``(R (R + 1) / 2,)`` of a packed lower block triangle."""
+def _tril_blocks(n_blocks: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """``R`` and the block rows and columns ``(R (R + 1) / 2,)`` of a packed lower block
+    triangle of ``n_blocks`` blocks."""
     r = int(round((np.sqrt(8 * n_blocks + 1) - 1) / 2))
     if r * (r + 1) // 2 != n_blocks:
         raise ValueError(f"a packed lower block triangle has R (R + 1) / 2 blocks, got {n_blocks}")
-    return np.tril_indices(r)
+    return (r, *np.tril_indices(r))
 
 
 def pack_symmetric(matrix, block_rows: int):
@@ -149,8 +150,8 @@ def pack_symmetric(matrix, block_rows: int):
 
 def unpack_symmetric(packed, n: int):
     """The symmetric ``(n, n)`` matrix of a packed lower block triangle (:func:`pack_symmetric`)."""
-    rows, cols = _tril_blocks(packed.shape[0])
-    r, b = int(rows.max()) + 1, packed.shape[1]
+    r, rows, cols = _tril_blocks(packed.shape[0])
+    b = packed.shape[1]
     full = jnp.zeros((r, r, b, b), packed.dtype).at[cols, rows].set(jnp.swapaxes(packed, 1, 2))
     full = full.at[rows, cols].set(packed)  # the diagonal blocks as stored
     return full.transpose(0, 2, 1, 3).reshape(r * b, r * b)[:n, :n]
@@ -192,8 +193,8 @@ class DensePreconditioner(NamedTuple):
         x = r.reshape(-1).astype(self.inverse.dtype)
         if self.inverse.ndim == 2:
             return (self.inverse @ x).astype(r.dtype).reshape(r.shape)
-        rows, cols = _tril_blocks(self.inverse.shape[0])
-        n_rows, b = int(rows.max()) + 1, self.inverse.shape[1]
+        n_rows, rows, cols = _tril_blocks(self.inverse.shape[0])
+        b = self.inverse.shape[1]
         x = jnp.pad(x, (0, n_rows * b - x.size)).reshape(n_rows, b)
         lower = jax.lax.dot_general(self.inverse, x[cols], (((2,), (1,)), ((0,), (0,))))
         # the transposed blocks above the diagonal (the diagonal blocks' masked out: a slice
