@@ -106,6 +106,7 @@ class Checkpoint:
         # not with a later default
         raw.setdefault("model", {}).setdefault("skull_barrier_mm", 0.0)
         raw["model"].setdefault("quadrature_level", 0)
+        raw["model"].setdefault("moving_dtype", "float64")
         raw.setdefault("synthetic", {}).setdefault("outside", "background")
         try:
             return Config.model_validate(raw)

@@ -337,7 +337,7 @@ def assemble(cfg: Config, data: dict) -> Problem:
     choice = cfg.solver.preconditioner  # spectral is validated to have one group (config)
     post = build_posterior(
         mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s, quadrature_level=cfg.model.quadrature_level,
-                        reach=reach),
+                        reach=reach, moving_dtype=cfg.model.moving_dtype),
         forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,

@@ -10,7 +10,9 @@ takes the value ``cval`` (default 0, background) outside its grid.  :class:`SSDT
 finite (``reach`` of :func:`build_ssd`: every node outside the skull), with one voxel of
 ``cval`` where that box leaves ``m``'s grid: the values of ``E_s`` are those of the whole
 image, from a smaller array (the paper's 2 mm MNI image: 15 MB of float64 down to about
-5 MB, which the chains' other arrays then evict less from the cache).
+5 MB, which the chains' other arrays then evict less from the cache).  ``moving_dtype``
+float32 stores that array in half the bytes again; its values are rounded once (relative
+``2^-24``), and the interpolation and the sums stay float64.
 
 Beyond the paper, ``level`` k > 0 uses the composite rule: every tetrahedron is split k
 times into 8 of equal volume (edge midpoints; the inner octahedron cut along one
@@ -48,7 +50,7 @@ from bayesreg.images import (  # noqa: E402
 )
 from bayesreg.mesh import signed_volumes  # noqa: E402
 
-__all__ = ["GAUSS_BARY", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
+__all__ = ["GAUSS_BARY", "MOVING_DTYPES", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
            "reach_box", "sample_moving", "moving_values", "ssd_residuals", "ssd"]
 
 _A = (5.0 + 3.0 * np.sqrt(5.0)) / 20.0
@@ -126,7 +128,8 @@ class SSDTerm(NamedTuple):
     m : (I, J, K)
         Intra-operative image over the box the quadrature points can reach (see
         :func:`build_ssd`), with one voxel of ``cval`` wherever the box leaves the image's
-        own grid; sampled by :func:`sample_moving`.
+        own grid, in float64 or float32 (``moving_dtype``); sampled by :func:`sample_moving`
+        (in float64 either way).
     m_inv_affine : (4, 4)
         World-to-voxel matrix of the array ``m`` (world mm to its voxel indices).
     cval : ()
@@ -215,8 +218,12 @@ def _fmt_box(lo, hi) -> str:
     return f"{np.round(lo, 1).tolist()} to {np.round(hi, 1).tolist()}"
 
 
+#: storage precisions of the moving image that :func:`build_ssd` accepts
+MOVING_DTYPES = ("float64", "float32")
+
+
 def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: int = 0,
-              reach: Image | None = None) -> SSDTerm:
+              reach: Image | None = None, moving_dtype: str = "float64") -> SSDTerm:
     """Precompute :class:`SSDTerm` for a mesh and an image pair (world frames must agree).
 
     Parameters
@@ -235,13 +242,22 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
         there.  Outside the box (some node already in the forbidden region, whose
         log-density is ``-inf`` anyway) the moving image is clamped to the box's faces.
         ``None``: the whole image.
+    moving_dtype : {"float64", "float32"}
+        Storage precision of ``m`` in the term.  float64 (default) keeps its values as
+        given; float32 rounds them once (relative error at most ``2^-24``) and halves the
+        bytes that every evaluation gathers from: where several chains share a CPU's
+        cache, the paper's random walk ran about 1.15x the MH steps/s with it (3 chains,
+        2 cores, ``benchmarks/README.md``).  The interpolation, the residuals and ``E_s``
+        are float64 either way.  On the paper-size problem the rounding moved
+        ``log p = -E_s / T_s + ...`` by 7e-5 (an offset nearly constant over the chains'
+        states, varying by 6e-6 between proposals), the size of the CG tolerance's effect.
 
     Raises
     ------
     ValueError
         If ``f``, ``m`` (or ``reach``) is not a 3D :class:`Image` with a finite invertible
         affine, ``f`` or ``m`` has a NaN or infinite voxel, ``quadrature_level`` is outside
-        0..3, or no quadrature point of the mesh lies inside ``f``'s grid or ``m``'s grid
+        0..3, ``moving_dtype`` is not one of :data:`MOVING_DTYPES`, or no quadrature point of the mesh lies inside ``f``'s grid or ``m``'s grid
         (the mesh and the images then do not share a world frame).
 
     Warns
@@ -249,6 +265,8 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     UserWarning
         If less than half of the quadrature points lie inside ``f``'s grid.
     """
+    if moving_dtype not in MOVING_DTYPES:
+        raise ValueError(f"moving_dtype must be one of {MOVING_DTYPES}, got {moving_dtype!r}")
     f = _check_image(f, "f", finite=True)
     m = _check_image(m, "m", finite=True)
     if reach is not None:
@@ -267,7 +285,7 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
         sqrt_w=jnp.sqrt(jnp.asarray(w)),
         f_q=f_q,
         bary=jnp.asarray(bary),
-        m=jnp.asarray(m_arr),
+        m=jnp.asarray(m_arr.astype(moving_dtype)),
         m_inv_affine=jnp.asarray(m_inv),
         cval=jnp.asarray(float(cval)),
     )

@@ -14,7 +14,8 @@ posterior as :func:`bayesreg.posterior.log_density`, written the way one would w
 * ``E_r = u^T K u / 2`` from the sparse stiffness matrix;
 * ``E_s`` by the 4-point Gauss rule on every tetrahedron, the moving image sampled with
   :func:`scipy.ndimage.map_coordinates` (order 1, ``mode="grid-constant"``: a point within
-  one voxel outside the grid blends toward ``cval``, as :func:`bayesreg.images.interpolate`);
+  one voxel outside the grid blends toward ``cval``, as :func:`bayesreg.images.interpolate`),
+  its values rounded to ``model.moving_dtype`` as the posterior stores them;
 * scaled Beta priors and the hard constraints of :mod:`bayesreg.posterior` (parameter
   outside its support, a node in the skull region or out of the label grid by nearest
   voxel, an inverted element) give ``-inf``.
@@ -137,7 +138,9 @@ class ReferencePosterior:
                     for i in (f, m))
         self.cval = float(np.asarray(post.ssd.cval))
         self.f_q = self._sample(np.asarray(f.data, np.float64), f.affine, self.points)
-        self.m, self.m_affine = np.asarray(m.data, np.float64), np.asarray(m.affine, np.float64)
+        # stored as the posterior stores it (model.moving_dtype: its values rounded once)
+        self.m = np.asarray(m.data, np.float64).astype(cfg.model.moving_dtype).astype(np.float64)
+        self.m_affine = np.asarray(m.affine, np.float64)
 
         # hard constraint: skull label (nearest voxel) or outside the label grid
         self.forbidden = np.asarray(problem.labels.data) == L.SKULL

@@ -105,21 +105,24 @@ def test_sampler_defaults_follow_the_kernel():
 
 
 def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
-    """A checkpointed config without ``model.skull_barrier_mm`` and ``quadrature_level`` (a run
-    from before the keys existed) resumes with the hard constraint alone and the 4-point rule,
-    not the later defaults (1 mm, level 1)."""
+    """A checkpointed config without ``model.skull_barrier_mm``, ``quadrature_level`` and
+    ``moving_dtype`` (a run from before the keys existed) resumes with the hard constraint
+    alone, the 4-point rule and ``m`` in float64, not the later defaults (1 mm, level 1,
+    float32)."""
     import json
 
     from bayesreg.checkpoint import Checkpoint
 
     cfg = load_config("configs/quickstart.yaml")
     raw = cfg.model_dump(mode="json")
-    del raw["model"]["skull_barrier_mm"], raw["model"]["quadrature_level"]
+    del raw["model"]["skull_barrier_mm"], raw["model"]["quadrature_level"], raw["model"]["moving_dtype"]
     (tmp_path / "checkpoint").mkdir()
     (tmp_path / "checkpoint" / "config.json").write_text(json.dumps(raw))
     resumed = Checkpoint(tmp_path).load_config().model
     assert resumed.skull_barrier_mm == 0.0 and resumed.quadrature_level == 0
+    assert resumed.moving_dtype == "float64"  # m exactly as given, as before the key
     assert load_config(None).model.skull_barrier_mm == 1.0
+    assert load_config(None).model.moving_dtype == "float32"
 
 
 def test_preconditioner_choice_follows_size_and_memory():

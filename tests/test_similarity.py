@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayesreg.images import Image, interpolate, interpolate_numpy
-from bayesreg.similarity import GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, ssd
+from bayesreg.similarity import GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, ssd, ssd_residuals
 from conftest import box_mesh
 
 
@@ -183,6 +183,41 @@ def test_moving_image_kept_over_the_reachable_box_gives_the_same_ssd():
         assert float(b) == pytest.approx(float(a), rel=1e-13)
         np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=1e-10, atol=1e-13)
     assert reach_box(Image(np.zeros_like(allowed), f.affine)) is None
+
+
+def test_moving_image_in_float32_is_the_rounded_image_sampled_in_float64():
+    """``moving_dtype="float32"`` stores ``m`` rounded once and changes nothing else: ``E_s``
+    and its gradients equal, to float64 round-off, those of the float64 term built from
+    the rounded image, and differ from the exact image's by the rounding alone (relative
+    ``2^-24`` of the values); the sums and the interpolation stay float64."""
+    m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
+    rng = np.random.default_rng(6)
+    f = _grid_image(lambda x: rng.random(x.shape[:-1]))
+    mov = _grid_image(lambda x: rng.random(x.shape[:-1]))
+    rounded = Image(mov.data.astype(np.float32).astype(np.float64), mov.affine)
+    assert not np.array_equal(rounded.data, mov.data)  # the rounding is real
+    t32 = build_ssd(m.nodes, m.tets, f, mov, moving_dtype="float32")
+    t64 = build_ssd(m.nodes, m.tets, f, rounded)
+    exact = build_ssd(m.nodes, m.tets, f, mov)
+    assert t32.m.dtype == jnp.float32 and exact.m.dtype == jnp.float64
+    assert t32.m.nbytes * 2 == exact.m.nbytes
+    for k in range(4):
+        u = jnp.asarray(rng.uniform(-2.0, 2.0, size=(len(m.nodes), 3)))[m.tets]
+        a, ga = jax.value_and_grad(lambda x: ssd(t32, x))(u)
+        b, gb = jax.value_and_grad(lambda x: ssd(t64, x))(u)
+        c = ssd(exact, u)
+        assert a.dtype == jnp.float64 and ga.dtype == jnp.float64
+        assert float(a) == pytest.approx(float(b), rel=1e-14)
+        np.testing.assert_allclose(np.asarray(ga), np.asarray(gb), rtol=1e-12, atol=1e-14)
+        # E_s(m32) - E_s(m) = sum_q w_q dm_q (dm_q - 2 r_q), r_q = f - m at the point and
+        # |dm_q| <= eps = 2^-24 max|m| (a convex combination of rounded voxels)
+        eps = 2.0 ** -24 * float(np.abs(mov.data).max())
+        res = ssd_residuals(exact, u)  # sqrt(w_q) r_q
+        w = exact.sqrt_w ** 2
+        bound = float(jnp.sum(2.0 * eps * exact.sqrt_w * jnp.abs(res) + eps ** 2 * w))
+        assert 0.0 < abs(float(a) - float(c)) <= bound
+    with pytest.raises(ValueError, match="moving_dtype must be one of"):
+        build_ssd(m.nodes, m.tets, f, mov, moving_dtype="float16")
 
 
 def _bad_image_cases():
