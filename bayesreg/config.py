@@ -234,7 +234,7 @@ class ModelConfig(_Strict):
         "float32", description="storage precision of the moving image m that E_s (Eq. 1) "
         "samples: float32 rounds its values once (relative 2^-24) and halves the bytes that "
         "each evaluation gathers from (the paper's random walk, 3 chains on 2 CPU cores: about "
-        "1.15x the MH steps/s); the interpolation and E_s stay float64, and log p moved by 7e-5 "
+        "1.1x the MH steps/s); the interpolation and E_s stay float64, and log p moved by 7e-5 "
         "on the paper-size problem (6e-6 between proposals), the size of the CG tolerance's "
         "effect.  float64: m exactly as given (runs checkpointed before the key existed resume "
         "with it)")

@@ -246,7 +246,7 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
         Storage precision of ``m`` in the term.  float64 (default) keeps its values as
         given; float32 rounds them once (relative error at most ``2^-24``) and halves the
         bytes that every evaluation gathers from: where several chains share a CPU's
-        cache, the paper's random walk ran about 1.15x the MH steps/s with it (3 chains,
+        cache, the paper's random walk ran about 1.1x the MH steps/s with it (3 chains,
         2 cores, ``benchmarks/README.md``).  The interpolation, the residuals and ``E_s``
         are float64 either way.  On the paper-size problem the rounding moved
         ``log p = -E_s / T_s + ...`` by 7e-5 (an offset nearly constant over the chains'
