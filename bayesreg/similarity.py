@@ -257,8 +257,9 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     ValueError
         If ``f``, ``m`` (or ``reach``) is not a 3D :class:`Image` with a finite invertible
         affine, ``f`` or ``m`` has a NaN or infinite voxel, ``quadrature_level`` is outside
-        0..3, ``moving_dtype`` is not one of :data:`MOVING_DTYPES`, or no quadrature point of the mesh lies inside ``f``'s grid or ``m``'s grid
-        (the mesh and the images then do not share a world frame).
+        0..3, ``moving_dtype`` is not one of :data:`MOVING_DTYPES`, or no quadrature point
+        of the mesh lies inside ``f``'s grid or ``m``'s grid (the mesh and the images then
+        do not share a world frame).
 
     Warns
     -----
