@@ -201,7 +201,7 @@ def test_moving_image_in_float32_is_the_rounded_image_sampled_in_float64():
     exact = build_ssd(m.nodes, m.tets, f, mov)
     assert t32.m.dtype == jnp.float32 and exact.m.dtype == jnp.float64
     assert t32.m.nbytes * 2 == exact.m.nbytes
-    for k in range(4):
+    for _ in range(4):
         u = jnp.asarray(rng.uniform(-2.0, 2.0, size=(len(m.nodes), 3)))[m.tets]
         a, ga = jax.value_and_grad(lambda x: ssd(t32, x))(u)
         b, gb = jax.value_and_grad(lambda x: ssd(t64, x))(u)
