@@ -33,6 +33,9 @@ chains are the same (the line prints acceptance and CG iterations to show it):
   their proposals and solve nearly all of them);
 * ``--set KEY=VALUE`` (repeatable): a config override on top of those, such as
   ``solver.rtol=1e-6`` (the tuned states stay those of the cached file);
+  ``sampler.blocked=true`` samples ``u_b`` and the elastic parameters in turn, each with
+  its part of the joint scale (and ``sampler.condensed=true``, ``sampler.u_moves=N`` with
+  it), one step being one update of each block;
 * the timing: 3 chains (``--chains``) x ``--chunks`` chunks of 100 draws (thinning 10, the
   configs' chunk), the first chunk (compilation) excluded, between ``on_chunk`` time stamps.
 """
@@ -107,6 +110,9 @@ def main(argv=None, around_sampling=None) -> dict:
         x0, sigma, interior0 = np.asarray(init.x0), tuple(np.asarray(s) for s in init.sigma), np.zeros((n_i, 3))
     if not args.from_starts:
         if args.rebuild or not states.is_file():
+            if cfg.sampler.blocked:
+                sys.exit(f"{states.name} is made with the joint kernel: run once without "
+                         "--set sampler.blocked=true first")
             print(f"warm-up of {STATES_WARMUP} steps per chain for {states.name}", flush=True)
             warm = sample(jax.random.key(1), logdensity, x0, jnp.zeros((n_i, 3)), sigma,
                           thinning=10, warmup_steps=STATES_WARMUP, max_draws=100,
@@ -119,6 +125,20 @@ def main(argv=None, around_sampling=None) -> dict:
         sigma = tuple(z[f"sigma{k}"] for k in range(len([f for f in z.files if f.startswith("sigma")])))
 
     x0 = np.resize(np.asarray(x0), (args.chains, np.shape(x0)[-1]))  # chain c: start c mod 3
+    # the kernel's blocks as pipeline.sample_problem makes them: with sampler.blocked, u_b
+    # and the elastic parameters in turn (the tuned states' joint scale split between them)
+    nb3 = 3 * problem.posterior.n_boundary
+    blocks = condensation = None
+    if cfg.sampler.blocked:
+        blocks = (np.arange(nb3), np.arange(nb3, problem.posterior.dim))
+        if len(sigma) == 1:
+            if np.ndim(sigma[0]) != 1:
+                sys.exit("--set sampler.blocked=true needs the isotropic proposal's scales (a vector)")
+            sigma = (sigma[0][:nb3], sigma[0][nb3:])
+        if cfg.sampler.use_condensed:
+            condensation = pipeline._condensed_rw(problem, cfg)
+    elif len(sigma) != 1:
+        sys.exit("the cached states' scales are blocked: add --set sampler.blocked=true or --rebuild")
     stamps: list[float] = []
 
     def on_chunk(_ckpt, out):
@@ -128,7 +148,8 @@ def main(argv=None, around_sampling=None) -> dict:
     with around_sampling() if around_sampling is not None else contextlib.nullcontext():
         res = sample(jax.random.key(3), logdensity, x0, jnp.asarray(interior0), sigma, thinning=10,
                      warmup_steps=0, max_draws=100 * args.chunks, min_draws=100 * args.chunks,
-                     chunk_draws=100, progress=False, preconditioner=pre, on_chunk=on_chunk)
+                     chunk_draws=100, progress=False, preconditioner=pre, on_chunk=on_chunk,
+                     blocks=blocks, condensation=condensation)
     steps = 1000 * (args.chunks - 1)  # per chain
     rate = steps / (stamps[-1] - stamps[0])
     out = {"model": args.model, "states": "starts" if args.from_starts else "tuned",
@@ -140,8 +161,13 @@ def main(argv=None, around_sampling=None) -> dict:
                                  else "dense" if pre is not None else "block-jacobi")}
     out["chains"] = args.chains
     out["steps_total_per_chain"] = 1000 * args.chunks  # the compiling chunk's too
-    print(f"{REPO.name} {args.model} ({out['states']}, {args.chains} chains): {rate:.1f} MH steps/s "
-          f"per chain ({args.chains * rate:.0f} in total), acceptance {out['acceptance']:.3f}, "
+    acc = f"acceptance {out['acceptance']:.3f}"
+    if blocks is not None:  # per block: u_b, elastic
+        out["acceptance_per_block"] = [float(a) for a in res.acceptance[:, 100:].mean(axis=(0, 1))]
+        acc = "acceptance u_b / elastic " + " / ".join(f"{a:.3f}" for a in out["acceptance_per_block"])
+    print(f"{REPO.name} {args.model} ({out['states']}, {args.chains} chains"
+          f"{', blocked: a step updates each block' if blocks is not None else ''}): {rate:.1f} MH steps/s "
+          f"per chain ({args.chains * rate:.0f} in total), {acc}, "
           f"CG iterations per step {out['cg_iterations_per_step']:.2f} ({out['cg_preconditioner']})")
     return out
 
