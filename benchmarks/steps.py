@@ -111,8 +111,8 @@ def main(argv=None, around_sampling=None) -> dict:
     if not args.from_starts:
         if args.rebuild or not states.is_file():
             if cfg.sampler.blocked:
-                sys.exit(f"{states.name} is made with the joint kernel: run once without "
-                         "--set sampler.blocked=true first")
+                sys.exit(f"{states.name} holds the joint kernel's tuned states: make them "
+                         "without --set sampler.blocked=true, then sample them with it")
             print(f"warm-up of {STATES_WARMUP} steps per chain for {states.name}", flush=True)
             warm = sample(jax.random.key(1), logdensity, x0, jnp.zeros((n_i, 3)), sigma,
                           thinning=10, warmup_steps=STATES_WARMUP, max_draws=100,
