@@ -137,8 +137,6 @@ def main(argv=None, around_sampling=None) -> dict:
             sigma = (sigma[0][:nb3], sigma[0][nb3:])
         if cfg.sampler.use_condensed:
             condensation = pipeline._condensed_rw(problem, cfg)
-    elif len(sigma) != 1:
-        sys.exit("the cached states' scales are blocked: add --set sampler.blocked=true or --rebuild")
     stamps: list[float] = []
 
     def on_chunk(_ckpt, out):
