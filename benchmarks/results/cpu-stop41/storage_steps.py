@@ -22,7 +22,7 @@ elif mode == "rowblk":
         return S.DensePreconditioner(m, p.fallback)
     S.dense_preconditioner = build
     import bayesreg.posterior as P
-    if hasattr(P, "dense_preconditioner"): P.dense_preconditioner = build
+    P.dense_preconditioner = build  # posterior.py imports it by name
     orig_apply = S.DensePreconditioner.apply
     def apply(self, r):
         if self.inverse.ndim == 3 and self.inverse.shape[2] != self.inverse.shape[1]:

@@ -33,7 +33,6 @@ def run(kind, cpus, secs=4.0):
     return [q.get() for _ in cpus]
 
 if __name__ == "__main__":
-    os.environ["OPENBLAS_NUM_THREADS"] = "1"
     for rnd in range(int(sys.argv[1]) if len(sys.argv) > 1 else 2):
         for kind in ("fma", "l3", "dram", "python"):
             a0 = run(kind, [0])[0]; a1 = run(kind, [1])[0]; both = run(kind, [0, 1])
