@@ -1,21 +1,25 @@
 """bayesreg: Bayesian estimation of deformation and elastic parameters in non-rigid registration.
 
-A JAX implementation of Risholm, Samset & Wells (the paper in ``shared/paper.md``).
-The layout follows the data flow::
+A JAX implementation of Risholm, Samset & Wells (the paper in ``shared/paper.md``).  The
+modules follow the data flow::
 
-    images -> labels -> mesh -> fem (K, E_r) -> solver (K_ii u_i = -K_ib u_b)
-           -> similarity (E_s) -> posterior (log p) -> sampler (RW-MH) -> diagnostics / outputs
+    images -> labels -> mesh / meshing -> fem, stiffness (K) -> solver (K_ii u_i = -K_ib u_b)
+           -> similarity (E_s), constraints, parameters -> posterior (log p)
+           -> kernels, chains, sampler -> diagnostics, fields, outputs, report
+
+:func:`run` is the main job (a config in, a run directory out).  Importing the package
+changes nothing in the process; :func:`configure_jax` (float64, XLA flags, BLAS threads) is
+called by the CLI and :func:`run`, and by a notebook before it uses the lower-level modules.
 
 Conventions: nodes ``(N, 3)`` world mm, tets ``(M, 4)``, displacements ``(N, 3)`` mm,
 DOF order node-major ``3*i + axis``, images carry their voxel-to-world affine.
 """
 
-from bayesreg import _xla
-
-_xla.configure()
-
-from bayesreg.config import Config, load_config  # noqa: E402
-from bayesreg.pipeline import prepare, run, sample_problem  # noqa: E402
+from bayesreg.config import Config, load_config
+from bayesreg.jaxconfig import configure_jax
+from bayesreg.pipeline import run, sample_problem
+from bayesreg.problem import prepare
 
 __version__ = "0.1.0"
-__all__ = ["Config", "load_config", "prepare", "run", "sample_problem", "__version__"]
+__all__ = ["Config", "load_config", "configure_jax", "prepare", "run", "sample_problem",
+           "__version__"]

@@ -4,7 +4,7 @@ Layout inside the run directory (every file written atomically and durably: a te
 name, flushed to disk, then ``os.replace``; :mod:`bayesreg._files`)::
 
     checkpoint/config.json      the resolved config of the run
-    checkpoint/problem.npz      images, mesh and truth (:func:`bayesreg.pipeline.save_problem`)
+    checkpoint/problem.npz      images, mesh and truth (:meth:`Checkpoint.save_problem`)
     checkpoint/init.npz         chain starts and initial jumping kernels
     checkpoint/state.npz        :class:`bayesreg.sampler.SamplerCheckpoint` after the last chunk
     checkpoint/draws/chunk_00000.npz ...  the stored draws of each sampling chunk
@@ -24,10 +24,17 @@ import zipfile
 import zlib
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from bayesreg._files import replace_durably
+from bayesreg.config import Config, ConfigError, format_errors
+from bayesreg.images import Image
+from bayesreg.initialisation import Initialisation
+from bayesreg.mesh import Mesh
+from bayesreg.problem import ProblemData
 from bayesreg.sampler import SamplerCheckpoint
+from bayesreg.synthetic import Truth
 
 __all__ = ["Checkpoint", "savez_atomic"]
 
@@ -73,13 +80,13 @@ class Checkpoint:
     def problem_path(self) -> Path:
         return self.dir / "problem.npz"
 
-    def save_config(self, cfg) -> None:
+    def save_config(self, cfg: Config) -> None:
         self.dir.mkdir(parents=True, exist_ok=True)
         tmp = self.config_path.with_name("config.json.tmp")
         tmp.write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
         replace_durably(tmp, self.config_path)
 
-    def load_config(self):
+    def load_config(self) -> Config:
         """The run's saved config (``checkpoint/config.json``), validated.
 
         Raises
@@ -90,8 +97,6 @@ class Checkpoint:
             If it is not valid JSON or not a valid config (the message names the file and key).
         """
         from pydantic import ValidationError
-
-        from bayesreg.config import Config, ConfigError, _format_errors
 
         if not self.config_path.is_file():
             raise FileNotFoundError(f"{self.config_path} not found: not a run directory written "
@@ -111,16 +116,63 @@ class Checkpoint:
         try:
             return Config.model_validate(raw)
         except ValidationError as exc:
-            raise ConfigError(_format_errors(exc, str(self.config_path))) from None
+            raise ConfigError(format_errors(exc, str(self.config_path))) from None
 
-    def save_init(self, init) -> None:
+    def save_problem(self, data: ProblemData) -> None:
+        """Write the data of a problem (images, mesh, truth) to ``problem.npz``, compressed and
+        atomically: :meth:`load_problem` gives it back without meshing again (meshing with
+        fTetWild is not bit-reproducible, so a resumed run must reuse the mesh)."""
+        self.dir.mkdir(parents=True, exist_ok=True)
+        arrays = {
+            "f": data.f.data, "f_affine": data.f.affine,
+            "m": np.asarray(data.m.data), "m_affine": data.m.affine,
+            "labels": data.labels.data, "labels_affine": data.labels.affine,
+            "nodes": data.mesh.nodes, "tets": data.mesh.tets, "tissue": data.mesh.tissue,
+            "boundary": data.mesh.boundary,
+            "meta": np.array(json.dumps({
+                "intensity_scale": data.intensity_scale, "n_skull_carved": data.n_skull_carved,
+                "timings": data.timings, "truth_info": data.truth_info,
+                "mesh_info": data.mesh_info,
+            })),
+        }
+        if data.truth is not None:
+            t = data.truth
+            arrays.update(truth_u=t.u, truth_lam_e=t.lam_e, truth_mu_e=t.mu_e, truth_pushed=t.pushed)
+        savez_atomic(self.problem_path, compressed=True, **arrays)
+
+    def load_problem(self) -> ProblemData:
+        """The data :meth:`save_problem` wrote.
+
+        Raises
+        ------
+        ValueError
+            If the file is damaged or incomplete (not a readable ``.npz`` of a problem).
+        """
+        path = self.problem_path
+        try:
+            z = np.load(path, allow_pickle=False)
+            meta = json.loads(str(z["meta"]))
+            truth = None
+            if "truth_u" in z:
+                truth = Truth(z["truth_u"], z["truth_lam_e"], z["truth_mu_e"], z["truth_pushed"])
+            return ProblemData(
+                f=Image(z["f"], z["f_affine"]), m=Image(z["m"], z["m_affine"]),
+                labels=Image(z["labels"], z["labels_affine"]),
+                mesh=Mesh(z["nodes"], z["tets"], z["tissue"], z["boundary"]),
+                truth=truth, truth_info=meta["truth_info"],
+                intensity_scale=meta["intensity_scale"], n_skull_carved=meta["n_skull_carved"],
+                timings=meta["timings"], mesh_info=meta.get("mesh_info"))
+        except (zipfile.BadZipFile, EOFError, KeyError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path} is damaged or incomplete ({type(exc).__name__}: {exc}): "
+                             "the problem cannot be read back") from exc
+
+    def save_init(self, init: Initialisation) -> None:
         arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}
         savez_atomic(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
                      info=np.array(json.dumps(init.info, default=float)), **arrays)
 
-    def load_init(self):
-        from bayesreg.pipeline import Initialisation
-
+    def load_init(self) -> Initialisation | None:
+        """The run's starts and proposal scales, or ``None`` if they were never saved."""
         path = self.dir / "init.npz"
         if not path.is_file():
             return None
@@ -138,8 +190,6 @@ class Checkpoint:
             savez_atomic(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
                          **dict(zip(_OUT_NAMES, out)))
         sig = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(ckpt.sigma)}
-        import jax
-
         leaves = ckpt.states if isinstance(ckpt.states, list) else jax.tree.leaves(ckpt.states)
         st = {f"state_{j}": np.asarray(v) for j, v in enumerate(leaves)}
         meta = {"chunks_done": ckpt.chunks_done, "rhat_history": [list(h) for h in ckpt.rhat_history],

@@ -166,8 +166,12 @@ def _report_runs(items) -> dict:
 
 
 def main(argv=None) -> int:
+    """The ``bayesreg`` command; returns the exit status (0 success, 2 bad input)."""
     args = _parser().parse_args(argv)
     from bayesreg.config import ConfigError
+    from bayesreg.jaxconfig import configure_jax
+
+    configure_jax()
 
     # bad input and file-system errors (a path that is a file, a missing or damaged file,
     # no permission) end with their message and exit status 2, not a traceback

@@ -16,7 +16,7 @@ import warnings
 import numpy as np
 import scipy.ndimage as ndi
 
-from bayesreg.images import Image
+from bayesreg.images import Image, check_same_space
 
 __all__ = [
     "BACKGROUND",
@@ -64,8 +64,6 @@ def labels_from_probabilities(gm: Image, wm: Image, brain_mask: Image, *, skull_
     ValueError
         Mismatched grids, a non-positive margin or an empty tissue.
     """
-    from bayesreg.images import check_same_space
-
     check_same_space(gm, wm, names=("gm", "wm"))
     check_same_space(gm, brain_mask, names=("gm", "brain_mask"))
     if skull_margin_mm <= 0:

@@ -1,8 +1,7 @@
-"""Run directory: ArviZ posterior, summaries, displacement maps, plots and ``run.json``.
+"""The outputs of a finished run: ArviZ posterior, summaries, displacement maps, ``run.json``.
 
-Files of one run (all written atomically; an existing non-empty run directory is never
-replaced unless ``overwrite`` is set; a run in progress keeps its draws in ``checkpoint/``,
-see :mod:`bayesreg.checkpoint`):
+Files of one run (all written atomically into its :class:`~bayesreg.rundir.RunDirectory`; a
+run in progress keeps its draws in ``checkpoint/``, see :mod:`bayesreg.checkpoint`):
 
 ==============================  ======================================================
 ``posterior.nc``                ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis)
@@ -37,164 +36,35 @@ Maps on the image grid are the FE interpolation of the nodal values (zero outsid
 
 from __future__ import annotations
 
-import glob
 import json
 import os
-import warnings
 import platform
-import shutil
-import uuid
+import warnings
+from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple
 
+import meshio
 import numpy as np
 
-from bayesreg._files import fsync_dir, fsync_file, replace_durably
+from bayesreg._files import replace_durably
+from bayesreg.chains import available_cores
+from bayesreg.config import Config
+from bayesreg.convergence import gelman_rubin
+from bayesreg.diagnostics import arviz_fast_ess, coverage, to_datatree
+from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
+from bayesreg.initialisation import Initialisation
+from bayesreg.mesh import mesh_quality
+from bayesreg.plots import plot_parameters, plot_uncertainty
+from bayesreg.posterior import elastic_groups, solve_position
+from bayesreg.problem import Problem
+from bayesreg.rundir import RunDirectory
+from bayesreg.sampler import SamplerResult
+from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
-__all__ = ["RunDirectory", "RunResult", "write_outputs", "error_table", "format_report"]
-
-
-class RunDirectory:
-    """A run directory, written in place while the run goes and never overwritten silently.
-
-    The run's checkpoint (:class:`bayesreg.checkpoint.Checkpoint`) lives in
-    ``path/checkpoint``; final outputs are staged in ``path/.outputs-partial`` and moved in
-    by :meth:`commit`, ``run.json`` last (its presence marks a finished run).
-
-    Parameters
-    ----------
-    path : str or Path
-    overwrite : bool
-        Replace an existing non-empty directory that holds one of ``marks`` (a folder of
-        other files is never replaced): it is moved aside to a hidden sibling
-        (``.NAME.replaced-PID-XXXXXXXX``, unique per call) at once and deleted only when the new run commits;
-        :meth:`rollback` puts it back.  A run interrupted after its sampling started keeps
-        the sibling; the next run into ``path`` that commits (its ``--resume``, or another
-        ``overwrite``) deletes it.
-    resume : bool
-        Continue the unfinished run in ``path`` (it must hold ``checkpoint/config.json`` and
-        no ``run.json``).
-    marks : tuple of str
-        Names whose presence in ``path`` makes it a directory ``overwrite`` may replace
-        (default: a run's ``run.json`` and ``checkpoint``, and the staging folder
-        ``.outputs-partial`` that a run without checkpoints killed while writing its
-        outputs leaves).
-    inputs : dict, optional
-        ``{name: path}`` of files the run still has to read (data, a given mesh): none may
-        lie inside a directory that ``overwrite`` replaces (it moves aside at once).
-
-    Raises
-    ------
-    FileExistsError
-        If ``path`` exists, is not empty and neither ``overwrite`` nor ``resume`` is set;
-        with ``overwrite``, if it holds none of ``marks``; with ``resume``, if the run there
-        is already finished.
-    NotADirectoryError
-        If ``path`` or one of its parents is a file.
-    ValueError
-        With ``overwrite``, if one of ``inputs`` lies inside the directory to replace (named).
-    FileNotFoundError
-        With ``resume``, if ``path`` holds no checkpoint.
-    """
-
-    def __init__(self, path, *, overwrite=False, resume=False,
-                 marks=("run.json", "checkpoint", ".outputs-partial"), inputs=None):
-        self.path = Path(path)
-        self.overwrite = overwrite
-        self._old: Path | None = None
-        # directories replaced by earlier --overwrite runs into this path that were
-        # interrupted after their sampling started: deleted when this run commits
-        self._stale = sorted(self.path.parent.glob(f".{glob.escape(self.path.name)}.replaced-*"))
-        for p in (self.path, *self.path.parents):
-            if p.exists() and not p.is_dir():
-                raise NotADirectoryError(f"run directory {self.path}: {p} is a file")
-        self._created = not self.path.exists()
-        if resume:
-            if (self.path / "run.json").is_file():
-                raise FileExistsError(f"run {self.path} is finished (run.json exists): nothing to resume")
-            if not (self.path / "checkpoint" / "config.json").is_file():
-                raise FileNotFoundError(f"{self.path} holds no checkpoint/config.json: nothing to resume")
-        elif self.path.exists() and any(self.path.iterdir()):
-            if not overwrite:
-                hint = (" (an unfinished run: continue it with --resume)"
-                        if (self.path / "checkpoint").is_dir() and not (self.path / "run.json").exists()
-                        else "")
-                raise FileExistsError(
-                    f"run directory {self.path} exists and is not empty{hint}; pass --out to "
-                    "choose another or --overwrite to replace it"
-                )
-            if not any((self.path / m).exists() for m in marks):
-                raise FileExistsError(
-                    f"{self.path} is not empty and holds none of {', '.join(marks)}: not a "
-                    "directory bayesreg wrote, so --overwrite does not replace it; choose "
-                    "another --out"
-                )
-            if self.path.resolve() in (Path.cwd().resolve(), *Path.cwd().resolve().parents):
-                raise FileExistsError(f"{self.path} is the working directory or holds it: "
-                                      "--overwrite does not replace it; choose another --out")
-            here = self.path.resolve()
-            inside = [f"{key} ({p})" for key, p in (inputs or {}).items()
-                      if here in Path(p).resolve().parents]
-            if inside:
-                raise ValueError(
-                    f"{', '.join(inside)} {'lies' if len(inside) == 1 else 'lie'} inside the "
-                    f"run directory {self.path} that --overwrite replaces: copy "
-                    f"{'it' if len(inside) == 1 else 'them'} elsewhere first, or choose another "
-                    "--out")
-            # unique per call: an interrupted --overwrite leaves its aside folder (deleted by
-            # the next commit), and a notebook may overwrite the same path again in one process
-            self._old = self.path.with_name(
-                f".{self.path.name}.replaced-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-            os.replace(self.path, self._old)
-        self.path.mkdir(parents=True, exist_ok=True)
-        self._staging = self.path / ".outputs-partial"
-
-    @property
-    def replaced(self) -> Path | None:
-        """Where the directory this one replaces waits until :meth:`commit` (else ``None``)."""
-        return self._old
-
-    @property
-    def staging(self) -> Path:
-        """Hidden folder for the final outputs, created on first use."""
-        self._staging.mkdir(exist_ok=True)
-        return self._staging
-
-    def file(self, name) -> Path:
-        return self.staging / name
-
-    def commit(self) -> Path:
-        """Move the staged outputs in (each file atomically, ``run.json`` last)."""
-        names = sorted(p.name for p in self.staging.iterdir())
-        for name in names:  # every file on disk before any rename (a power loss: old or new)
-            if (self.staging / name).is_file():
-                fsync_file(self.staging / name)
-        for name in [n for n in names if n != "run.json"] + [n for n in names if n == "run.json"]:
-            os.replace(self.staging / name, self.path / name)
-        fsync_dir(self.path)
-        self.staging.rmdir()
-        if self._old is not None:
-            shutil.rmtree(self._old)
-            self._old = None
-        for p in self._stale:
-            shutil.rmtree(p, ignore_errors=True)
-        self._stale = []
-        return self.path
-
-    def rollback(self) -> None:
-        """Undo the directory of a run that failed before it wrote anything to resume.
-
-        Deletes what this run wrote and puts back what was there before: the replaced
-        directory (``overwrite``), an empty directory, or nothing.  Not for resumed runs.
-        """
-        shutil.rmtree(self.path, ignore_errors=True)
-        if self._old is not None:
-            os.replace(self._old, self.path)
-            self._old = None
-        elif not self._created:
-            self.path.mkdir(parents=True, exist_ok=True)
+__all__ = ["RunResult", "write_outputs", "error_table", "format_report"]
 
 
 class RunResult(NamedTuple):
@@ -253,10 +123,6 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
         nodes (mm^2); coverage of the true boundary displacement components by the central
         50/90/95% credible intervals; the lam/mu ratio posterior per group.
     """
-    from bayesreg.diagnostics import coverage
-
-    from bayesreg.posterior import elastic_groups
-
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
     nb3 = 3 * post.n_boundary
@@ -284,7 +150,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
                 "max": float(err.max())}
 
     if u_mean is None:
-        u_mean = _nodal_mean(problem, result)
+        u_mean = nodal_mean(problem, result)
     return {
         "boundary_initial_mm": stats(np.linalg.norm(init_b - u_true_b, axis=1)),
         "boundary_posterior_mean_mm": stats(np.linalg.norm(mean_b - u_true_b, axis=1)),
@@ -295,94 +161,6 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
             result.positions[..., :nb3], u_true_b.ravel()).items()},
         "ratio": ratios,
     }
-
-
-_CHUNK = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
-_SPREAD_MAX_BYTES = 1 << 30  # the nodal covariances' accumulators, all threads together
-
-
-def _node_slots(problem):
-    """Mesh node indices of the sampled boundary nodes and of the solved interior nodes, in
-    the order of ``u_b`` and ``u_i`` (the inverse of ``posterior.perm``)."""
-    post = problem.posterior
-    perm = np.asarray(post.perm)  # full[:, j] = [u_b, u_i][:, perm[j]]
-    node = np.empty_like(perm)
-    node[perm] = np.arange(len(perm))
-    return node[:post.n_boundary], node[post.n_boundary:]
-
-
-def _nodal_draws(problem, result, rows):
-    """Nodal displacement draws ``(S, N, 3)`` mm in mesh node order for ``rows`` (a slice or
-    indices) of the pooled ``(C*D)`` draws: sampled boundary and solved interior nodes
-    written straight to their places (no copy of all draws)."""
-    b, i = _node_slots(problem)
-    n_chains, n_draws = result.positions.shape[:2]
-    chain, draw = np.divmod(np.arange(n_chains * n_draws)[rows], n_draws)
-    pos, ui = result.positions[chain, draw], result.interior[chain, draw]
-    out = np.empty((len(pos), len(b) + len(i), 3))
-    out[:, b] = pos[:, : 3 * len(b)].reshape(len(pos), len(b), 3)
-    out[:, i] = ui
-    return out
-
-
-def _chunks(result):
-    n, chunk = result.positions.shape[0] * result.positions.shape[1], _CHUNK
-    return [slice(a, min(a + chunk, n)) for a in range(0, n, chunk)]
-
-
-def _nodal_mean(problem, result) -> np.ndarray:
-    """Posterior mean nodal displacement ``(N, 3)`` mm: the means of the stored ``u_b`` and
-    ``u_i`` draws put in mesh node order (no nodal draws assembled)."""
-    b, i = _node_slots(problem)
-    mean = np.empty((len(b) + len(i), 3))
-    mean[b] = result.positions[..., : 3 * len(b)].mean(axis=(0, 1)).reshape(len(b), 3)
-    mean[i] = result.interior.mean(axis=(0, 1))
-    return mean
-
-
-def _nodal_spread(problem, result, mean, *, block=128):
-    """Per-node spread of the draws about ``mean``, over chunks of draws.
-
-    Returns ``cov (3, N, N)`` (covariance per axis, mm^2), ``sd (N, 3)``, and the sd and
-    inter-quartile range of ``|u|`` per node ``(N,)`` (mm).  Memory: the ``(C*D, N)``
-    norms and one chunk, not the ``(C*D, N, 3)`` draws.
-    """
-    from concurrent.futures import ThreadPoolExecutor
-
-    from bayesreg.sampler import _cores
-
-    n_nodes = mean.shape[0]
-    norm = np.empty((result.positions.shape[0] * result.positions.shape[1], n_nodes))
-
-    def accumulate(rows):
-        cov = np.zeros((3, n_nodes, n_nodes))
-        for r in rows:
-            x = _nodal_draws(problem, result, r)
-            norm[r] = np.linalg.norm(x, axis=2)
-            x -= mean
-            for c in range(3):
-                xc = np.ascontiguousarray(x[:, :, c])
-                cov[c] += xc.T @ xc
-        return cov
-
-    # the chunks shared among threads (BLAS and NumPy release the GIL), one (3, N, N)
-    # accumulator each, as many as fit in _SPREAD_MAX_BYTES (the 10k-node mesh: one)
-    chunks = _chunks(result)
-    workers = max(1, min(_cores(), len(chunks), _SPREAD_MAX_BYTES // (24 * n_nodes * n_nodes)))
-    with ThreadPoolExecutor(workers) as pool:
-        covs = list(pool.map(accumulate, [chunks[k::workers] for k in range(workers)]))
-    cov = covs.pop(0)
-    for other in covs:  # in place: no third (3, N, N) array
-        cov += other
-    cov /= len(norm)
-    sd = np.sqrt(np.maximum(np.stack([np.diag(cov[c]) for c in range(3)], axis=1), 0.0))
-    norm_sd, norm_iqr = np.empty(n_nodes), np.empty(n_nodes)
-    for a in range(0, n_nodes, block):
-        cols = norm[:, a:a + block]
-        norm_sd[a:a + block] = cols.std(axis=0)
-        q75, q25 = np.quantile(cols, [0.75, 0.25], axis=0)
-        norm_iqr[a:a + block] = q75 - q25
-    return cov, sd, norm_sd, norm_iqr
 
 
 def _summary(tree, small: list, big: str, dim: str, *, parts: int | None = None):
@@ -399,66 +177,20 @@ def _summary(tree, small: list, big: str, dim: str, *, parts: int | None = None)
     import arviz as az
     import pandas as pd
 
-    from bayesreg.sampler import _cores
-
     def one(names, sel=None):
         t = tree if sel is None else tree.isel({dim: sel})
         return az.summary(t, var_names=names, ci_prob=0.9, ci_kind="eti")
 
     n = tree.posterior.sizes[dim]
-    parts = max(1, min(parts or _cores(), n))
+    parts = max(1, min(parts or available_cores(), n))
     bounds = np.linspace(0, n, parts + 1).astype(int)
     blocks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
     if len(blocks) <= 1:
         return one(small + [big])
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(len(blocks)) as pool:
         futures = [pool.submit(one, [big], sel) for sel in blocks]
         head = one(small)
         return pd.concat([head] + [f.result() for f in futures])
-
-
-def _per_solve(cg_per_step, cfg, block_names):
-    """Mean CG iterations per solve from the per-step count, or ``None`` when a step's
-    counted solves are not a fixed number.
-
-    The random walk solves once per block and step (a proposal whose parameters leave the
-    prior support is rejected without a solve and counts 0), except for the ``u_b`` block
-    with the cached condensation (``u_i = H u_b``: no solve; the elastic block's solves are
-    then all there are).  A gradient-kernel transition counts
-    the solves outside its trajectory: with the cached condensation (the default) the
-    trajectory needs none, and the elastic block makes ``elastic_moves`` solves plus one
-    evaluation before them; without it every gradient solves (uncounted) and the interior
-    after a moved trajectory is one more solve, so the count per step varies.
-    """
-    if not cfg.sampler.gradient:
-        solving = [b for b in block_names if not (b == "u_b" and cfg.sampler.use_condensed)]
-        return float(cg_per_step / len(solving))
-    if not cfg.sampler.use_condensed or "elastic" not in block_names:
-        return None
-    return float(cg_per_step / (cfg.sampler.elastic_moves + 1))
-
-
-def _adapted(cfg, result) -> dict:
-    """The tuned values frozen after the warm-up (saved with the run)."""
-    if cfg.sampler.gradient:
-        step, inv_mass, eta_scale = (np.asarray(a) for a in result.sigma)
-        return {"step_size_per_chain": step.tolist(),
-                "inverse_mass_diag_quantiles_0_50_100": np.quantile(
-                    inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
-                    [0, 0.5, 1]).tolist(),
-                "elastic_proposal_sd_per_chain": _marginal_sd(eta_scale, eta_scale.ndim == 3).tolist(),
-                "elastic_factor_per_chain": eta_scale.tolist()}
-    sds = [_marginal_sd(np.asarray(s_), np.ndim(s_) == 2) for s_ in result.sigma]
-    return {"proposal_sd_rms_per_block": [float(np.sqrt(np.mean(sd ** 2))) for sd in sds],
-            "elastic_proposal_sd": sds[-1].tolist() if len(sds) > 1 else None}
-
-
-def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
-    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
-    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
-    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
 
 
 def format_report(errors: dict | None, info: dict) -> str:
@@ -512,122 +244,42 @@ def format_report(errors: dict | None, info: dict) -> str:
     return "\n".join(lines)
 
 
-def _plots(run_dir: RunDirectory, tree, names, truth_ratio):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ratio = np.asarray(tree.posterior["ratio"].values)  # (C, D, G)
-    n = min(ratio.shape[-1], 6)
-    fig, axes = plt.subplots(n, 2, figsize=(10, 2.2 * n), squeeze=False)
-    for k in range(n):
-        for c in range(ratio.shape[0]):
-            axes[k, 0].plot(ratio[c, :, k], lw=0.6, label=f"chain {c}")
-            axes[k, 1].hist(ratio[c, :, k], bins=40, histtype="step", density=True)
-        axes[k, 0].set_ylabel(f"lam/mu {names[k]}")
-        if truth_ratio is not None:
-            axes[k, 0].axhline(truth_ratio[k], color="k", ls="--", lw=1)
-            axes[k, 1].axvline(truth_ratio[k], color="k", ls="--", lw=1, label="truth")
-    axes[0, 0].legend(fontsize=7)
-    axes[-1, 0].set_xlabel("draw (thinned)")
-    axes[-1, 1].set_xlabel("lam/mu")
-    fig.tight_layout()
-    fig.savefig(run_dir.file("trace.png"), dpi=90)
-    plt.close(fig)
-
-    ub = np.asarray(tree.posterior["u_b"].values)  # (C, D, nb, 3)
-    sd = ub.reshape(-1, ub.shape[2], 3).std(0).sum(1)
-    node = int(np.argmax(sd))
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3))
-    for a, ax in enumerate(axes):
-        for c in range(ub.shape[0]):
-            ax.hist(ub[c, :, node, a], bins=40, histtype="step", density=True)
-        ax.set_xlabel(f"u_{'xyz'[a]} (mm), boundary node {int(tree.posterior['node'][node])}")
-    fig.suptitle("marginal posterior of the most uncertain boundary node")
-    fig.tight_layout()
-    fig.savefig(run_dir.file("marginals.png"), dpi=90)
-    plt.close(fig)
-
-
-_VOXEL_DRAWS = 400  # evenly spaced draws behind the voxel-wise spread of |u|
-
-
-def _voxel_norm_spread(w, draws, max_draws=_VOXEL_DRAWS, block=8192):
-    """Per-voxel sd and inter-quartile range of ``|u|`` from FE-interpolated draws.
-
-    ``w`` is the ``(P, N)`` interpolation matrix, ``draws`` ``(S, N, 3)``; at most
-    ``max_draws`` evenly spaced draws are used, voxels in blocks (memory ``block x S x 3``).
-    Returns two ``(P,)`` arrays, mm.
-    """
-    step = max(1, len(draws) // max_draws)
-    d = np.asarray(draws[::step], np.float64)
-    flat = d.transpose(1, 0, 2).reshape(d.shape[1], -1)  # (N, S*3)
-    sd = np.zeros(w.shape[0])
-    iqr = np.zeros(w.shape[0])
-    rows = np.flatnonzero(np.diff(w.indptr) > 0)
-    for a in range(0, len(rows), block):
-        r = rows[a:a + block]
-        vals = (w[r] @ flat).reshape(len(r), len(d), 3)
-        norm = np.linalg.norm(vals, axis=2)
-        sd[r] = norm.std(axis=1)
-        q75, q25 = np.quantile(norm, [0.75, 0.25], axis=1)
-        iqr[r] = q75 - q25
-    return sd, iqr
-
-
-def _overlay(run_dir: RunDirectory, f: Image, iqr, labels: Image):
-    """``uncertainty.png``: IQR of ``|u|`` over ``f`` on three orthogonal slices."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    brain = np.isin(labels.data, (1, 2, 3))
-    c = np.round(np.argwhere(brain).mean(0)).astype(int) if brain.any() else np.array(f.data.shape) // 2
-    vmax = float(np.quantile(iqr[brain], 0.99)) if brain.any() and iqr[brain].max() > 0 else None
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4))
-    for ax, axis, name in zip(axes, range(3), ("sagittal", "coronal", "axial")):
-        sl = [slice(None)] * 3
-        sl[axis] = c[axis]
-        img = np.asarray(f.data)[tuple(sl)].T
-        unc = np.ma.masked_where(~brain[tuple(sl)].T, iqr[tuple(sl)].T)
-        ax.imshow(img, cmap="gray", origin="lower")
-        im = ax.imshow(unc, cmap="magma", alpha=0.7, origin="lower", vmin=0, vmax=vmax)
-        ax.set_title(f"{name} slice {c[axis]}")
-        ax.axis("off")
-    fig.colorbar(im, ax=axes, shrink=0.8, label="IQR of |u| (mm)")
-    fig.suptitle("posterior uncertainty of the displacement magnitude over f")
-    fig.savefig(run_dir.file("uncertainty.png"), dpi=90)
-    plt.close(fig)
-
-
-def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, init_info=None, *,
-                  resumed=False) -> RunResult:
+def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: SamplerResult,
+                  init: Initialisation, timings: dict, init_info: dict | None = None, *,
+                  resumed: bool = False) -> RunResult:
     """Write every output of a run (see module docstring) and commit the directory.
 
-    ``init`` is the run's :class:`bayesreg.pipeline.Initialisation` (its central start is
-    the "initial configuration" of the error table).
+    Parameters
+    ----------
+    run_dir : RunDirectory
+    cfg : Config
+        The run's resolved config (recorded in ``run.json``; the solver's tolerance solves
+        the central start's interior).
+    problem : Problem
+    result : SamplerResult
+        The draws and the sampler's own description of the run (:class:`SamplerInfo`).
+    init : Initialisation
+        Its central start is the "initial configuration" of the error table.
+    timings : dict
+        Seconds of each stage.
+    init_info : dict, optional
+        How the starts were made (``run.json["init"]``).
+    resumed : bool
+        The run was resumed from a checkpoint.
+
+    Returns
+    -------
+    RunResult
     """
-    import meshio
-
-    from bayesreg.diagnostics import arviz_fast_ess, gelman_rubin, to_datatree
-    from bayesreg.mesh import mesh_quality
-    from bayesreg.pipeline import cg_preconditioner
-    from bayesreg.posterior import elastic_groups, solve_position
-    from bayesreg.synthetic import grid_moments_from, interpolation_matrix, locate_grid
-
     post, mesh, layout = problem.posterior, problem.mesh, problem.layout
+    s_info = result.info
     nb = post.n_boundary
     pos = result.positions
     c, d = pos.shape[:2]
     ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, pos[..., 3 * nb:]))
     names = list(layout.group_names)
-    if result.acceptance.shape[-1] == 2:
-        block_names = ["u_b", "elastic"]
-    else:
-        block_names = ["u_b"] if cfg.sampler.gradient else ["joint"]
+    block_names = list(s_info.blocks)
     tree = to_datatree(
         {"u_b": ub, "lam": lam_g, "mu": mu_g, "ratio": lam_g / mu_g},
         sample_stats={
@@ -666,8 +318,8 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
 
     # displacement maps: on the mesh and on the image grid (FE interpolation)
     # the nodal statistics over chunks of draws: never all (C*D, N, 3) draws at once
-    u_mean = _nodal_mean(problem, result)
-    cov, u_sd, norm_sd_n, norm_iqr_n = _nodal_spread(problem, result, u_mean)
+    u_mean = nodal_mean(problem, result)
+    cov, u_sd, norm_sd_n, norm_iqr_n = nodal_spread(problem, result, u_mean)
     u_init = np.asarray(solve_position(post, init.center, rtol=cfg.solver.rtol,
                                        maxiter=cfg.solver.maxiter)[0])
     point_data = {"u_mean": u_mean, "u_sd": u_sd, "u_norm_sd": norm_sd_n,
@@ -686,8 +338,8 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     mean_img, sd_img = grid_moments_from(mesh, problem.f, u_mean, cov, located=located)
     del cov
     n_draws = c * d
-    norm_sd, norm_iqr = _voxel_norm_spread(
-        w, _nodal_draws(problem, result, slice(None, None, max(1, n_draws // _VOXEL_DRAWS))))
+    norm_sd, norm_iqr = voxel_norm_spread(
+        w, nodal_draws(problem, result, slice(None, None, max(1, n_draws // VOXEL_DRAWS))))
     aff = problem.f.affine
     vol = {"displacement_mean": mean_img, "displacement_sd": sd_img,
            "displacement_norm_sd": norm_sd.reshape(grid), "displacement_norm_iqr": norm_iqr.reshape(grid),
@@ -697,7 +349,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     for name, arr in vol.items():
         save_nifti(Image(arr.astype(np.float32), aff), run_dir.file(f"{name}.nii.gz"))
     save_nifti(Image(in_mesh.astype(np.uint8), aff), run_dir.file("mesh_mask.nii.gz"))
-    _overlay(run_dir, problem.f, norm_iqr.reshape(grid), problem.labels)
+    plot_uncertainty(run_dir, problem.f, norm_iqr.reshape(grid), problem.labels)
     save_nifti(Image(problem.f.data.astype(np.float32), aff), run_dir.file("f.nii.gz"))
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
@@ -706,7 +358,7 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
     truth_ratio = None
     if errors and all("true" in errors["ratio"].get(nm, {}) for nm in names[:6]):
         truth_ratio = [errors["ratio"][nm]["true"] for nm in names[:6]]
-    _plots(run_dir, tree, names, truth_ratio)
+    plot_parameters(run_dir, tree, names, truth_ratio)
 
     rank_rhat = summary["r_hat"].to_numpy(dtype=float)
     info = {
@@ -720,18 +372,19 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
         "parameters": {"free": layout.free_names,
                        "fixed": [f"{p}_{names[g]}={v}" for p, g, v in layout.fixed]},
         "sampler": {
-            "kind": cfg.sampler.kind,
+            "kind": s_info.kind,
             "prior_normaliser": cfg.model.prior_normaliser,
-            "condensed": cfg.sampler.use_condensed,
-            "cg_preconditioner": cg_preconditioner(problem, cfg),
+            "condensed": s_info.condensed,
+            "cg_preconditioner": s_info.preconditioner,
+            "chain_method": s_info.chain_method,
             "gradient_evaluations_per_step_mean": float(result.grad_evals.mean()),
             "divergences": int(result.divergences.sum()),
-            "adapted": _adapted(cfg, result),
-            "proposal": cfg.sampler.proposal,
+            "adapted": s_info.adapted,
+            "proposal": (init_info or {}).get("proposal"),
             "chains": int(c),
             "draws_per_chain": int(d),
-            "thinning": cfg.sampler.thinning,
-            "steps_per_chain": int(d * cfg.sampler.thinning + cfg.sampler.warmup_steps),
+            "thinning": s_info.thinning,
+            "steps_per_chain": int(d * s_info.thinning + s_info.warmup_steps),
             "blocks": block_names,
             "acceptance": [float(a) for a in result.acceptance.reshape(-1, len(block_names)).mean(0)],
             # None without a warm-up (the paper's fixed kernel), not NaN (not JSON)
@@ -739,16 +392,17 @@ def write_outputs(run_dir: RunDirectory, cfg, problem, result, init, timings, in
                                   if np.all(np.isfinite(result.warmup_acceptance)) else None),
             "rhat_classic_max": float(summary["rhat_classic"].max()),
             "rhat_classic_split_max": float(summary["rhat_classic_split"].max()),
-            "rhat_split_monitored": cfg.sampler.rhat_split,
+            "rhat_split_monitored": s_info.rhat_split,
             "rhat_rank_max": float(np.nanmax(rank_rhat)),
             "ess_bulk_min": float(summary["ess_bulk"].min()),
             "converged": bool(result.converged),
-            "rhat_threshold": cfg.sampler.rhat_threshold,
+            "rhat_threshold": s_info.rhat_threshold,
             "rhat_history": [[int(a), float(b)] for a, b in result.rhat_history],
             "cg_iterations_per_step_mean": float(result.cg_iterations.mean()),
-            "cg_iterations_per_solve_mean": _per_solve(result.cg_iterations.mean(), cfg, block_names),
+            "cg_iterations_per_solve_mean": (None if s_info.solves_per_step is None else
+                                             float(result.cg_iterations.mean() / s_info.solves_per_step)),
             "solve_failures": int(result.solve_failures.sum()),
-            "steps_per_s_per_chain": float(d * cfg.sampler.thinning / max(timings.get("sampling_s", 1e-9), 1e-9)),
+            "steps_per_s_per_chain": float(d * s_info.thinning / max(timings.get("sampling_s", 1e-9), 1e-9)),
         },
         "init": init_info or {},
         "truth": problem.truth_info,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayesreg.images import Image, _check_image, check_same_space, interpolate_numpy
+from bayesreg.images import Image, check_image, check_same_space, interpolate_numpy
 
 __all__ = ["optical_flow_displacement", "displacement_at"]
 
@@ -71,8 +71,8 @@ def optical_flow_displacement(f: Image, m: Image, *, method: str = "tvl1", mask=
     """
     from skimage.registration import optical_flow_ilk, optical_flow_tvl1
 
-    f = _check_image(f, "f")
-    m = _check_image(m, "m")
+    f = check_image(f, "f")
+    m = check_image(m, "m")
     check_same_space(f, m, names=("f", "m"))
     solvers = {"tvl1": optical_flow_tvl1, "ilk": optical_flow_ilk}
     if method not in solvers:

@@ -1,252 +1,83 @@
-"""Random-walk Metropolis-Hastings with parallel chains (paper Sec. 3.2, Algorithm 1).
+"""The chains' driver: warm-up, chunks of draws, the R-hat stopping rule, checkpoints.
 
-Functional core in the BlackJAX style: :func:`init` and :func:`build_kernel` are pure; the
-Normal jumping kernel (:func:`blackjax.mcmc.random_walk.normal`) and the Metropolis accept
-step (:func:`blackjax.mcmc.proposal.static_binomial_sampling`) are BlackJAX's.  The state
-also carries the chain's interior FE solution, the warm start of the next solve; a
-:class:`KernelCache` (the condensation ``H``, the CG preconditioner ``K_ii^-1``) is built
-from the state at every chunk start and carried through the chunk.
-
-:func:`sample` is the driver: N chains inside one jitted ``lax.scan`` per chunk of thinned
-draws (vmapped on an accelerator, in parallel host threads on a CPU, in pieces of chunks
-where the chains do not split evenly over the cores: :func:`_over_chains`); coordinates
-may be updated in blocks (Metropolis-within-Gibbs); a warm-up tunes each block's scale
-toward a target acceptance rate (Robbins-Monro on the log scale) and its marginal scales
-from the warm-up draws, then freezes them; sampling stops once the classic Gelman-Rubin
-R-hat is below a threshold for every estimand, or at a maximum number of draws.  Proposals
-are symmetric, so the acceptance probability is the posterior ratio of Eq. 13.
+:func:`sample` runs parallel chains of the random-walk kernel
+(:mod:`bayesreg.kernels.rwmh`, paper Sec. 3.2); :func:`sample_gradient` those of the gradient
+Gibbs kernel (:mod:`bayesreg.kernels.gibbs`).  Both run the chains in chunks of thinned draws
+(one jitted program per chunk, mapped over the chains by :mod:`bayesreg.chains`), tune the
+kernel during a warm-up and freeze it, and stop once the classic Gelman-Rubin R-hat of
+every estimand is below a threshold (:class:`bayesreg.convergence.RunningGelmanRubin`), or at
+a maximum number of draws.  After the warm-up and after every chunk an ``on_chunk`` callback
+receives a :class:`SamplerCheckpoint` and the chunk's draws; a run given them back
+(``resume``) continues to the same draws as one never interrupted: the key of chunk ``k``
+is ``fold_in(key, k)``.  The result (:class:`SamplerResult`) describes its own run
+(:class:`SamplerInfo`).
 """
 
 from __future__ import annotations
 
-import math
-import os
 import time
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Callable, NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from bayesreg import _xla
+from bayesreg.chains import build_adaptive_chunk, build_chunk
+from bayesreg.convergence import RunningGelmanRubin
+from bayesreg.jaxconfig import require_x64
+from bayesreg.kernels import adaptation as gw
+from bayesreg.kernels import gibbs
+from bayesreg.kernels.rwmh import Condensation, Preconditioner, build_kernel, init
+from bayesreg.kernels.target import Target
 
-_xla.configure()
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-from blackjax.mcmc.proposal import static_binomial_sampling  # noqa: E402
-from blackjax.mcmc.random_walk import normal as normal_jumping_kernel  # noqa: E402
-
-from bayesreg.diagnostics import RunningGelmanRubin  # noqa: E402
-
-__all__ = [
-    "RWMHState", "RWMHInfo", "Condensation", "Preconditioner", "KernelCache", "init", "build_kernel",
-    "SamplerResult", "SamplerCheckpoint", "sample", "sample_gradient",
-]
+__all__ = ["SamplerInfo", "SamplerResult", "SamplerCheckpoint", "sample", "sample_gradient"]
 
 
-#: :func:`jax.named_scope` names of the random walk's proposal and accept/reject (see
-#: :data:`bayesreg.posterior.SCOPES`; ``benchmarks/profiling.py``).
-PROPOSAL_SCOPE = "bayesreg_proposal"
-ACCEPT_SCOPE = "bayesreg_accept"
-#: ... and of the builds of a chain's :class:`KernelCache` (at each chunk start, and the
-#: condensation's after an accepted elastic move)
-CACHE_SCOPE = "bayesreg_cache"
-
-
-class RWMHState(NamedTuple):
-    """State of one chain.
+class SamplerInfo(NamedTuple):
+    """How a run was sampled (recorded in ``run.json``).
 
     Attributes
     ----------
-    position : (dim,)
-    logdensity : ()
-    interior : (n_i, 3)
-        Interior FE solution at ``position`` (warm start of the next solve).
+    kind : str
+        ``"rwmh"``, ``"mala"``, ``"hmc"`` or ``"nuts"``.
+    blocks : tuple of str
+        Names of the coordinate blocks, in the order of the acceptance columns.
+    solves_per_step : float or None
+        CG solves counted in ``cg_iterations`` per step (``None`` where the number varies:
+        gradient kernels without the cached interior map).
+    preconditioner : str
+        The CG preconditioner of the counted solves (``"dense"``, ``"spectral"``,
+        ``"block-jacobi"``; ``"unknown"`` where the caller did not say).
+    condensed : bool
+        Moves of ``u_b`` take the interior from a cached dense map (no CG solve).
+    chain_method : str
+        How the chains ran (:data:`bayesreg.chains.CHAIN_METHODS`).
+    thinning : int
+        Steps per stored draw.
+    warmup_steps : int
+        Steps per chain of warm-up (whole chunks).
+    rhat_threshold : float
+    rhat_split : bool
+        The monitored R-hat is the split-chain one.
+    adapted : dict
+        The tuned values frozen after the warm-up, JSON-ready.
     """
 
-    position: jax.Array
-    logdensity: jax.Array
-    interior: jax.Array
-
-
-class RWMHInfo(NamedTuple):
-    """Information about one transition (one MH update per block).
-
-    Attributes
-    ----------
-    acceptance_rate : (B,)   ``min(1, p(theta*) / p(theta^n))`` (Eq. 13) per block
-    is_accepted : (B,) bool
-    cg_iterations : ()  CG iterations of the proposals' solves, summed over blocks
-    solve_failed : ()  number of proposals whose solve did not converge (rejected)
-    """
-
-    acceptance_rate: jax.Array
-    is_accepted: jax.Array
-    cg_iterations: jax.Array
-    solve_failed: jax.Array
-
-
-def init(position, logdensity_fn: Callable, interior0) -> RWMHState:
-    """Initial state; ``logdensity_fn(position, interior_guess) -> (logp, aux)``."""
-    logp, aux = logdensity_fn(position, interior0)
-    return RWMHState(position, logp, aux.interior)
-
-
-class Condensation(NamedTuple):
-    """A cache that makes moves of one coordinate block cheap (see :func:`build_kernel`).
-
-    Attributes
-    ----------
-    logdensity_fn : callable
-        ``(position, cache) -> (logp, aux)``, equal to the full log-density as long as the
-        cache was built at a position that differs from ``position`` only inside ``block``.
-    build : callable
-        ``position -> cache``.
-    block : int
-        Index of the block whose moves use the cache; a move of any other block that is
-        accepted rebuilds it.
-    moves : int
-        Updates of ``block`` per step (each a full Metropolis update).
-    """
-
-    logdensity_fn: Callable
-    build: Callable
-    block: int
-    moves: int = 1
-
-
-class Preconditioner(NamedTuple):
-    """A CG preconditioner cached per chain (see :func:`build_kernel`).
-
-    Attributes
-    ----------
-    logdensity_fn : callable
-        ``(position, interior_guess, pre) -> (logp, aux)``: the log-density with its interior
-        solve preconditioned by ``pre``.  For any ``pre`` it is the same function of the
-        position as the kernel's own ``logdensity_fn`` (the CG meets the same tolerance; the
-        preconditioner changes how many iterations that takes), so the target is unchanged.
-    build : callable
-        ``position -> pre`` at the position's elastic parameters
-        (:func:`bayesreg.posterior.preconditioner`).
-    """
-
-    logdensity_fn: Callable
-    build: Callable
-
-
-class KernelCache(NamedTuple):
-    """What a random-walk kernel carries from step to step besides the state: the
-    condensation's cache and the preconditioner (``None`` where not used).  Rebuilt from the
-    state at every chunk start (:func:`_build_chunk`), so a resumed run repeats the same
-    arithmetic."""
-
-    condensed: object = None
-    precond: object = None
-
-
-def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensation | None = None,
-                 preconditioner: Preconditioner | None = None) -> Callable:
-    """RW-MH kernel ``(rng_key, state, sigmas) -> (state, info)`` for a fixed log-density.
-
-    Parameters
-    ----------
-    logdensity_fn : callable
-        ``(position, interior_guess) -> (logp, aux)``.
-    blocks : sequence of int arrays, optional
-        Coordinate blocks updated in turn, each by its own Metropolis step with a Normal
-        jumping kernel (systematic-scan Metropolis-within-Gibbs; each update leaves the
-        posterior invariant, so their composition does).  ``None``: one block with every
-        coordinate, the paper's joint proposal (Eq. 14).
-    condensation : Condensation, optional
-        Moves of ``condensation.block`` evaluate ``condensation.logdensity_fn`` with the
-        cache instead of ``logdensity_fn`` (for the boundary block: the interior from a
-        cached ``u_i = H u_b``, no CG solve), ``condensation.moves`` times per step; after an
-        accepted move of another block the cache is rebuilt (``lax.cond``).  Both
-        log-densities are the same function of the position, so the target is unchanged.
-    preconditioner : Preconditioner, optional
-        The moves that solve (every move without a condensation) evaluate
-        ``preconditioner.logdensity_fn`` with the chain's cached preconditioner, built at
-        the chain's position when the chunk starts (:func:`_build_chunk`) and kept through
-        the chunk: the random walk moves the parameters little per chunk, and the
-        preconditioner only has to stay near ``K_ii^-1``.
-
-    Notes
-    -----
-    ``sigmas[b]`` is block ``b``'s jumping-kernel scale: a vector (independent scales) or a
-    matrix ``L`` (proposal covariance ``L L^T``), as in
-    :func:`blackjax.mcmc.random_walk.normal`.
-
-    With a condensation or a preconditioner the kernel is ``(rng_key, state, sigmas, cache)
-    -> (state, info, cache)`` with ``cache`` a :class:`KernelCache`, and ``kernel.init_cache
-    (state) -> KernelCache`` builds it.
-    """
-
-    def update(rng_key, state: RWMHState, idx, sigma, density):
-        key_prop, key_acc = jax.random.split(rng_key)
-        with jax.named_scope(PROPOSAL_SCOPE):
-            sub = state.position[idx]
-            move = normal_jumping_kernel(sigma)(key_prop, sub)
-            proposal = state.position.at[idx].set(sub + move)
-        logp, aux = density(proposal, state)
-        with jax.named_scope(ACCEPT_SCOPE):
-            log_ratio = logp - state.logdensity
-            log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
-            new = RWMHState(proposal, logp, aux.interior)
-            state, (accepted, p_accept, _) = static_binomial_sampling(key_acc, log_ratio, state, new)
-        return state, (p_accept, accepted, aux.solve.iterations, ~aux.solve.converged)
-
-    def kernel(rng_key, state: RWMHState, sigmas, cache: KernelCache | None = None):
-        idxs = blocks if blocks is not None else [jnp.arange(state.position.shape[0])]
-        keys = jax.random.split(rng_key, len(idxs))
-
-        def full(proposal, state):
-            if preconditioner is None:
-                return logdensity_fn(proposal, state.interior)
-            return preconditioner.logdensity_fn(proposal, state.interior, cache.precond)
-
-        out = []
-        for b, idx in enumerate(idxs):
-            idx = jnp.asarray(idx)
-            if condensation is not None and b == condensation.block:
-                def cached(proposal, _state, h=cache.condensed):
-                    return condensation.logdensity_fn(proposal, h)
-
-                def one(st, key, idx=idx, b=b, cached=cached):
-                    st, o = update(key, st, idx, sigmas[b], cached)
-                    return st, o
-
-                state, os_ = jax.lax.scan(one, state, jax.random.split(keys[b], condensation.moves))
-                out.append((jnp.mean(os_[0]), jnp.any(os_[1]), jnp.sum(os_[2]), jnp.any(os_[3])))
-            else:
-                state, o = update(keys[b], state, idx, sigmas[b], full)
-                if condensation is not None:
-                    with jax.named_scope(CACHE_SCOPE):
-                        condensed = jax.lax.cond(o[1], lambda: condensation.build(state.position),
-                                                 lambda: cache.condensed)
-                    cache = cache._replace(condensed=condensed)
-                out.append(o)
-        info = RWMHInfo(
-            jnp.stack([o[0] for o in out]),
-            jnp.stack([o[1] for o in out]),
-            sum(o[2] for o in out),
-            sum(o[3].astype(jnp.int32) for o in out),
-        )
-        return (state, info) if cache is None else (state, info, cache)
-
-    kernel.condensation = condensation
-    kernel.preconditioner = preconditioner
-    if condensation is not None or preconditioner is not None:
-        def init_cache(state: RWMHState) -> KernelCache:
-            with jax.named_scope(CACHE_SCOPE):
-                return KernelCache(
-                    None if condensation is None else condensation.build(state.position),
-                    None if preconditioner is None else preconditioner.build(state.position))
-
-        kernel.init_cache = init_cache
-    return kernel
+    kind: str
+    blocks: tuple
+    solves_per_step: float | None
+    preconditioner: str
+    condensed: bool
+    chain_method: str
+    thinning: int
+    warmup_steps: int
+    rhat_threshold: float
+    rhat_split: bool
+    adapted: dict
 
 
 class SamplerResult(NamedTuple):
-    """Output of :func:`sample` (host NumPy arrays).
+    """Output of :func:`sample` and :func:`sample_gradient` (host NumPy arrays).
 
     Attributes
     ----------
@@ -264,7 +95,8 @@ class SamplerResult(NamedTuple):
     warmup_acceptance : (B,) ndarray  acceptance per block in the last warm-up chunk
     timings : dict  seconds for compile, warm-up, sampling
     converged : bool   max R-hat < threshold at the end
-    final_states : RWMHState  (to continue a run)
+    final_states : state pytree  the chains' states at the end (leaves ``(C, ...)``)
+    info : SamplerInfo  how the run was sampled
     """
 
     positions: np.ndarray
@@ -280,7 +112,8 @@ class SamplerResult(NamedTuple):
     warmup_acceptance: np.ndarray
     timings: dict
     converged: bool
-    final_states: RWMHState
+    final_states: object
+    info: SamplerInfo
 
 
 class SamplerCheckpoint(NamedTuple):
@@ -300,365 +133,12 @@ class SamplerCheckpoint(NamedTuple):
     timings : dict  seconds spent so far
     """
 
-    states: RWMHState
+    states: object
     sigma: tuple
     warmup_acceptance: np.ndarray
     chunks_done: int
     rhat_history: list
     timings: dict
-
-
-def _chain_threads(n_chains: int, n_cores: int | None = None) -> int:
-    """Number of host threads that run ``n_chains`` whole chains on a CPU (equal groups).
-
-    The smallest divisor of ``n_chains`` that is at least the number of cores available to
-    this process (:func:`_cores`), or ``n_chains`` when there are more cores than chains:
-    every thread runs the same number of chains, so one compiled shape serves all threads,
-    and every core has a thread.  3 chains on 2 cores: 3 threads of one chain (when a chunk
-    cannot be cut into pieces: :func:`_chain_pieces`).
-    """
-    if n_chains < 1:
-        raise ValueError(f"n_chains must be >= 1, got {n_chains}")
-    if n_cores is None:
-        n_cores = _cores()
-    return next((d for d in range(max(1, n_cores), n_chains + 1) if n_chains % d == 0), n_chains)
-
-
-def _cores() -> int:
-    """Cores available to this process (``os.sched_getaffinity`` where it exists)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
-def _chain_pieces(n_chains: int, n_draws: int | None, n_cores: int | None = None) -> int:
-    """Pieces per chain of a chunk when the chains do not split evenly over the cores.
-
-    With more chains than cores and a number of chains that is not a multiple of the
-    number of cores (3 chains on 2 cores), whole chains cannot be shared out evenly: three
-    threads on two cores ran 107 steps/s per chain against 226 for two chains on two
-    threads (paper-size mesh; the oversubscribed threads preempt each other).  Cutting
-    each chain's chunk into pieces of equal length, a multiple of ``P = cores /
-    gcd(chains, cores)``, gives ``chains * P`` tasks or a multiple, a multiple of the
-    number of cores, which one worker per core can run without idling (a chain's pieces
-    in order: :func:`_over_chains`).  ``2 P`` pieces where ``n_draws`` allows (shorter
-    tasks leave less idle time at the end of a chunk when chains run at different
-    speeds), else ``P``; 1 when the chains already split evenly, when there are no more
-    chains than cores, or when ``n_draws`` is not a multiple of ``P`` (then
-    :func:`_chain_threads` applies).  Measured (``benchmarks/schedule.py``, 3 chains on 2
-    cores, paper-size mesh, three runs each): 4 pieces 1.25-1.43x and 1.23-1.29x the
-    steps/s of three threads (paper joint, blocked Laplace kernels), 2 pieces 1.20-1.44x
-    and 1.21-1.24x: the finer cut costs nothing measurable.
-    """
-    n_cores = _cores() if n_cores is None else n_cores
-    if n_draws is None or n_chains <= n_cores or n_chains % n_cores == 0:
-        return 1
-    pieces = n_cores // math.gcd(n_chains, n_cores)
-    return next((k for k in (2 * pieces, pieces) if n_draws % k == 0), 1)
-
-
-def _over_chains(one_chain, n_chains: int, params_per_chain: bool, *, piece=None, start=None,
-                 n_draws: int | None = None):
-    """Run ``one_chain(key, state, params)`` for every chain (leading axis); returns a callable.
-
-    On an accelerator the chains are vmapped inside one jitted call, which is what it is
-    built for.  On a CPU vmap is slow here: each chain's CG solve and NUTS trajectory is a
-    ``while_loop``, and vmapped loops make every chain wait for the slowest (at paper size 3
-    vmapped chains ran 24 steps/s each against 46 one after the other).  XLA:CPU runs one
-    chain's small kernels on one core (the ELL mat-vec of a paper-size solve takes 32 us on
-    one core or two), so the chains are split into :func:`_chain_threads` equal groups, each
-    a jitted ``lax.map`` over its chains, dispatched from host threads that run at once
-    (JAX releases the GIL while a computation runs): on 2 cores two threads of CG
-    mat-vecs ran 1.8x the throughput of one.  Each chain's arithmetic does not depend on
-    the others, so neither choice changes the draws beyond round-off.
-
-    Where the chains do not split evenly over the cores and the chunk can be cut
-    (``piece`` and ``n_draws`` given, :func:`_chain_pieces` > 1), one worker thread per core
-    runs pieces of single chains instead, each chain's pieces in order, a chain's next
-    piece queued as soon as its previous one ends.  ``start(state) -> carry`` begins a
-    chain's chunk (``None``: the carry is the state), ``piece(draw_keys (m,), carry,
-    params) -> (carry, out)`` continues it over the draws of ``draw_keys``, with ``out``
-    stacked over them, and ``carry[0]`` is the state, such that ``one_chain(key, ...)``
-    equals ``start`` and then the pieces run in turn on ``jax.random.split(key, n_draws)``
-    (the carry, with any cache of the kernel, passes from one piece to the next).
-    """
-    in_axes = (0, 0, 0 if params_per_chain else None)
-    if jax.default_backend() != "cpu":
-        return jax.jit(jax.vmap(one_chain, in_axes=in_axes))
-
-    def map_over(fn):
-        @jax.jit
-        def mapped(keys, states, params):
-            if params_per_chain:
-                return jax.lax.map(lambda a: fn(*a), (keys, states, params))
-            return jax.lax.map(lambda a: fn(a[0], a[1], params), (keys, states))
-
-        return mapped
-
-    n_pieces = _chain_pieces(n_chains, n_draws) if piece is not None else 1
-    if n_pieces > 1:
-        begin = None if start is None else jax.jit(lambda states: jax.lax.map(start, states))
-        return _pieces_runner(map_over(piece), begin, n_chains, n_draws, n_pieces, params_per_chain)
-    mapped = map_over(one_chain)
-    n_threads = _chain_threads(n_chains)
-    if n_threads == 1:
-        return mapped
-    size = n_chains // n_threads
-    # the groups' slices and the concatenation of their outputs each in one jitted program
-    # (sliced and joined leaf by leaf, op by op, they compiled about 20 small programs)
-    split = jax.jit(lambda tree: [jax.tree.map(lambda a, j=j: a[j * size:(j + 1) * size], tree)
-                                  for j in range(n_threads)])
-    join = jax.jit(lambda outs: jax.tree.map(lambda *xs: jnp.concatenate(xs), *outs))
-
-    def threaded(keys, states, params):
-        parts = split((keys, states, params) if params_per_chain else (keys, states))
-
-        def group(j):
-            return mapped(*parts[j][:2], parts[j][2] if params_per_chain else params)
-
-        # the first call compiles in this thread alone (no concurrent traces of one shape)
-        nonlocal compiled
-        first = [] if compiled else [group(0)]
-        compiled = True
-        with ThreadPoolExecutor(n_threads) as pool:
-            outs = first + list(pool.map(group, range(len(first), n_threads)))
-        return join(outs)
-
-    compiled = False
-    return threaded
-
-
-def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: int,
-                   params_per_chain: bool):
-    """The piecewise schedule of :func:`_over_chains`: ``_cores()`` workers, tasks of one
-    chain and ``n_draws / n_pieces`` draws, each chain's next piece queued when its last
-    one ends (first in, first out: with ``chains * pieces`` a multiple of the workers no
-    worker idles while another has work).  ``begin(states) -> carries`` (jitted, one chain
-    at a time) runs in the task of a chain's first piece; ``None``: the carry is the state."""
-    m = n_draws // n_pieces
-    # the keys, states and parameters cut per chain and piece, and the outputs joined, each
-    # in one jitted program (op by op, leaf by leaf, they compiled dozens of small programs)
-
-    @jax.jit
-    def split(keys, states, params):
-        draw_keys = jax.vmap(lambda k: jax.random.split(k, n_draws))(keys)  # one_chain's keys
-        one = lambda tree, c: jax.tree.map(lambda a: a[c:c + 1], tree)  # noqa: E731
-        return ([[draw_keys[c:c + 1, p * m:(p + 1) * m] for p in range(n_pieces)] for c in range(n_chains)],
-                [one(states, c) for c in range(n_chains)],
-                [one(params, c) for c in range(n_chains)] if params_per_chain else None)
-
-    @jax.jit
-    def join(finals, outs):
-        per_chain = [jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=1), *o) for o in outs]
-        return (jax.tree.map(lambda *xs: jnp.concatenate(xs), *finals),
-                jax.tree.map(lambda *xs: jnp.concatenate(xs), *per_chain))
-
-    compiled = False
-
-    def run(keys, states, params):
-        nonlocal compiled
-        draw_keys, first, chain_params = split(keys, states, params if params_per_chain else None)
-
-        def task(c, p, carry):
-            if p == 0 and begin is not None:
-                carry = begin(carry)
-            # blocking: the worker holds its core until the piece is done (async dispatch
-            # from worker threads that return at once ran no faster than three threads)
-            return jax.block_until_ready(mapped_piece(
-                draw_keys[c][p], carry, chain_params[c] if params_per_chain else params))
-
-        outs = [[None] * n_pieces for _ in range(n_chains)]
-        finals = [None] * n_chains
-        with ThreadPoolExecutor(_cores()) as pool:
-            pending = {}
-            for c in range(n_chains):
-                if not compiled:  # the first call compiles in this thread alone
-                    carry, out = task(c, 0, first[c])
-                    compiled = True
-                    outs[c][0] = out
-                    pending[pool.submit(task, c, 1, carry)] = (c, 1)
-                else:
-                    pending[pool.submit(task, c, 0, first[c])] = (c, 0)
-            while pending:
-                done, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    c, p = pending.pop(fut)
-                    carry, outs[c][p] = fut.result()  # a worker's exception is raised here
-                    if p + 1 < n_pieces:
-                        pending[pool.submit(task, c, p + 1, carry)] = (c, p + 1)
-                    else:
-                        finals[c] = carry if begin is None else carry[0]
-        return join(finals, outs)
-
-    return run
-
-
-def _info_extras(info):
-    """``(gradient evaluations, divergent)`` of a transition (zero for random walks)."""
-    grads = getattr(info, "grad_evals", jnp.zeros((), jnp.int32))
-    div = getattr(info, "divergent", jnp.zeros((), bool))
-    return grads, div
-
-
-def _draw_out(state, info):
-    """A draw's stored outputs from the state after its ``thin`` transitions and their infos
-    (stacked): ``(position, interior, logdensity, acceptance (B,), CG iterations per step,
-    failed solves, gradient evaluations per step, divergences)``."""
-    grads, div = _info_extras(info)
-    return (state.position, state.interior, state.logdensity, jnp.mean(info.acceptance_rate, axis=0),
-            jnp.mean(info.cg_iterations.astype(jnp.float64)), jnp.sum(info.solve_failed),
-            jnp.mean(grads.astype(jnp.float64)), jnp.sum(div.astype(jnp.int32)))
-
-
-def _build_chunk(kernel, n_draws: int, thin: int, n_chains: int, *, pieces: bool = True):
-    """Jitted ``(keys (C,), states, params) -> (states, out)`` running ``n_draws`` thinned draws.
-
-    ``kernel`` is ``(key, state, params) -> (state, info)``, or with a cache
-    ``(key, state, params, cache) -> (state, info, cache)`` when it has
-    ``kernel.init_cache(state) -> cache`` (the random walks' condensation and
-    preconditioner, the gradient kernels' condensation and normaliser; :func:`sample_gradient`
-    runs those through :func:`_build_adaptive_chunk`, the same draws).  The cache is
-    built from the state at every chunk start, so a resumed run repeats the same
-    arithmetic, and carried through the chunk; where a CPU runs the chunk in pieces
-    (:func:`_chain_pieces`) it passes from one piece to the next, so the pieces repeat the
-    arithmetic of the whole chunk.
-    ``kernel.per_chain_params``: ``params`` has a leading chain axis.  ``pieces``: allow
-    the piecewise CPU schedule (:func:`_chain_pieces`; the random walks use it, the
-    gradient kernels do not: NUTS on the quickstart problem ran 0.97x (0.82-0.99) the
-    transitions/s of three threads in pieces, ``benchmarks/schedule.py --kernel nuts``,
-    identical draws).
-    ``out`` is ``(positions, interior, logdensity, acceptance (B,), CG iterations per step,
-    failed solves, gradient evaluations per step, divergences)`` per draw.
-    """
-    init_cache = getattr(kernel, "init_cache", None)
-    per_chain = getattr(kernel, "per_chain_params", False)
-
-    def start(state):
-        return state, init_cache(state)
-
-    def piece(draw_keys, carry, params):
-        def draw(carry, key):
-            def step(carry, key):
-                if init_cache is None:
-                    return kernel(key, carry, params)
-                st, info, cache = kernel(key, carry[0], params, carry[1])
-                return (st, cache), info
-
-            carry, info = jax.lax.scan(step, carry, jax.random.split(key, thin))
-            return carry, _draw_out(carry if init_cache is None else carry[0], info)
-
-        return jax.lax.scan(draw, carry, draw_keys)
-
-    def one_chain(key, state, params):
-        carry = state if init_cache is None else start(state)
-        carry, out = piece(jax.random.split(key, n_draws), carry, params)
-        return (carry if init_cache is None else carry[0]), out
-
-    return _over_chains(one_chain, n_chains, per_chain, piece=piece if pieces else None,
-                        start=None if init_cache is None else start, n_draws=n_draws)
-
-
-def _build_adaptive_chunk(kernel, ws_step, n_draws: int, thin: int, n_chains: int):
-    """One chunk program for the gradient kernels' warm-up and sampling (one compilation).
-
-    ``mapped(keys (C, n_draws, thin), states, (ws, stages (C, n_draws, thin, 2), adapt (C,)))
-    -> ((states, ws, (acceptance (C, B), divergences (C,), gradients (C,))), out)``: each
-    transition is ``ws_step`` (:func:`bayesreg.kernels.build_warmup_step`: the kernel at the
-    parameters the warm-up state ``ws`` holds, then the adaptation of ``ws`` at the
-    ``stages`` row), whose new ``ws`` is kept where ``adapt`` and discarded elsewhere; ``out``
-    is :func:`_build_chunk`'s.  The warm-up runs it with ``adapt`` and Stan's windows, the
-    sampling without, from a ``ws`` holding the frozen parameters: the same kernel
-    arithmetic as a chunk of :func:`_build_chunk` at those parameters (the draws are equal),
-    and one program where the two had compiled one each (7-10 s each at the quickstart's
-    size; the discarded adaptation costs next to nothing beside a NUTS trajectory).
-    """
-
-    def one_chain(keys, state, params):
-        ws, stages, adapt = params
-
-        def step(carry, xs):
-            st, w_, cache = carry
-            st, w_new, cache, info = ws_step(xs[0], st, w_, cache, xs[1])
-            w_ = jax.tree.map(lambda a, b: jnp.where(adapt, a, b), w_new, w_)
-            return (st, w_, cache), info
-
-        def draw(carry, xs):
-            carry, info = jax.lax.scan(step, carry, xs)
-            grads, div = _info_extras(info)
-            return carry, (_draw_out(carry[0], info), (info.acceptance_rate, div, grads))
-
-        carry = (state, ws, kernel.init_cache(state))
-        (state, ws, _), (out, (acc, div, grads)) = jax.lax.scan(draw, carry, (keys, stages))
-        stats = (jnp.mean(acc.reshape(-1, acc.shape[-1]), axis=0), jnp.sum(div),
-                 jnp.mean(grads.astype(jnp.float64)))
-        return (state, ws, stats), out
-
-    return _over_chains(one_chain, n_chains, True)
-
-
-def _scaled(sigmas, log_scales):
-    return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
-
-
-DENSE_MAX = 16  # blocks up to this size (the elastic parameters) adapt a dense proposal
-
-
-def _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps, chunk_draws,
-            thinning, target_acceptance, progress):
-    """Robbins-Monro on each block's log-scale; scales re-estimated from the draws of two
-    windows: a dense factor ``2.38 / sqrt(d) chol(C)`` for blocks of at most ``DENSE_MAX``
-    coordinates (the elastic parameters), per-coordinate scales for larger ones.
-
-    Returns ``(states, frozen sigmas, last acceptance per block, timings)``.
-    """
-    from tqdm.auto import tqdm
-
-    t0 = time.perf_counter()
-    timings = {}
-    n_warm = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
-    log_scales = np.zeros(len(idxs))
-    warm_acc = np.full(len(idxs), np.nan)
-    bar = tqdm(total=n_warm, disable=not progress or n_warm == 0, desc="warm-up", unit="chunk")
-    # windows: scales re-estimated from the draws of [n/4, n/2) and [n/2, 3n/4)
-    window_ends = {n_warm // 2, (3 * n_warm) // 4} - {0}
-    window: list[np.ndarray] = []
-    k_gain = 0
-    for k in range(n_warm):
-        states, out = chunk(jax.random.split(jax.random.fold_in(key_warm, k), n_chains), states,
-                            _scaled(sigmas, log_scales))
-        if k == 0:
-            timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
-        warm_acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
-        k_gain += 1
-        log_scales += 2.0 / np.sqrt(k_gain) * (warm_acc - target_acceptance)
-        if k >= n_warm // 4:
-            window.append(np.asarray(out[0]))  # (C, chunk, dim)
-        if k + 1 in window_ends and window:
-            pos = np.concatenate(window, axis=1)
-            window = []
-            new = list(sigmas)
-            for b, ix in enumerate(idxs):
-                sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
-                if not adapt[b] or not np.all(sd > 0):
-                    continue
-                if len(ix) <= DENSE_MAX:  # small block: the window's covariance (Haario et al.)
-                    cov = np.mean([np.atleast_2d(np.cov(p_[:, ix], rowvar=False)) for p_ in pos], axis=0)
-                    try:
-                        new[b] = 2.38 / np.sqrt(len(ix)) * np.linalg.cholesky(cov)
-                    except np.linalg.LinAlgError:
-                        new[b] = 2.38 / np.sqrt(len(ix)) * np.diag(sd)
-                elif sigmas[b].ndim == 1:
-                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
-                else:  # keep the correlations of the factor, match its marginal scales
-                    implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
-                    new[b] = (2.38 / np.sqrt(len(ix)) * sd / implied)[:, None] * sigmas[b]
-                log_scales[b] = 0.0
-            sigmas = tuple(new)
-            k_gain = 0
-        bar.set_postfix(acc=np.array2string(warm_acc, precision=2),
-                        scale=np.array2string(np.exp(log_scales), precision=2))
-        bar.update(1)
-    bar.close()
-    frozen = tuple(np.asarray(s_) for s_ in _scaled(sigmas, log_scales))
-    return states, frozen, warm_acc, timings
 
 
 def sample(
@@ -685,8 +165,12 @@ def sample(
     resume_draws: tuple | None = None,
     condensation: Condensation | None = None,
     preconditioner: Preconditioner | None = None,
+    block_names=None,
+    cg_preconditioner: str | None = None,
+    chain_method: str = "auto",
 ) -> SamplerResult:
-    """Run parallel RW-MH chains with warm-up, thinning and R-hat stopping.
+    """Run parallel RW-MH chains (:mod:`bayesreg.kernels.rwmh`) with warm-up, thinning and
+    R-hat stopping.
 
     Parameters
     ----------
@@ -701,7 +185,8 @@ def sample(
     sigma : array or tuple of arrays
         Initial jumping-kernel scale per block: ``(d_b,)`` vector or ``(d_b, d_b)`` factor.
     blocks : sequence of int arrays, optional
-        Coordinate blocks (see :func:`build_kernel`); ``None``: one joint block.
+        Coordinate blocks (see :func:`bayesreg.kernels.rwmh.build_kernel`); ``None``: one
+        joint block.
     adapt_diagonal : sequence of bool, optional
         Per block: at 1/2 and 3/4 of the warm-up, set the proposal's marginal scales to
         ``2.38 / sqrt(d_b)`` times the within-chain standard deviation of the chains' draws
@@ -727,11 +212,11 @@ def sample(
     rhat_threshold : float
         Stop when the classic Gelman-Rubin R-hat of every estimand is below it.
     rhat_split : bool
-        Monitor the split-chain version (see :func:`bayesreg.diagnostics.gelman_rubin`).
+        Monitor the split-chain version (see :func:`bayesreg.convergence.gelman_rubin`).
     estimands : callable, optional
         ``(draws (C, D, dim) ndarray) -> (C, D, K) ndarray`` of the scalars to monitor,
         acting draw by draw (it is applied to each chunk as it arrives:
-        :class:`bayesreg.diagnostics.RunningGelmanRubin`); default: the position coordinates.
+        :class:`bayesreg.convergence.RunningGelmanRubin`); default: the position coordinates.
     progress : bool
         Show a tqdm progress bar with acceptance and the worst R-hat.
     on_chunk : callable, optional
@@ -749,10 +234,21 @@ def sample(
         The draws of the finished chunks (as ``out``, concatenated along axis 1); required
         with ``resume``.
     condensation : Condensation, optional
-        Cached moves of one block (see :func:`build_kernel`); needs ``blocks``.
+        Cached moves of one block (see :func:`bayesreg.kernels.rwmh.build_kernel`); needs
+        ``blocks``.
     preconditioner : Preconditioner, optional
         A per-chain CG preconditioner, rebuilt at every chunk start (see
-        :func:`build_kernel`); the draws equal those without it to the CG tolerance.
+        :func:`bayesreg.kernels.rwmh.build_kernel`); the draws equal those without it to the
+        CG tolerance.
+    block_names : sequence of str, optional
+        Names of the blocks in :attr:`SamplerInfo.blocks` (default ``("joint",)`` for one
+        block, else ``("block0", ...)``).
+    cg_preconditioner : str, optional
+        Name of the CG preconditioner that ``logdensity_fn``'s solves use when no
+        ``preconditioner`` is given (recorded in :attr:`SamplerInfo.preconditioner`).
+    chain_method : str
+        How the chains run (:data:`bayesreg.chains.CHAIN_METHODS`; the draws do not depend
+        on it).
 
     Returns
     -------
@@ -763,9 +259,34 @@ def sample(
     ValueError
         On bad arguments (among them: ``blocks`` that do not partition ``range(dim)``, a
         ``sigma`` of the wrong shape, non-finite, or, as a vector of scales, not ``> 0``;
-        ``min_draws > max_draws`` or ``chunk_draws > max_draws``) or if any chain starts at
-        a point of zero posterior density.
+        ``min_draws > max_draws`` or ``chunk_draws > max_draws``; an unknown
+        ``chain_method``) or if any chain starts at a point of zero posterior density.
+    RuntimeError
+        JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
+
+    Examples
+    --------
+    Three chains on a 2-D standard normal (``aux`` carries the interior solution and the
+    solve's figures, here placeholders):
+
+    >>> import jax, jax.numpy as jnp, numpy as np
+    >>> import bayesreg
+    >>> from bayesreg.posterior import Aux
+    >>> from bayesreg.sampler import sample
+    >>> from bayesreg.solver import SolveInfo
+    >>> bayesreg.configure_jax()
+    >>> def logdensity(x, interior):
+    ...     solve = SolveInfo(jnp.asarray(0), jnp.asarray(0.0), jnp.asarray(True))
+    ...     return -0.5 * jnp.sum(x ** 2), Aux(interior, solve, jnp.zeros(()), jnp.zeros(()))
+    >>> result = sample(jax.random.key(0), logdensity, np.zeros((3, 2)), jnp.zeros((0, 3)),
+    ...                 np.ones(2), thinning=1, warmup_steps=200, max_draws=400,
+    ...                 min_draws=400, progress=False)
+    >>> result.positions.shape  # (chains, draws, dim)
+    (3, 400, 2)
+    >>> bool(abs(result.positions.std() - 1.0) < 0.2)
+    True
     """
+    require_x64("sample")
     x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws,
                                  target_acceptance)
     dim = x0.shape[1]
@@ -783,12 +304,24 @@ def sample(
                              f"{s_.min()}")
     adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * len(idxs)
     sigmas = tuple(np.diag(np.broadcast_to(s_, (len(ix),))) if a_ and warmup_steps and s_.ndim < 2
-                   and len(ix) <= DENSE_MAX else s_ for s_, ix, a_ in zip(sigmas, idxs, adapt))
+                   and len(ix) <= gw.DENSE_MAX else s_ for s_, ix, a_ in zip(sigmas, idxs, adapt))
     if condensation is not None and blocks is None:
         raise ValueError("condensation needs coordinate blocks")
+    names = tuple(block_names) if block_names is not None else (
+        ("joint",) if len(idxs) == 1 else tuple(f"block{k}" for k in range(len(idxs))))
+    if len(names) != len(idxs):
+        raise ValueError(f"{len(idxs)} blocks but {len(names)} block_names")
     kernel = build_kernel(logdensity_fn, None if blocks is None else idxs, condensation, preconditioner)
-    chunk = _build_chunk(kernel, chunk_draws, thinning, n_chains)
+    chunk = build_chunk(kernel, chunk_draws, thinning, n_chains, method=chain_method)
     key_warm, key_samp = jax.random.split(rng_key)
+    n_warm = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
+    info = SamplerInfo(
+        kind="rwmh", blocks=names,
+        solves_per_step=float(len(idxs) - (condensation is not None)),
+        preconditioner="dense" if preconditioner is not None else (cg_preconditioner or "unknown"),
+        condensed=condensation is not None, chain_method=chunk.method, thinning=int(thinning),
+        warmup_steps=n_warm * chunk_draws * thinning, rhat_threshold=float(rhat_threshold),
+        rhat_split=bool(rhat_split), adapted={})
 
     def init_states():
         return jax.vmap(lambda x: init(x, logdensity_fn, interior0))(x0)
@@ -796,14 +329,14 @@ def sample(
     def warm_up():
         states = jax.jit(init_states)()
         _check_finite(states)
-        return _warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps,
-                       chunk_draws, thinning, target_acceptance, progress)
+        return gw.rwmh_warmup(chunk.run, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps,
+                              chunk_draws, thinning, target_acceptance, progress)
 
-    return _drive(chunk, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=len(idxs),
+    return _drive(chunk.run, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=len(idxs),
                   max_draws=max_draws, min_draws=min_draws, chunk_draws=chunk_draws,
                   rhat_threshold=rhat_threshold, rhat_split=rhat_split, estimands=estimands,
                   progress=progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
-                  params_type=lambda *a: tuple(a))
+                  params_type=lambda *a: tuple(a), info=info, adapted=_adapted_rwmh)
 
 
 def _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws, target_acceptance):
@@ -864,12 +397,13 @@ N_OUT = 8  # positions, interior, logdensity, acceptance, CG, failed solves, gra
 
 def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_draws, min_draws,
            chunk_draws, rhat_threshold, rhat_split, estimands, progress, on_chunk, resume,
-           resume_draws, params_type) -> SamplerResult:
+           resume_draws, params_type, info: SamplerInfo, adapted: Callable) -> SamplerResult:
     """The sampling loop shared by every kernel: chunks, R-hat stopping, checkpoints, resume.
 
     ``warm_up() -> (states, frozen params, warm-up acceptance per block, timings)``;
     ``init_states()`` gives the structure of the states (to rebuild a checkpoint's leaves);
-    ``params_type`` rebuilds the frozen parameters from their tuple of arrays.
+    ``params_type`` rebuilds the frozen parameters from their tuple of arrays;
+    ``adapted(frozen arrays) -> dict`` describes them for :attr:`SamplerInfo.adapted`.
     """
     estimands = estimands or (lambda d: d)
     n_samp = int(np.ceil(max_draws / chunk_draws))
@@ -957,6 +491,7 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         timings=timings,
         converged=bool(rhat < rhat_threshold),
         final_states=states,
+        info=info._replace(adapted=adapted(_as_arrays(frozen))),
     )
 
 
@@ -966,7 +501,7 @@ def _as_arrays(frozen) -> tuple:
 
 def sample_gradient(
     rng_key,
-    target,
+    target: Target,
     initial_positions,
     interior0,
     *,
@@ -992,8 +527,10 @@ def sample_gradient(
     on_chunk: Callable | None = None,
     resume: SamplerCheckpoint | None = None,
     resume_draws: tuple | None = None,
+    chain_method: str = "auto",
 ) -> SamplerResult:
-    """Parallel chains of a gradient kernel (:mod:`bayesreg.kernels`) with windowed warm-up.
+    """Parallel chains of the gradient Gibbs kernel (:mod:`bayesreg.kernels.gibbs`) with
+    windowed warm-up (:mod:`bayesreg.kernels.adaptation`).
 
     Same chains, thinning, R-hat stopping, checkpoints and result as :func:`sample`; the
     warm-up is Stan's windowed adaptation (step size by dual averaging toward
@@ -1005,7 +542,7 @@ def sample_gradient(
     Parameters
     ----------
     rng_key : PRNGKey
-    target : bayesreg.kernels.Target
+    target : bayesreg.kernels.target.Target
     initial_positions : (C, dim) array  natural positions ``[u_b.ravel(), phi]``
     interior0 : (n_i, 3) array  warm start of the first solve
     kind : {"mala", "hmc", "nuts"}
@@ -1016,14 +553,17 @@ def sample_gradient(
     adapt_mass : bool  adapt the inverse mass matrix at all (else identity in ``w``)
     num_integration_steps : int  HMC's leapfrog steps (their mean if jittered)
     jitter_integration_steps : bool  HMC: draw the number of leapfrog steps uniformly from
-        ``1 .. 2 num_integration_steps - 1`` each transition (:func:`bayesreg.kernels.build_kernel`)
+        ``1 .. 2 num_integration_steps - 1`` each transition
+        (:func:`bayesreg.kernels.gibbs.build_kernel`)
     max_tree_depth : int  NUTS' maximum number of trajectory doublings
     elastic_moves : int  elastic random-walk updates per transition
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
     estimands, progress, on_chunk, resume, resume_draws
         As :func:`sample` (``warmup_steps`` rounded up to whole chunks).
     target_acceptance : float, optional
-        Default :func:`bayesreg.kernels.default_target_acceptance` of ``kind``.
+        Default :func:`bayesreg.kernels.gibbs.default_target_acceptance` of ``kind``.
+    chain_method : str
+        How the chains run (:data:`bayesreg.chains.CHAIN_METHODS`, ``"pieces"`` excepted).
 
     Returns
     -------
@@ -1034,11 +574,13 @@ def sample_gradient(
     ValueError
         On bad arguments (among them: ``step_size`` not finite and ``> 0``, ``eta_scale``
         non-finite or, as scales, not ``> 0``; ``min_draws > max_draws`` or ``chunk_draws >
-        max_draws``) or if any chain starts at a point of zero posterior density.
+        max_draws``; an unknown ``chain_method``) or if any chain starts at a point of zero
+        posterior density.
+    RuntimeError
+        JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
     """
-    from bayesreg import kernels as gk
-
-    target_acceptance = target_acceptance or gk.default_target_acceptance(kind)
+    require_x64("sample_gradient")
+    target_acceptance = target_acceptance or gibbs.default_target_acceptance(kind)
     x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws,
                                  target_acceptance)
     if not (np.ndim(step_size) == 0 and np.isfinite(step_size) and step_size > 0):
@@ -1046,17 +588,18 @@ def sample_gradient(
     eta_check = np.asarray(eta_scale, np.float64)
     if not np.all(np.isfinite(eta_check)) or (eta_check.ndim < 2 and not np.all(eta_check > 0)):
         raise ValueError(f"eta_scale must be finite and, as scales, > 0, got {eta_scale}")
-    kernel = gk.build_kernel(target, kind, num_integration_steps=num_integration_steps,
+    kernel = gibbs.build_kernel(target, kind, num_integration_steps=num_integration_steps,
                              jitter_integration_steps=jitter_integration_steps,
                              max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)
-    ws_init, ws_step, ws_final = gk.build_warmup_step(
+    ws_init, ws_step, ws_final = gw.build_warmup_step(
         kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = 1 + (target.n_free > 0)
     eta0 = np.asarray(eta_scale, np.float64)  # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
     dim_u = x0.shape[1] - target.n_free  # the preconditioned u_b coordinates w
-    mapped = _build_adaptive_chunk(kernel, ws_step, chunk_draws, thinning, n_chains)
+    mapped = build_adaptive_chunk(kernel, ws_step, chunk_draws, thinning, n_chains,
+                                  method=chain_method)
 
     @jax.jit
     def ws_start():
@@ -1083,11 +626,11 @@ def sample_gradient(
     no_stage, no_adapt = np.zeros((n_chains, chunk_draws, thinning, 2), np.int32), np.zeros(n_chains, bool)
 
     def chunk(keys, states, frozen):
-        (states, _, _), out = mapped(samp_keys(keys), states, (ws_frozen(frozen), no_stage, no_adapt))
+        (states, _, _), out = mapped.run(samp_keys(keys), states, (ws_frozen(frozen), no_stage, no_adapt))
         return states, out
 
     def init_states():
-        return jax.vmap(lambda x: gk.init(target, x, interior0)[0])(x0)
+        return jax.vmap(lambda x: gibbs.init(target, x, interior0)[0])(x0)
 
     def warm_up():
         t0 = time.perf_counter()
@@ -1096,7 +639,7 @@ def sample_gradient(
         ws = ws_start()
         per_chunk = chunk_draws * thinning
         n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
-        stages = gk.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
+        stages = gw.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
         adapt = np.ones(n_chains, bool)
 
         from tqdm.auto import tqdm
@@ -1107,7 +650,7 @@ def sample_gradient(
         for k in range(n_warm):
             keys = jax.random.split(jax.random.fold_in(key_warm, k), n_chains)
             stage = stages[k * per_chunk:(k + 1) * per_chunk].reshape(chunk_draws, thinning, 2)
-            (states, ws, (acc, div, grads)), _ = mapped(
+            (states, ws, (acc, div, grads)), _ = mapped.run(
                 warm_keys(keys), states, (ws, np.broadcast_to(stage, (n_chains,) + stage.shape), adapt))
             if k == 0:
                 timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
@@ -1120,8 +663,44 @@ def sample_gradient(
         frozen = jax.jit(jax.vmap(ws_final))(ws)
         return states, tuple(np.asarray(f_) for f_ in frozen), warm_acc, timings
 
+    per_chunk = chunk_draws * thinning
+    n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
+    info = SamplerInfo(
+        kind=kind, blocks=("u_b", "elastic") if target.n_free else ("u_b",),
+        # the solves counted: with the cached map the trajectory needs none, and the elastic
+        # block makes elastic_moves solves plus one evaluation before them; without it every
+        # gradient solves (uncounted) and the count per step varies
+        solves_per_step=(float(elastic_moves + 1) if target.condensed and target.n_free else None),
+        preconditioner=target.preconditioner, condensed=target.condensed,
+        chain_method=mapped.method,
+        thinning=int(thinning), warmup_steps=n_warm * per_chunk,
+        rhat_threshold=float(rhat_threshold), rhat_split=bool(rhat_split), adapted={})
     return _drive(chunk, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=n_blocks,
                   max_draws=max_draws, min_draws=min_draws, chunk_draws=chunk_draws,
                   rhat_threshold=rhat_threshold, rhat_split=rhat_split, estimands=estimands,
                   progress=progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
-                  params_type=lambda *a: gk.GibbsParams(*a))
+                  params_type=lambda *a: gibbs.GibbsParams(*a), info=info, adapted=_adapted_gradient)
+
+
+def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
+    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
+    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
+    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
+
+
+def _adapted_rwmh(sigma: tuple) -> dict:
+    """The random walk's frozen proposal scales, for :attr:`SamplerInfo.adapted`."""
+    sds = [_marginal_sd(np.asarray(s_), np.ndim(s_) == 2) for s_ in sigma]
+    return {"proposal_sd_rms_per_block": [float(np.sqrt(np.mean(sd ** 2))) for sd in sds],
+            "elastic_proposal_sd": sds[-1].tolist() if len(sds) > 1 else None}
+
+
+def _adapted_gradient(sigma: tuple) -> dict:
+    """The gradient kernel's frozen step sizes, mass matrices and elastic factors."""
+    step, inv_mass, eta_scale = (np.asarray(a) for a in sigma)
+    return {"step_size_per_chain": step.tolist(),
+            "inverse_mass_diag_quantiles_0_50_100": np.quantile(
+                inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
+                [0, 0.5, 1]).tolist(),
+            "elastic_proposal_sd_per_chain": _marginal_sd(eta_scale, eta_scale.ndim == 3).tolist(),
+            "elastic_factor_per_chain": eta_scale.tolist()}

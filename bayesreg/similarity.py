@@ -34,21 +34,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bayesreg import _xla
+import jax
+import jax.numpy as jnp
 
-_xla.configure()
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-
-from bayesreg.images import (  # noqa: E402
-    Image,
-    _check_image,
-    _grid_box,
-    interpolate,
-    trilinear_clamped,
-    world_to_voxel,
-)
-from bayesreg.mesh import signed_volumes  # noqa: E402
+from bayesreg.images import Image, check_image, grid_box, world_to_voxel
+from bayesreg.interpolation import interpolate, trilinear_clamped
+from bayesreg.mesh import signed_volumes
 
 __all__ = ["GAUSS_BARY", "MOVING_DTYPES", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
            "reach_box", "sample_moving", "moving_values", "ssd_residuals", "ssd"]
@@ -204,7 +195,7 @@ def _check_overlap(img: Image, name: str, pts) -> None:
     inside = np.all((c >= -0.5) & (c <= np.array(img.data.shape) - 0.5), axis=1)
     frac = float(np.mean(inside)) if len(inside) else 1.0
     if frac == 0.0:
-        box = _grid_box(img.affine, img.data.shape)
+        box = grid_box(img.affine, img.data.shape)
         raise ValueError(
             f"no quadrature point of the mesh lies inside {name}'s grid (mesh box "
             f"{_fmt_box(pts.min(axis=0), pts.max(axis=0))} mm, {name} box {_fmt_box(*box)} mm): "
@@ -268,10 +259,10 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     """
     if moving_dtype not in MOVING_DTYPES:
         raise ValueError(f"moving_dtype must be one of {MOVING_DTYPES}, got {moving_dtype!r}")
-    f = _check_image(f, "f", finite=True)
-    m = _check_image(m, "m", finite=True)
+    f = check_image(f, "f", finite=True)
+    m = check_image(m, "m", finite=True)
     if reach is not None:
-        reach = _check_image(reach, "reach")
+        reach = check_image(reach, "reach")
     bary, _ = quadrature_rule(quadrature_level)
     pts, w = gauss_points(nodes, tets, quadrature_level)
     for img, name in ((f, "f"), (m, "m")):

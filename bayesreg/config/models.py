@@ -1,19 +1,16 @@
-"""Run configuration: YAML validated by pydantic (unknown keys are errors naming the key).
+"""The run configuration as pydantic models: every key, its default, its meaning, its checks.
 
-Load with :func:`load_config`; override single values with ``--set key.sub=value``
-(:func:`apply_overrides`, values parsed as YAML scalars).  Also errors, before any meshing:
-a key given twice in one mapping, an empty file, a boolean, infinity or NaN given for a
+Unknown keys are errors naming the key; so are a boolean, infinity or NaN given for a
 number, a key that the chosen data source or synthetic case would ignore, and a start
-(``model.initial_*``) outside its prior's support.
+(``model.initial_*``) outside its prior's support.  Each field's ``description`` is the
+documentation of its key (the configuration reference is generated from these models).
 """
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
-import yaml
 from pydantic import (
     BaseModel,
     BeforeValidator,
@@ -22,12 +19,13 @@ from pydantic import (
     Field,
     StrictInt,
     Tag,
-    ValidationError,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
 
-__all__ = ["Config", "load_config", "override_config", "apply_overrides", "ConfigError"]
+__all__ = ["Config", "ConfigError", "DataConfig", "MeshConfig", "SyntheticConfig", "ModelConfig",
+           "SolverConfig", "SamplerConfig", "InitConfig", "OutputConfig", "BetaPrior",
+           "TissuePriors", "TissueValues", "FixedParam", "PRIOR_TAGS"]
 
 Tissue = Literal["csf", "gm", "wm"]
 
@@ -193,7 +191,7 @@ def _prior_kind(v):
     return "beta" if isinstance(v, BetaPrior) else None
 
 
-_PRIOR_TAGS = ("beta", "per-tissue")
+PRIOR_TAGS = ("beta", "per-tissue")
 Prior = Annotated[
     Union[Annotated[BetaPrior, Tag("beta")], Annotated[TissuePriors, Tag("per-tissue")]],
     Discriminator(_prior_kind, custom_error_type="prior_type",
@@ -277,6 +275,11 @@ class SamplerConfig(_Strict):
         "nuts, the kernel that mixed best in benchmarks/samplers.py (the quickstart's too); "
         "the paper's configs say rwmh")
     chains: Int = Field(3, ge=2)
+    chain_method: Literal["auto", "vectorized", "sequential", "threads", "pieces"] = Field(
+        "auto", description="how the chains run (bayesreg.chains; the draws do not depend on "
+        "it): vectorized (vmap, the default on an accelerator), sequential, threads (groups of "
+        "chains in host threads), pieces (pieces of chains, one worker per core, where the "
+        "chains do not split evenly over the cores; random walk only); auto chooses")
     thinning: Int | None = Field(None, ge=1, description="keep every n-th step; default 10 (rwmh), "
                                  "1 (gradient kernels)")
     warmup_steps: Int | None = Field(None, ge=0, description="steps per chain before the stored "
@@ -418,6 +421,9 @@ class Config(_Strict):
         if self.sampler.condensed and not self.sampler.blocked and not self.sampler.gradient:
             raise ValueError("sampler.condensed needs sampler.blocked: true (the joint proposal "
                              "changes lam, mu at every step)")
+        if self.sampler.chain_method == "pieces" and self.sampler.gradient:
+            raise ValueError("sampler.chain_method: pieces needs kind: rwmh (a gradient kernel's "
+                             "chunk cannot be cut into pieces); use threads or auto")
         if self.sampler.u_moves > 1 and (not self.sampler.condensed or self.sampler.gradient):
             raise ValueError("sampler.u_moves > 1 needs sampler.condensed: true and kind: rwmh")
         if self.solver.preconditioner == "spectral" and self.model.elastic != "uniform":
@@ -469,200 +475,3 @@ class Config(_Strict):
                            "tissues' values)" if m.elastic == "uniform" else ""))
 
 
-#: pydantic's tags of the members of a plain union (``Int | list[Int]``) in an error's location
-_UNION_TAG = re.compile(r"^(int|float|str|bool|list\[.*\]|dict\[.*\])$")
-
-
-def _format_errors(err: ValidationError, source: str) -> str:
-    entries: list[tuple[str, str]] = []
-    for e in err.errors():
-        loc = e["loc"]
-        # drop the branch tag of the prior union (model.prior_lam.beta.r2 -> model.prior_lam.r2)
-        loc = [p for i, p in enumerate(loc)
-               if not (p in _PRIOR_TAGS and i and loc[i - 1] in ("prior_lam", "prior_mu"))]
-        tags = [isinstance(p, str) and bool(_UNION_TAG.match(p)) for p in loc]
-        union = any(tags)
-        key = ".".join(str(p) for p, t in zip(loc, tags) if not t) or "(top level)"
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
-        if e["type"] == "value_error":
-            msg = msg.removeprefix("Value error, ")
-        if union and entries and entries[-1][0] == key:  # one line per key: "a valid integer, or ..."
-            entries[-1] = (key, f"{entries[-1][1]}, or {msg.removeprefix('Input should be ')}")
-        else:
-            entries.append((key, msg))
-    return "\n".join([f"invalid configuration {source}:"] + [f"  {k}: {m}" for k, m in entries])
-
-
-def _set_path(d: dict, dotted: str, value):
-    keys = dotted.split(".")
-    cur = d
-    for k in keys[:-1]:
-        cur = cur.setdefault(k, {})
-        if not isinstance(cur, dict):
-            raise ConfigError(f"--set {dotted}: '{k}' is not a section")
-    cur[keys[-1]] = value
-
-
-class _DuplicateKey(Exception):
-    def __init__(self, key: str, first: int, again: int):
-        super().__init__(key, first, again)
-        self.key, self.first, self.again = key, first, again
-
-
-def _check_duplicate_keys(node, path: tuple, seen_nodes: set) -> None:
-    """Raise :class:`_DuplicateKey` for a key given twice in one mapping (YAML would keep the
-    last silently).  Keys brought in by a merge (``<<: *anchor``) may be overridden."""
-    if id(node) in seen_nodes:
-        return
-    seen_nodes.add(id(node))
-    if isinstance(node, yaml.MappingNode):
-        lines: dict = {}
-        for k, v in node.value:
-            if k.tag == "tag:yaml.org,2002:merge":
-                _check_duplicate_keys(v, path, seen_nodes)
-                continue
-            name = k.value if isinstance(k, yaml.ScalarNode) else None
-            if name is not None:
-                if name in lines:
-                    raise _DuplicateKey(".".join(path + (name,)), lines[name], k.start_mark.line + 1)
-                lines[name] = k.start_mark.line + 1
-            _check_duplicate_keys(v, path + (str(name),), seen_nodes)
-    elif isinstance(node, yaml.SequenceNode):
-        for i, v in enumerate(node.value):
-            _check_duplicate_keys(v, path + (str(i),), seen_nodes)
-
-
-def _load_yaml(text: str):
-    """``yaml.safe_load`` that refuses a key given twice in one mapping (:class:`_DuplicateKey`)."""
-    loader = yaml.SafeLoader(text)
-    try:
-        node = loader.get_single_node()
-        if node is None:
-            return None
-        _check_duplicate_keys(node, (), set())
-        return loader.construct_document(node)
-    finally:
-        loader.dispose()
-
-
-def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
-    """Apply ``key.sub=value`` strings to a raw config dict (values parsed as YAML).
-
-    Raises
-    ------
-    ConfigError
-        If ``overrides`` is a string rather than a list, or an item is not ``key=value``
-        with a valid YAML value.
-    """
-    if isinstance(overrides, str):
-        raise ConfigError(f"overrides must be a list of 'key=value' strings, got the string {overrides!r}")
-    for item in overrides or []:
-        if "=" not in item:
-            raise ConfigError(f"--set expects key=value, got '{item}'")
-        key, val = item.split("=", 1)
-        try:
-            value = _load_yaml(val)
-        except _DuplicateKey as exc:
-            raise ConfigError(f"--set {item}: duplicate key {key.strip()}.{exc.key}") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"--set {item}: not a valid YAML value: {exc}") from None
-        _set_path(raw, key.strip(), value)
-    return raw
-
-
-def override_config(cfg: Config, overrides: list[str] | None = None, **values) -> Config:
-    """A new config: ``cfg`` with ``key.sub=value`` overrides and dotted ``values`` applied.
-
-    Re-validated from the keys ``cfg`` was given, so defaults that follow other keys follow
-    the overrides (the sampler's ``thinning`` and ``warmup_steps`` follow ``sampler.kind``,
-    as in :func:`load_config`).  ``cfg`` is not changed.
-
-    Parameters
-    ----------
-    cfg : Config
-    overrides : list of str, optional
-        As ``--set`` (values parsed as YAML).
-    **values
-        ``section__key=value`` pairs set as Python values (e.g. ``output__dir=path``).
-
-    Raises
-    ------
-    ConfigError
-        On unknown keys or bad values (the message names each key).
-    """
-    raw = apply_overrides(cfg.model_dump(mode="json", exclude_unset=True), overrides)
-    for key, value in values.items():
-        _set_path(raw, key.replace("__", "."), value)
-    try:
-        return Config.model_validate(raw)
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(exc, "(overrides)")) from None
-
-
-def _read_raw(path: Path, chain: tuple) -> dict:
-    """The raw mapping of one YAML file, with ``extends: OTHER.yaml`` (relative to the file's
-    folder) merged under it: mappings merge key by key, any other value (``null`` included)
-    replaces the base's."""
-    if not path.exists():
-        raise FileNotFoundError(f"config not found: {path}")
-    try:
-        raw = _load_yaml(path.read_text())
-    except _DuplicateKey as exc:
-        raise ConfigError(f"{path}: duplicate key {exc.key} (lines {exc.first} and {exc.again}): "
-                          "give each key once") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
-    if raw is None:  # not a run of every default: most likely a file not written yet
-        raise ConfigError(f"config file {path} is empty (for a run of the defaults give none)")
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: the top level must be a mapping")
-    base = raw.pop("extends", None)
-    if base is None:
-        return raw
-    if not isinstance(base, str):
-        raise ConfigError(f"{path}: extends must be the file name of another config, got {base!r}")
-    base_path = (path.parent / base).resolve()
-    if base_path in chain or base_path == path.resolve():
-        raise ConfigError(f"{path}: extends {base} makes a cycle")
-    return _merge(_read_raw(base_path, chain + (path.resolve(),)), raw)
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
-def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None) -> Config:
-    """Read, override and validate a YAML config.
-
-    Relative data paths (and ``mesh.file``) are resolved against the config file's folder.  A config may start
-    from another with ``extends: OTHER.yaml`` (relative to its folder) and give only what
-    differs (mappings merge key by key; ``null`` replaces).
-
-    Raises
-    ------
-    FileNotFoundError
-        If ``path`` does not exist.
-    ConfigError
-        On YAML syntax errors, unknown keys or bad values (the message names each key).
-    """
-    raw: dict = {}
-    source = "(defaults)"
-    if path is not None:
-        path = Path(path)
-        raw = _read_raw(path, ())
-        source = str(path)
-        base_dir = base_dir or path.parent
-    raw = apply_overrides(raw, overrides)
-    try:
-        cfg = Config.model_validate(raw)
-    except ValidationError as exc:
-        raise ConfigError(_format_errors(exc, source)) from None
-    if base_dir is not None:
-        for part, k in (("data", "fixed"), ("data", "moving"), ("data", "labels"), ("mesh", "file")):
-            p = getattr(getattr(cfg, part), k)
-            if p is not None and not p.is_absolute():
-                setattr(getattr(cfg, part), k, (Path(base_dir) / p).resolve())
-    return cfg

@@ -1,0 +1,264 @@
+"""Gradient kernels (MALA, HMC, NUTS) for the boundary displacements, in Gibbs with the
+elastic parameters.
+
+One transition (Metropolis-within-Gibbs, each part leaving the posterior invariant):
+
+1. ``u_b | lam, mu``: one step of a BlackJAX gradient kernel on the boundary displacements,
+   in preconditioned coordinates ``u_b = c + F w`` (``c`` the start's centre, ``F`` a fixed
+   factor, by default ``R^-T`` of the Gauss-Newton precision ``R R^T`` at the start:
+   a constant affine map, so the target is unchanged).  NUTS (:func:`blackjax.nuts`,
+   multinomial, iterative), HMC (:func:`blackjax.hmc`; by default the number of leapfrog
+   steps is drawn uniformly from ``1 .. 2L - 1`` each transition, mean ``L``, as
+   :func:`blackjax.dynamic_hmc` does, which breaks the periodicity of a fixed trajectory
+   length: Mackenzie 1989; Neal 2011, "MCMC using Hamiltonian dynamics") or MALA (HMC with one leapfrog step, which is MALA preconditioned by the inverse mass matrix).
+   With ``condensed`` the interior comes from a cached dense map ``u_i = H(lam, mu) u_b``
+   (no CG solve in the gradient), else from the CG solve with implicit differentiation.
+2. ``lam, mu | u_b``: ``elastic_moves`` random-walk Metropolis steps on ``eta``, the logit of the free
+   parameters on their prior support, with the log-Jacobian (:func:`bayesreg.parameters.
+   from_unconstrained`) and, for ``prior_normaliser: exact``, the normaliser
+   ``(1/2) log pdet S(lam, mu)`` (:func:`bayesreg.posterior.log_normaliser`).  If any move
+   was accepted, the cache (``H`` and the normaliser) and the gradient state of part 1 are
+   rebuilt once.
+
+The elastic parameters move by a random walk rather than inside the gradient kernel because
+they are few (1-6) and because the exact normaliser's gradient costs about eight dense
+factorisations; the boundary displacements, about a thousand strongly correlated
+coordinates, are where the gradient pays.
+
+Warm-up: :mod:`bayesreg.kernels.adaptation`; the driver: :func:`bayesreg.sampler.sample_gradient`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from bayesreg.kernels.base import Kernel
+from bayesreg.kernels.target import Cache, Target
+
+__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
+           "default_target_acceptance"]
+
+
+KINDS = ("mala", "hmc", "nuts")
+
+
+ELASTIC_TARGET_ACCEPTANCE = 0.3
+
+
+def default_target_acceptance(kind: str) -> float:
+    """Warm-up target of the u_b kernel's acceptance: 0.8 (HMC, NUTS), 0.57 (MALA), 0.25 (RW)."""
+    return {"nuts": 0.8, "hmc": 0.8, "mala": 0.57, "rwmh": 0.25}[kind]
+
+
+class GibbsState(NamedTuple):
+    """State of one chain.
+
+    Attributes
+    ----------
+    position : (dim,)  ``[u_b.ravel() (mm), phi]`` (natural parameters, what is stored)
+    logdensity : ()  log posterior at ``position`` in the natural parameters
+    interior : (n_i, 3)  interior FE solution at ``position`` (mm)
+    u : blackjax HMCState  ``w`` (``(3 n_b,)``), its conditional log-density and gradient
+    eta : (n_free,)  unconstrained elastic parameters
+    """
+
+    position: jax.Array
+    logdensity: jax.Array
+    interior: jax.Array
+    u: object
+    eta: jax.Array
+
+
+class GibbsInfo(NamedTuple):
+    """One transition.
+
+    Attributes
+    ----------
+    acceptance_rate : (B,)  u_b kernel's (NUTS: mean over the trajectory), elastic move's
+    is_accepted : (B,) bool  (NUTS: whether the chain moved)
+    cg_iterations : ()  CG iterations of the transition's solves
+    solve_failed : ()  solves that did not converge (their moves are rejected)
+    grad_evals : ()  gradient evaluations (leapfrog steps, plus one after an accepted
+        elastic move)
+    divergent : () bool
+    tree_depth : ()  NUTS trajectory doublings (0 for MALA, HMC)
+    """
+
+    acceptance_rate: jax.Array
+    is_accepted: jax.Array
+    cg_iterations: jax.Array
+    solve_failed: jax.Array
+    grad_evals: jax.Array
+    divergent: jax.Array
+    tree_depth: jax.Array
+
+
+class GibbsParams(NamedTuple):
+    """Tuned values of one chain: ``step_size`` ``()``, ``inverse_mass`` ``(3 n_b,)`` or
+    ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
+    of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
+    ``(n_free,)`` is accepted as independent scales."""
+
+    step_size: jax.Array
+    inverse_mass: jax.Array
+    eta_scale: jax.Array
+
+
+def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
+    """State and cache at the natural position ``theta`` ``(dim,)``."""
+    from blackjax.mcmc import hmc as bj_hmc
+
+    w, eta = target.coordinates(jnp.asarray(theta))
+    cache = target.build_cache(eta, target.log_norm(eta))
+    lp, interior, _, _ = target.u_evaluate(w, eta, cache, interior0)
+    grad = jax.grad(target.u_logdensity)(w, eta, cache, interior)
+    _, lp_nat, interior, _, _ = target.evaluate(w, eta, interior, cache.log_norm)
+    return GibbsState(target.position(w, eta), lp_nat, interior, bj_hmc.HMCState(w, lp, grad), eta), cache
+
+
+def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
+                 jitter_integration_steps: bool = True, max_num_doublings: int = 10,
+                 divergence_threshold: float = 1000.0, elastic_moves: int = 1) -> Kernel:
+    """The Gibbs kernel over a :class:`~bayesreg.kernels.target.Target`.
+
+    Parameters
+    ----------
+    target : Target
+    kind : {"mala", "hmc", "nuts"}
+    num_integration_steps : int
+        HMC's leapfrog steps per transition (the mean number if jittered).
+    jitter_integration_steps : bool
+        HMC: draw the number of leapfrog steps of each transition uniformly from
+        ``1 .. 2 num_integration_steps - 1`` (independently of the state, so each transition
+        is a mixture of reversible kernels and the target is unchanged).  A fixed length
+        can make the trajectory nearly periodic for some directions (antithetic or stuck
+        draws: bulk ESS above the number of draws next to a high tail R-hat).
+    max_num_doublings : int
+        NUTS' maximum tree depth.
+    divergence_threshold : float
+        Energy error above which a trajectory is divergent (BlackJAX's default 1000).
+    elastic_moves : int
+        Random-walk updates of the elastic parameters per transition (each a full
+        Metropolis step given ``u_b``; the cache is rebuilt once after them if any was
+        accepted).  Their acceptance is reported as the mean over the moves.
+
+    Returns
+    -------
+    Kernel
+        ``step(rng_key, state, params, cache) -> (state, GibbsInfo, cache)`` with ``params``
+        a :class:`GibbsParams` and ``cache`` a :class:`~bayesreg.kernels.target.Cache`
+        (``init_cache(state)``); parameters are per chain.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``kind`` or fewer than one leapfrog step.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
+    # BlackJAX is imported where a kernel is built, not with this module: importing it starts
+    # JAX's backend, which must wait for bayesreg.configure_jax (the XLA flags)
+    from blackjax.mcmc import hmc as bj_hmc
+    from blackjax.mcmc import nuts as bj_nuts
+    from blackjax.mcmc.proposal import static_binomial_sampling
+
+    if kind == "nuts":
+        inner = bj_nuts.build_kernel(divergence_threshold=divergence_threshold)
+    else:
+        inner = bj_hmc.build_kernel(divergence_threshold=divergence_threshold)
+    n_leap = 1 if kind == "mala" else int(num_integration_steps)
+    if n_leap < 1:
+        raise ValueError(f"num_integration_steps must be >= 1, got {num_integration_steps}")
+    jitter = kind == "hmc" and bool(jitter_integration_steps) and n_leap > 1
+
+    def u_step(key, ustate, logdensity_fn, params):
+        if kind == "nuts":
+            new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass,
+                              max_num_doublings=max_num_doublings)
+            moved = jnp.any(new.position != ustate.position)
+            return new, (info.acceptance_rate, moved, info.num_integration_steps, info.is_divergent,
+                         info.num_trajectory_expansions)
+        if jitter:
+            key, k_n = jax.random.split(key)
+            n = jax.random.randint(k_n, (), 1, 2 * n_leap)  # 1 .. 2L - 1, mean L
+        else:
+            n = jnp.asarray(n_leap)
+        new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n)
+        return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0))
+
+    def step(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
+        k_u, k_e = jax.random.split(rng_key)
+        eta = state.eta
+
+        def evaluate(w_, eta_, interior_, log_norm_):
+            if target.build_precond is None:  # (a target of one's own may take 4 arguments)
+                return target.evaluate(w_, eta_, interior_, log_norm_)
+            return target.evaluate(w_, eta_, interior_, log_norm_, cache.precond)
+
+        def cond_fn(w):
+            return target.u_logdensity(w, eta, cache, state.interior)
+
+        ustate, (acc_u, moved_u, n_grad, divergent, depth) = u_step(k_u, state.u, cond_fn, params)
+        _, interior, its, ok_u = target.u_evaluate(ustate.position, eta, cache, state.interior)
+        # a rejected trajectory keeps the old interior (the cached map gives the same)
+        interior = jnp.where(moved_u, interior, state.interior)
+        its = jnp.where(moved_u, its, 0)
+        w = ustate.position
+        acc = [acc_u]
+        accepted = [moved_u]
+        failed = (~ok_u & moved_u).astype(jnp.int32)
+        grads = n_grad
+        if target.n_free:
+            # the chain's own parameters at its new u_b: a failed solve there (never seen)
+            # leaves the elastic parameters where they are and is counted, rather than let
+            # -inf accept whatever is proposed
+            lz_c, lnat_c, int_c, its_c, ok_c = evaluate(w, eta, interior, cache.log_norm)
+
+            def elastic_move(carry, key):
+                eta_c, lz, lnat, int_, ln, n_its, n_fail = carry
+                k_prop, k_a = jax.random.split(key)
+                z = jax.random.normal(k_prop, eta_c.shape)
+                scale = params.eta_scale
+                eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
+                norm_p = target.log_norm(eta_p)
+                lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w, eta_p, int_, norm_p)
+                log_ratio = jnp.where(jnp.isnan(lz_p - lz) | ~ok_c, -jnp.inf, lz_p - lz)
+                _, (do, p_acc, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()), jnp.ones(()))
+                carry = (jnp.where(do, eta_p, eta_c), jnp.where(do, lz_p, lz), jnp.where(do, lnat_p, lnat),
+                         jnp.where(do, int_p, int_), jnp.where(do, norm_p, ln), n_its + its_p,
+                         n_fail + (~ok_p).astype(jnp.int32))
+                return carry, (p_acc, do)
+
+            carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, (~ok_c).astype(jnp.int32))
+            (eta_new, _, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
+                elastic_move, carry0, jax.random.split(k_e, elastic_moves))
+            do = jnp.any(dos)
+
+            def rebuild(_):
+                new_cache = target.build_cache(eta_new, norm_new)._replace(precond=cache.precond)
+                lp, g = jax.value_and_grad(target.u_logdensity)(w, eta_new, new_cache, interior)
+                return new_cache, bj_hmc.HMCState(w, lp, g)
+
+            cache, ustate = jax.lax.cond(do, rebuild, lambda _: (cache, ustate), None)
+            eta = eta_new
+            its = its + its_e
+            failed = failed + fail_e
+            grads = grads + do.astype(grads.dtype)
+            acc.append(jnp.mean(p_acc))
+            accepted.append(do)
+        else:
+            lp_nat = ustate.logdensity + cache.log_norm
+        state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)
+        info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth)
+        return state, info, cache
+
+    def init_cache(state: GibbsState) -> Cache:
+        cache = target.build_cache(state.eta, target.log_norm(state.eta))
+        if target.build_precond is None:
+            return cache
+        return cache._replace(precond=target.build_precond(state.eta))
+
+    return Kernel(step, init_cache, per_chain_params=True)

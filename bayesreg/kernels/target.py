@@ -1,0 +1,177 @@
+"""The posterior as the gradient kernels see it: pure functions of ``(w, eta)``.
+
+``u_b = c + F w`` (``c`` the start's centre, ``F`` a fixed factor, by default ``R^-T`` of the
+Gauss-Newton precision ``R R^T`` at the start: a constant affine map, so the target is
+unchanged) and ``eta`` the logit of the free elastic parameters on their prior support
+(:func:`bayesreg.parameters.from_unconstrained`, with the log-Jacobian).  With ``condensed``
+the interior comes from a cached dense map ``u_i = H(lam, mu) u_b`` (no CG solve in the
+gradient), else from the CG solve with implicit differentiation.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from bayesreg.normaliser import add_normaliser
+from bayesreg.parameters import from_unconstrained, to_unconstrained
+from bayesreg.posterior import (
+    Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner)
+
+__all__ = ["Cache", "Target", "make_target"]
+
+
+class Cache(NamedTuple):
+    """What depends on the elastic parameters only, rebuilt when they move.
+
+    Attributes
+    ----------
+    h : (3 n_i, 3 n_b) or (0,)
+        Dense interior map (condensed targets), else an empty placeholder.
+    log_norm : ()
+        ``(1/2) log pdet S`` (exact normaliser) or 0 (the paper's prior).
+    precond : DensePreconditioner or None
+        The CG preconditioner of the solves (targets made with ``precondition=True``):
+        built at the chain's parameters when a chunk starts (:meth:`Target.build_precond`)
+        and kept when the rest of the cache is rebuilt (it only has to stay near
+        ``K_ii^-1``; the solves meet the same tolerance).
+    """
+
+    h: jax.Array
+    log_norm: jax.Array
+    precond: object = None
+
+
+class Target(NamedTuple):
+    """The posterior seen by the Gibbs kernel (pure functions; see :func:`make_target`).
+
+    Attributes
+    ----------
+    u_logdensity : callable
+        ``(w, eta, cache, interior) -> logp``: log-density of ``w`` given ``eta``, up to
+        terms that do not depend on ``w``; differentiable in ``w``.
+    u_evaluate : callable
+        ``(w, eta, cache, interior) -> (logp, interior, cg_iterations, solve_ok)``, the same
+        value with the interior solution at ``w``.
+    evaluate : callable
+        ``(w, eta, interior, log_norm, precond=None) -> (logp_eta, logp_natural, interior,
+        cg_iterations, solve_ok)``: the joint log-density over ``(w, eta)`` (with the
+        log-Jacobian and the normaliser ``log_norm``) and over the natural parameters
+        ``(u_b, lam, mu)`` (with the normaliser, without the Jacobian), from a solve that
+        does not use the map ``H`` (preconditioned by ``precond`` if given).  The kernel passes
+        ``precond`` only to targets with a ``build_precond``: a target without one may take
+        the first four arguments alone.
+    log_norm : callable
+        ``eta -> ()`` the normaliser term (0 for the paper's prior).
+    build_cache : callable
+        ``(eta, log_norm) -> Cache`` (without a preconditioner).
+    build_precond : callable or None
+        ``eta -> DensePreconditioner`` at those parameters, or ``None`` (block Jacobi).
+    position : callable
+        ``(w, eta) -> theta``, the stored position ``[u_b.ravel(), phi]``.
+    coordinates : callable
+        ``theta -> (w, eta)``, the inverse of ``position``.
+    n_free : int
+    condensed : bool
+        The gradient moves take the interior from the cached map ``H`` (no CG solve).
+    preconditioner : str
+        The CG preconditioner of the target's solves: ``"dense"`` (``build_precond``),
+        ``"spectral"`` or ``"block-jacobi"`` (the posterior's own).
+    """
+
+    u_logdensity: Callable
+    u_evaluate: Callable
+    evaluate: Callable
+    log_norm: Callable
+    build_cache: Callable
+    position: Callable
+    coordinates: Callable
+    n_free: int
+    build_precond: Callable | None = None
+    condensed: bool = False
+    preconditioner: str = "block-jacobi"
+
+
+def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
+                maxiter=1000, precondition: bool = False) -> Target:
+    """:class:`Target` of a :class:`bayesreg.posterior.Posterior`.
+
+    Parameters
+    ----------
+    post : Posterior
+    center_u : (3 n_b,) array
+        ``c`` of ``u_b = c + F w`` (mm).
+    factor : (3 n_b,) or (3 n_b, 3 n_b) array
+        ``F`` (mm per unit of ``w``): a vector of scales or a dense matrix.
+    exact : bool
+        Include the exact normaliser of the elastic prior (``prior_normaliser: exact``).
+    condensed : bool
+        Gradient moves take the interior from the cached dense map ``H`` instead of a CG solve.
+    rtol, maxiter
+        CG tolerance and cap (see :func:`bayesreg.posterior.log_density`).
+    precondition : bool
+        Precondition the CG solves (the elastic moves', and the gradient moves' without
+        ``condensed``) by the dense ``K_ii^-1`` at the chain's parameters when the chunk
+        started (:func:`bayesreg.posterior.preconditioner`): a few iterations instead of
+        a hundred, the same tolerance.
+
+    Returns
+    -------
+    Target
+    """
+
+    c = jnp.asarray(center_u)
+    f = jnp.asarray(factor)
+    nb3 = c.shape[0]
+    dense = f.ndim == 2
+    f_inv = jnp.linalg.inv(f) if dense else 1.0 / f
+
+    def u_of(w):
+        return c + (f @ w if dense else f * w)
+
+    def theta_of(w, eta):
+        phi, _ = from_unconstrained(post.prior, eta)
+        return jnp.concatenate([u_of(w), phi])
+
+    def u_evaluate(w, eta, cache, interior):
+        theta = theta_of(w, eta)
+        if condensed:
+            lp, aux = log_density_condensed(post, theta, cache.h)
+        else:
+            lp, aux = log_density(post, theta, interior, rtol=rtol, maxiter=maxiter, precond=cache.precond)
+        return lp, aux.interior, aux.solve.iterations, aux.solve.converged
+
+    def u_logdensity(w, eta, cache, interior):
+        return u_evaluate(w, eta, cache, interior)[0]
+
+    def log_norm(eta):
+        if not exact:
+            return jnp.zeros(())
+        return log_normaliser(post, from_unconstrained(post.prior, eta)[0])
+
+    def evaluate(w, eta, interior, log_norm_value, precond=None):
+        _, log_jac = from_unconstrained(post.prior, eta)
+        lp, aux = log_density(post, theta_of(w, eta), interior, rtol=rtol, maxiter=maxiter, precond=precond)
+        lp_nat = add_normaliser(lp, log_norm_value)
+        return lp_nat + log_jac, lp_nat, aux.interior, aux.solve.iterations, aux.solve.converged
+
+    def build_cache(eta, log_norm_value):
+        h = condensation(post, theta_of(jnp.zeros(nb3), eta)) if condensed else jnp.zeros((0,))
+        return Cache(h, jnp.asarray(log_norm_value, jnp.float64))
+
+    def coordinates(theta):
+        d = theta[:nb3] - c
+        w = f_inv @ d if dense else f_inv * d
+        return w, to_unconstrained(post.prior, theta[nb3:])
+
+    def build_precond(eta):
+        return preconditioner(post, theta_of(jnp.zeros(nb3), eta))
+
+    if precondition:
+        name = "dense"
+    else:
+        name = "spectral" if post.spectral is not None else "block-jacobi"
+    return Target(u_logdensity, u_evaluate, evaluate, log_norm, build_cache, theta_of, coordinates,
+                  int(post.n_free), build_precond if precondition else None, bool(condensed), name)

@@ -1,0 +1,222 @@
+"""The posterior mode: where the chains start (``init.method: mode``).
+
+:func:`find_mode` maximises the log posterior by L-BFGS (optax, zoom line search) with JAX
+gradients through the interior solve.  It takes a posterior and plain arguments, no config.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from types import SimpleNamespace
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from bayesreg.posterior import Posterior, with_skull_barrier
+from bayesreg.targets import logdensity_fn
+
+__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM"]
+
+MODE_BARRIER_MM = 1.0
+"""Width (mm) of the skull barrier that :func:`find_mode` adds to a model without one."""
+
+
+class ModeSearch(NamedTuple):
+    """Result of :func:`find_mode`.
+
+    Attributes
+    ----------
+    theta : (dim,) ndarray
+        The mode found, ``[u_b.ravel() (mm), phi]``.
+    logp_start, logp_mode : float
+        The searched objective (the barrier included) at the start and at the result.
+    iterations : int
+        L-BFGS iterations, all stages.
+    message : str
+        Why the search stopped (``"converged: ..."``, ``"reached N iterations"``, or that the
+        line search found no feasible step: a hard constraint).
+    parameters_optimized : bool
+    search_barrier_mm : float
+        Width of the skull barrier of the searched objective, mm.
+    parameter_iterations_exact : int or None
+        Iterations of the last stage over the parameters with the exact normaliser.
+    """
+
+    theta: np.ndarray
+    logp_start: float
+    logp_mode: float
+    iterations: int
+    message: str
+    parameters_optimized: bool
+    search_barrier_mm: float
+    parameter_iterations_exact: int | None = None
+
+
+def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_parameters: bool = True,
+              exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000) -> ModeSearch:
+    """Maximise the log posterior from ``theta0`` (L-BFGS, JAX gradients through the solve).
+
+    Optimises ``u_b`` and, with ``optimize_parameters``, the free elastic parameters too;
+    otherwise the parameters stay at ``theta0``'s.  The joint search runs in two stages of
+    ``iterations // 2`` L-BFGS iterations each: ``u_b`` alone at ``theta0``'s parameters,
+    then ``u_b`` and the parameters together, these in the coordinates ``log(phi - r1)``
+    (the result kept a relative margin 1e-3 inside the prior support).  Far from the mode
+    the parameter gradient is meaningless, and the logit coordinates of the sampler
+    (:func:`bayesreg.parameters.from_unconstrained`) saturate at the bounds: a first joint
+    step can take a parameter to its upper bound and never come back.  A step into a hard
+    constraint (``-inf``, also beyond ``r2``) lies outside the line search's domain and is
+    shortened; if no feasible step gains, the search stops and says so in ``message``.
+    Without a skull barrier in the model the search runs on the posterior plus a
+    :data:`MODE_BARRIER_MM` barrier (:func:`bayesreg.constraints.skull_barrier`): on the hard
+    wall alone the line search stalls as soon as the gradient points into the skull, while
+    the barrier's maximum is strictly feasible and within the barrier of the constrained
+    one; the chains sample the model as given.  With ``exact`` the search runs without the
+    normaliser (it depends on the parameters only, and its gradient costs about eight dense
+    factorisations), then the parameters alone are optimised with it (at most 100 steps).
+
+    Parameters
+    ----------
+    post : Posterior
+    theta0 : (dim,) array
+        Start, inside every hard constraint.
+    iterations : int
+        L-BFGS iterations in all (split between the stages).
+    optimize_parameters : bool
+        Optimise the free elastic parameters too.
+    exact : bool
+        The posterior includes the exact normaliser of the elastic prior.
+    rtol, maxiter
+        The CG solve's tolerance and cap.
+
+    Returns
+    -------
+    ModeSearch
+
+    Raises
+    ------
+    ValueError
+        ``theta0`` violates a hard constraint (skull, inverted element).
+    """
+    search_barrier = post.barrier_width
+    if search_barrier == 0.0:
+        search_barrier = MODE_BARRIER_MM
+        post = with_skull_barrier(post, search_barrier)
+    nb3 = 3 * post.n_boundary
+    theta0 = np.asarray(theta0, dtype=np.float64)
+    zeros = jnp.zeros((post.op.n_interior, 3))
+    # the exact normaliser depends on lam, mu only: u_b (and the parameters) are first
+    # optimised without it (its gradient costs about eight dense factorisations), then the
+    # parameters alone with it (below)
+    logdensity = logdensity_fn(post, exact=False, rtol=rtol, maxiter=maxiter)
+    joint = optimize_parameters
+    free = slice(0, post.dim if joint else nb3)
+
+    steps = {}  # one jitted L-BFGS step (and its solver) per objective, shared by its searches
+
+    def maximise(logdensity, theta, sl, maxiter):
+        """L-BFGS (optax, zoom line search) over ``theta[sl]``, the rest of ``theta`` held.
+
+        The rest is held by a mask (``stop_gradient`` outside ``sl``): with zero gradient
+        components L-BFGS's directions have zero components there, so the search is the one
+        over ``theta[sl]`` alone, and the searches of one objective over different slices
+        share one compiled step.
+
+        A step into a hard constraint (``log p = -inf``) is outside the domain for the line
+        search, which shortens it (a line search fed a huge value with a zero gradient
+        there, as SciPy's L-BFGS-B's, collapses and reports convergence far from the
+        mode)."""
+        if logdensity not in steps:
+            solver = optax.lbfgs()
+
+            @jax.jit
+            def step(x, state, mask):
+                def neg(y):
+                    return -logdensity(jnp.where(mask, y, jax.lax.stop_gradient(y)), zeros)[0]
+
+                v, g = optax.value_and_grad_from_state(neg)(x, state=state)
+                upd, state = solver.update(g, state, x, value=v, grad=g, value_fn=neg)
+                return optax.apply_updates(x, upd), state, v, g
+
+            steps[logdensity] = step, solver
+        step, solver = steps[logdensity]
+        mask = np.zeros(len(theta), bool)
+        mask[sl] = True
+        step = partial(step, mask=jnp.asarray(mask))
+
+        x = jnp.asarray(theta)
+        state = solver.init(x)
+        # optax's initial state holds weakly typed scalars that its update returns strongly
+        # typed (same dtypes): made strong here so that `step` compiles once, not twice
+        state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), state)
+        best_x, best_f, message, nit = x, np.inf, f"reached {maxiter} iterations", 0
+        for nit in range(1, maxiter + 1):
+            x_new, state, v, g = step(x, state)
+            v = float(v)  # the value at x
+            if nit == 1:  # the start's value from the first step (no separate compilation of neg)
+                start = -v
+                if not np.isfinite(start):
+                    raise ValueError("the central start violates a hard constraint (skull, inverted element)")
+                best_f = v
+            if np.isfinite(v) and v <= best_f:
+                best_x, best_f = x, v
+            f_new = float(optax.tree.get(state, "value"))
+            if not np.isfinite(f_new):
+                message = "line search found no feasible step"
+                break
+            x = x_new
+            if f_new < best_f:
+                best_x, best_f = x, f_new
+            g_norm = float(jnp.linalg.norm(g))
+            if f_new == v and g_norm > 1e-8:
+                message = "no step: the line search found no feasible decrease (a hard constraint)"
+                break
+            if abs(v - f_new) <= 1e-10 * max(abs(f_new), 1.0) or g_norm <= 1e-8:
+                message = "converged: relative reduction <= 1e-10 or gradient norm <= 1e-8"
+                break
+        out = theta.copy()
+        out[sl] = np.asarray(best_x)[sl]  # (the rest unchanged: held by the mask)
+        return out, start, SimpleNamespace(fun=best_f, nit=nit, message=message)
+
+    # the parameters move in the coordinates x = log(phi - r1) (the same objective, no
+    # Jacobian: this is the mode over phi): positive by construction, a step beyond r2 is
+    # -inf (outside the line search's domain), and unlike the sampler's logit coordinates
+    # the gradient does not vanish near the upper bound
+    lo, hi = np.maximum(np.asarray(post.prior.r1), 0.0), np.asarray(post.prior.r2)
+    margin = 1e-3
+
+    def in_log(logdensity):
+        def f(x, guess):
+            phi = lo + jnp.exp(x[nb3:])
+            return logdensity(jnp.concatenate([x[:nb3], phi]), guess)
+        return f
+
+    def clip(phi):  # parameters kept the relative margin inside their support
+        return np.clip(phi, lo + margin * (hi - lo), hi - margin * (hi - lo))
+
+    def to_log(theta):
+        return np.concatenate([theta[:nb3], np.log(clip(theta[nb3:]) - lo)])
+
+    def to_theta(x):
+        return np.concatenate([x[:nb3], clip(lo + np.exp(x[nb3:]))])
+
+    iters = iterations
+    x = to_log(theta0)
+    objective = in_log(logdensity)
+    if joint and post.n_free:  # stage 1: u_b alone at theta0's parameters
+        x, start, res1 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1))
+        x, _, res = maximise(objective, x, free, max(iters - iters // 2, 1))
+        nit = res1.nit + res.nit
+    else:
+        x, start, res = maximise(objective, x, free, iters)
+        nit = res.nit
+    logp_mode, exact_its = -float(res.fun), None
+    if joint and exact and post.n_free:
+        x, _, res_p = maximise(in_log(logdensity_fn(post, exact=True, rtol=rtol, maxiter=maxiter)),
+                               x, slice(nb3, post.dim), 100)
+        logp_mode, exact_its = -float(res_p.fun), int(res_p.nit)
+    theta = to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])
+    return ModeSearch(theta, float(start), logp_mode, int(nit), str(res.message), bool(joint),
+                      float(search_barrier), exact_its)

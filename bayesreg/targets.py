@@ -1,0 +1,148 @@
+"""What the samplers run for a problem under a config: log-densities, kernels' ingredients.
+
+:func:`logdensity_fn` closes the posterior's log-density (:func:`bayesreg.posterior.log_density`)
+over the solver's tolerance and the prior normaliser; :func:`make_logdensity` does so from a
+config.  :func:`dense_preconditioning` decides whether the chains' CG solves use a dense
+``K_ii^-1`` per chain (``solver.preconditioner``), :func:`rw_preconditioner` and
+:func:`rw_condensation` build the random walk's cached preconditioner and interior map, and
+:func:`gradient_target` the gradient kernels' :class:`~bayesreg.kernels.target.Target`.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from bayesreg.config import Config
+from bayesreg.kernels.rwmh import Condensation, Preconditioner
+from bayesreg.kernels.target import Target, make_target
+from bayesreg.normaliser import add_normaliser
+from bayesreg.posterior import (
+    Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
+    split_position)
+from bayesreg.preconditioners import DENSE_MAX_DOFS
+from bayesreg.problem import Problem
+
+__all__ = ["logdensity_fn", "make_logdensity", "dense_budget_bytes", "dense_preconditioning",
+           "cg_preconditioner", "rw_preconditioner", "rw_condensation", "gradient_target",
+           "DENSE_HOST_BUDGET"]
+
+
+def logdensity_fn(post: Posterior, *, exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000,
+                  preconditioned: bool = False):
+    """``(theta, interior_guess) -> (logp, aux)`` closed over the posterior (for the samplers).
+
+    Parameters
+    ----------
+    post : Posterior
+    exact : bool
+        Add the exact normaliser ``(1/2) log pdet S(lam, mu)``
+        (:func:`bayesreg.posterior.log_normaliser`, one dense factorisation).
+    rtol, maxiter
+        The CG solve's tolerance and cap (:func:`bayesreg.posterior.log_density`).
+    preconditioned : bool
+        Return ``(theta, interior_guess, precond) -> (logp, aux)`` instead, the interior
+        solve preconditioned by ``precond`` (:func:`bayesreg.posterior.preconditioner`).
+    """
+    base = partial(log_density, post, rtol=rtol, maxiter=maxiter)
+
+    def logdensity(theta, interior, precond=None):
+        lp, aux = base(theta, interior, precond=precond)
+        if not exact:
+            return lp, aux
+        ln = log_normaliser(post, split_position(post, theta)[1])
+        return add_normaliser(lp, ln), aux
+
+    if preconditioned:
+        return logdensity
+    return lambda theta, interior: logdensity(theta, interior)
+
+
+def make_logdensity(problem: Problem, cfg: Config, *, preconditioned: bool = False):
+    """:func:`logdensity_fn` of ``problem`` with ``model.prior_normaliser`` and ``solver.*``."""
+    return logdensity_fn(problem.posterior, exact=cfg.model.prior_normaliser == "exact",
+                         rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter,
+                         preconditioned=preconditioned)
+
+
+DENSE_HOST_BUDGET = 2 * 2**30  # bytes of the chains' float32 K_ii^-1 together, on a CPU
+
+
+def dense_budget_bytes() -> int:
+    """Bytes that the chains' dense preconditioners (float32 ``K_ii^-1``) may take together.
+
+    On a CPU :data:`DENSE_HOST_BUDGET` (2 GiB).  On an accelerator that reports its memory
+    (``memory_stats()['bytes_limit']`` of the default device), a sixteenth of it and at
+    least 2 GiB: building the inverses peaks at about 4 times their float32 size (float64
+    ``K_ii`` and its factor), so the build stays within a quarter of the device.
+    """
+    if jax.default_backend() == "cpu":
+        return DENSE_HOST_BUDGET
+    try:
+        limit = int((jax.devices()[0].memory_stats() or {})["bytes_limit"])
+    except (KeyError, TypeError, ValueError, RuntimeError, NotImplementedError):
+        return DENSE_HOST_BUDGET  # a backend that does not report its memory
+    return max(DENSE_HOST_BUDGET, limit // 16)
+
+
+def dense_preconditioning(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> bool:
+    """Whether the samplers' CG solves use the dense preconditioner (``solver.preconditioner``).
+
+    ``auto``: not where the posterior has the spectral one (one parameter group, see
+    :func:`cg_preconditioner`); else where ``3 n_i <= DENSE_MAX_DOFS`` (4096) and the
+    chains' float32 inverses, ``4 (3 n_i)^2`` bytes each, fit :func:`dense_budget_bytes`
+    together (2 GiB on a CPU; the paper's size: about 8 MB a chain).  ``n_chains`` defaults
+    to ``sampler.chains``.
+    """
+    choice = cfg.solver.preconditioner
+    if choice != "auto":
+        return choice == "dense"
+    if problem.posterior.spectral is not None:
+        return False
+    n = 3 * problem.posterior.op.n_interior
+    chains = cfg.sampler.chains if n_chains is None else n_chains
+    return n <= DENSE_MAX_DOFS and chains * 4 * n * n <= dense_budget_bytes()
+
+
+def cg_preconditioner(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> str:
+    """Name of the samplers' CG preconditioner: ``spectral``, ``dense`` or ``block-jacobi``."""
+    if dense_preconditioning(problem, cfg, n_chains=n_chains):
+        return "dense"
+    return "spectral" if problem.posterior.spectral is not None else "block-jacobi"
+
+
+def rw_preconditioner(problem: Problem, cfg: Config) -> Preconditioner:
+    """The random walk's :class:`~bayesreg.kernels.rwmh.Preconditioner` (dense ``K_ii^-1``)."""
+    post = problem.posterior
+    return Preconditioner(make_logdensity(problem, cfg, preconditioned=True),
+                          lambda theta: preconditioner(post, theta))
+
+
+def rw_condensation(problem: Problem, cfg: Config) -> Condensation:
+    """The random walk's :class:`~bayesreg.kernels.rwmh.Condensation` of the ``u_b`` block
+    (cache ``(H, log_norm)``, ``sampler.u_moves`` moves per step)."""
+    post = problem.posterior
+    exact = cfg.model.prior_normaliser == "exact"
+
+    def build(theta):
+        ln = log_normaliser(post, split_position(post, theta)[1]) if exact else jnp.zeros(())
+        return condensation(post, theta), ln
+
+    def logdensity(theta, cache):
+        lp, aux = log_density_condensed(post, theta, cache[0])
+        return add_normaliser(lp, cache[1]), aux
+
+    return Condensation(logdensity, build, 0, cfg.sampler.u_moves)
+
+
+def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
+    """The gradient kernels' target of ``problem`` in the coordinates ``u_b = center + factor w``
+    (:func:`bayesreg.kernels.target.make_target`; ``center`` ``(dim,)``, of which the first
+    ``3 n_b`` entries are used)."""
+    post = problem.posterior
+    return make_target(post, center_u=center[:3 * post.n_boundary], factor=factor,
+                       exact=cfg.model.prior_normaliser == "exact",
+                       condensed=cfg.sampler.use_condensed, rtol=cfg.solver.rtol,
+                       maxiter=cfg.solver.maxiter, precondition=dense_preconditioning(problem, cfg))
