@@ -17,8 +17,17 @@ Exit status 2 on bad input (the message names the problem), 0 on success.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
+
+from bayesreg import __version__
+from bayesreg.checkpoint import Checkpoint
+from bayesreg.config import Config, ConfigError, load_config
+from bayesreg.jaxconfig import configure_jax
+from bayesreg.outputs import RunResult, format_report
+from bayesreg.pipeline import run
+from bayesreg.report import write_report
 
 __all__ = ["main", "PAPER_CONFIGS"]
 
@@ -29,8 +38,6 @@ PAPER_CONFIGS = {
 
 
 def _parser():
-    from bayesreg import __version__
-
     p = argparse.ArgumentParser(prog="bayesreg", description="Bayesian biomechanical registration")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
@@ -94,10 +101,6 @@ def _check_same_config(config, out: Path, overrides) -> None:
         The configs differ (up to five differing keys named), or the run's saved config
         cannot be read.
     """
-    import json
-
-    from bayesreg.checkpoint import Checkpoint
-    from bayesreg.config import Config, ConfigError, load_config
 
     want = load_config(config, overrides=overrides)
     ckpt = Checkpoint(out)
@@ -122,10 +125,6 @@ def _check_same_config(config, out: Path, overrides) -> None:
 def _run_or_resume(config, out: Path, overrides, progress):
     """Run ``config`` into ``out``; resume it if unfinished; reuse it if finished (either
     only if it was made with ``config`` and ``overrides``: :func:`_check_same_config`)."""
-    import json
-
-    from bayesreg.outputs import RunResult
-    from bayesreg.pipeline import run
 
     if (out / "run.json").is_file() or (out / "checkpoint" / "config.json").is_file():
         _check_same_config(config, out, overrides)
@@ -168,9 +167,6 @@ def _report_runs(items) -> dict:
 def main(argv=None) -> int:
     """The ``bayesreg`` command; returns the exit status (0 success, 2 bad input)."""
     args = _parser().parse_args(argv)
-    from bayesreg.config import ConfigError
-    from bayesreg.jaxconfig import configure_jax
-
     configure_jax()
 
     # bad input and file-system errors (a path that is a file, a missing or damaged file,
@@ -179,8 +175,6 @@ def main(argv=None) -> int:
     progress = False if getattr(args, "no_progress", False) else None
     try:
         if args.command == "run":
-            from bayesreg.outputs import format_report
-            from bayesreg.pipeline import run
 
             if (args.config is None) == (args.resume is None):
                 raise ValueError("give either CONFIG or --resume RUN_DIR")
@@ -196,8 +190,6 @@ def main(argv=None) -> int:
             print(f"wall time before outputs {t.get('total_before_outputs_s', float('nan')):.1f} s; "
                   f"outputs in {res.dir}")
         elif args.command == "reproduce":
-            from bayesreg.outputs import format_report
-            from bayesreg.report import write_report
 
             cdir = _configs_dir(args.configs)
             out = Path(args.out or ("runs/paper" if args.variant == "paper" else f"runs/paper_{args.variant}"))
@@ -212,7 +204,6 @@ def main(argv=None) -> int:
             path = write_report(runs, out / "report", overwrite=True)
             print(f"report in {path / 'report.md'}")
         elif args.command == "report":
-            from bayesreg.report import write_report
 
             path = write_report(_report_runs(args.runs), args.out, overwrite=args.overwrite)
             print(f"report in {path / 'report.md'}")

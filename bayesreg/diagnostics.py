@@ -100,8 +100,7 @@ def geyer_ess(rho, n_chain: int, n_draw: int, *, relative: bool = False) -> floa
     sequence, the pair sums before it are made non-increasing (running minimum), and
     ``tau = -1 + 2 sum(pairs) + rho_2K``, floored at ``1 / log10(C D)``.  Here the end of
     the sequence is found with one search over all pair sums, so the cost no longer grows
-    with the autocorrelation time (in ArviZ's loop, at 2,500 draws per chain of a
-    paper-kernel run: about 1,200 lags and 12 ms per call, profiled).
+    with the autocorrelation time (ArviZ's loop visits every lag up to the end).
 
     Parameters
     ----------
@@ -195,9 +194,8 @@ def arviz_fast_ess():
     quantiles, MCSE, R-hat); only the search for the end of Geyer's initial positive
     sequence is vectorised.  Through ArviZ's documented ``stats.module`` rcParam, restored
     on exit, so a user's own settings are untouched (and a backend the user chose, e.g.
-    ``"numba"``, is left in place).  Measured on the draws of a paper-kernel run (3 chains
-    x 2,500 draws, 1,035 estimands, 2-core CPU, profiled): ``az.summary`` 72 s -> 8.4 s;
-    the whole output stage of 3 x 25,000 draws 454 s -> 91 s (``benchmarks/README.md``).
+    ``"numba"``, is left in place).  It matters for long, slowly mixing runs, where the
+    initial positive sequence runs over thousands of lags.
     """
     global _BACKEND
     from arviz_base import rc_context, rcParams

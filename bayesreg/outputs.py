@@ -48,7 +48,7 @@ from typing import NamedTuple
 import meshio
 import numpy as np
 
-from bayesreg._files import replace_durably
+from bayesreg._files import write_text_atomic
 from bayesreg.chains import available_cores
 from bayesreg.config import Config
 from bayesreg.convergence import gelman_rubin
@@ -64,7 +64,7 @@ from bayesreg.rundir import RunDirectory
 from bayesreg.sampler import SamplerResult
 from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
-__all__ = ["RunResult", "write_outputs", "error_table", "format_report"]
+__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "summary_table"]
 
 
 class RunResult(NamedTuple):
@@ -84,12 +84,6 @@ class RunResult(NamedTuple):
     summary: object
     errors: dict | None
     info: dict
-
-
-def _atomic_text(path: Path, text: str):
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    replace_durably(tmp, path)
 
 
 def _versions():
@@ -163,7 +157,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
     }
 
 
-def _summary(tree, small: list, big: str, dim: str, *, parts: int | None = None):
+def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = None):
     """``az.summary`` of the variables ``small + [big]`` (90% equal-tailed intervals), the
     rows of ``big`` computed in ``parts`` threads over contiguous blocks of its ``dim``.
 
@@ -302,7 +296,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
         with arviz_fast_ess():  # ArviZ's numbers, without its Python loop over lags
-            summary = _summary(tree, ["lam", "mu", "ratio"], "u_b", "node")
+            summary = summary_table(tree, ["lam", "mu", "ratio"], "u_b", "node")
         classic, split = [], []
         for v in var_names:
             x = np.asarray(tree.posterior[v].values)
@@ -410,7 +404,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
     }
-    _atomic_text(run_dir.file("errors.json"), json.dumps(errors, indent=2))
-    _atomic_text(run_dir.file("run.json"), json.dumps(info, indent=2))
+    write_text_atomic(run_dir.file("errors.json"), json.dumps(errors, indent=2))
+    write_text_atomic(run_dir.file("run.json"), json.dumps(info, indent=2))
     path = run_dir.commit()
     return RunResult(path, tree, summary, errors, info)

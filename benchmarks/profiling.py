@@ -2,8 +2,8 @@
 
 Shared by ``profile_step.py`` and ``run.py``'s figure 2b.  The log-density and the random
 walk carry :func:`jax.named_scope` names (:data:`bayesreg.posterior.SCOPES`,
-:data:`bayesreg.sampler.PROPOSAL_SCOPE`, :data:`bayesreg.sampler.ACCEPT_SCOPE`,
-:data:`bayesreg.sampler.CACHE_SCOPE`) into the
+:data:`bayesreg.kernels.rwmh.PROPOSAL_SCOPE`, :data:`bayesreg.kernels.rwmh.ACCEPT_SCOPE`,
+:data:`bayesreg.kernels.rwmh.CACHE_SCOPE`) into the
 ``op_name`` metadata of the optimised HLO.  A :func:`jax.profiler` trace names, for each
 operation it ran, the HLO instruction and the program (``hlo_op``, ``program_id``); the HLO
 that XLA dumps (``--xla_dump_to``, :func:`enable_hlo_dump`) maps the instruction to its
@@ -76,7 +76,7 @@ def parts() -> dict:
     (the log-density's and the kernel's; the cache build holds no log-density): an
     operation's ``op_name`` holds at most one of them, under the jit/scan/cond path."""
     from bayesreg.posterior import SCOPES
-    from bayesreg.sampler import ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE
+    from bayesreg.kernels.rwmh import ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE
 
     out = dict(SCOPES)
     out["proposal"] = PROPOSAL_SCOPE

@@ -29,7 +29,9 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     # default 1 s; the shared fixtures' log-densities and solves compile in 0.3-1 s each
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.3")
 
-import bayesreg  # noqa: E402, F401  (configures JAX: float64, XLA flags)
+import bayesreg  # noqa: E402
+
+bayesreg.configure_jax()  # float64, XLA flags, BLAS threads: before any JAX computation
 from bayesreg.mesh import Mesh, boundary_nodes, orient_tets  # noqa: E402
 
 
@@ -76,9 +78,9 @@ def centred_cube() -> Mesh:
 @pytest.fixture(scope="session")
 def brain():
     """The MNI152 brain at 2 mm with labels and a coarse (~440 node) mesh."""
-    from bayesreg.images import mni152
+    from bayesreg.datasets import mni152
     from bayesreg.labels import labels_from_probabilities
-    from bayesreg.mesh import carve_skull, mesh_brain
+    from bayesreg.meshing import carve_skull, mesh_brain
 
     t1, gm, wm, mask = mni152(2.0)
     labels = labels_from_probabilities(gm, wm, mask)

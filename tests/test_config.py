@@ -131,7 +131,7 @@ def test_preconditioner_choice_follows_size_and_memory():
     4096`` DOFs, at most 2 GiB for all chains), else block Jacobi; a bad value names the key."""
     from types import SimpleNamespace
 
-    from bayesreg.pipeline import cg_preconditioner, dense_preconditioning
+    from bayesreg.targets import cg_preconditioner, dense_preconditioning
 
     def problem(n_interior, spectral=None):
         return SimpleNamespace(posterior=SimpleNamespace(op=SimpleNamespace(n_interior=n_interior),
@@ -158,37 +158,37 @@ def test_preconditioner_choice_follows_size_and_memory():
 
 def test_dense_budget_follows_the_device_memory(monkeypatch):
     """``auto``'s budget for the chains' dense inverses: 2 GiB on a CPU; on an accelerator a
-    sixteenth of the memory it reports (the H200 of 2026-11-26: dense at 256 chains of the
-    paper's size, where it ran 2x block Jacobi, block Jacobi at 1,024), at least 2 GiB, and
-    2 GiB where the device reports no memory."""
+    sixteenth of the memory it reports (an H200's 112.6 GB: dense at 256 chains of the paper's
+    size, block Jacobi at 1,024), at least 2 GiB, and 2 GiB where the device reports no
+    memory."""
     from types import SimpleNamespace
 
     import jax
 
-    from bayesreg import pipeline
+    from bayesreg import targets
 
     post = SimpleNamespace(op=SimpleNamespace(n_interior=493), spectral=None)  # 1,479 DOFs
     problem = SimpleNamespace(posterior=post)
     cfg = load_config("configs/paper_three_compartment.yaml")
-    assert pipeline.dense_budget_bytes() == 2 * 2**30  # the tests run on a CPU
-    assert pipeline.dense_preconditioning(problem, cfg, n_chains=245)  # 2.14 GB <= 2 GiB
-    assert not pipeline.dense_preconditioning(problem, cfg, n_chains=256)  # 2.24 GB
+    assert targets.dense_budget_bytes() == 2 * 2**30  # the tests run on a CPU
+    assert targets.dense_preconditioning(problem, cfg, n_chains=245)  # 2.14 GB <= 2 GiB
+    assert not targets.dense_preconditioning(problem, cfg, n_chains=256)  # 2.24 GB
 
     def device(stats):
         return SimpleNamespace(memory_stats=lambda: stats)
 
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     monkeypatch.setattr(jax, "devices", lambda *a: [device({"bytes_limit": 112_583_507_968})])
-    assert pipeline.dense_budget_bytes() == 112_583_507_968 // 16
-    assert pipeline.dense_preconditioning(problem, cfg, n_chains=256)
-    assert pipeline.dense_preconditioning(problem, cfg, n_chains=800)  # 7.0 GB
-    assert not pipeline.dense_preconditioning(problem, cfg, n_chains=1024)  # 8.96 GB
-    assert pipeline.cg_preconditioner(problem, cfg, n_chains=1024) == "block-jacobi"
+    assert targets.dense_budget_bytes() == 112_583_507_968 // 16
+    assert targets.dense_preconditioning(problem, cfg, n_chains=256)
+    assert targets.dense_preconditioning(problem, cfg, n_chains=800)  # 7.0 GB
+    assert not targets.dense_preconditioning(problem, cfg, n_chains=1024)  # 8.96 GB
+    assert targets.cg_preconditioner(problem, cfg, n_chains=1024) == "block-jacobi"
     monkeypatch.setattr(jax, "devices", lambda *a: [device({"bytes_limit": 8 * 2**30})])
-    assert pipeline.dense_budget_bytes() == 2 * 2**30  # a small device: never below the CPU's
+    assert targets.dense_budget_bytes() == 2 * 2**30  # a small device: never below the CPU's
     for stats in (None, {}, {"bytes_in_use": 0}):
         monkeypatch.setattr(jax, "devices", lambda *a, stats=stats: [device(stats)])
-        assert pipeline.dense_budget_bytes() == 2 * 2**30
+        assert targets.dense_budget_bytes() == 2 * 2**30
 
 
 def test_paper_configs_mesh_to_the_papers_node_count():

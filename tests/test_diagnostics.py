@@ -89,7 +89,7 @@ def test_running_rhat_equals_the_statistic_of_the_concatenated_draws(split):
     """Chunks of different lengths (an odd total, halves that cut a chunk), estimands that
     map draws to other scalars, a chain that never moves: the running statistic is the
     direct one to rounding."""
-    from bayesreg.diagnostics import RunningGelmanRubin, gelman_rubin
+    from bayesreg.convergence import RunningGelmanRubin, gelman_rubin
 
     rng = np.random.default_rng(5)
     x = rng.normal(size=(3, 47, 4)) + np.arange(3)[:, None, None] * 0.3

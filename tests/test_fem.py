@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bayesreg import fem
+from bayesreg import fem, stiffness
 from conftest import box_mesh
 
 
@@ -104,7 +104,7 @@ def test_mesh_with_non_integer_tets_or_non_finite_nodes_raises():
         with pytest.raises(ValueError, match=r"nodes must be finite, got NaN or inf at node\(s\) \[3\]"):
             fem.shape_gradients(nodes, m.tets)
         with pytest.raises(ValueError, match="nodes must be finite"):
-            fem.build_operator(nodes, m.tets, m.boundary)
+            stiffness.build_operator(nodes, m.tets, m.boundary)
 
 
 def test_negative_or_non_finite_lame_parameters_raise():
@@ -142,13 +142,13 @@ def test_build_operator_rejects_bad_boundary_indices():
     ]
     for boundary, match in cases:
         with pytest.raises(ValueError, match=match):
-            fem.build_operator(m.nodes, m.tets, boundary)
+            stiffness.build_operator(m.nodes, m.tets, boundary)
     # a boolean mask of length N and integral floats give the operator of the indices
     mask = np.zeros(n, bool)
     mask[b] = True
-    op, interior = fem.build_operator(m.nodes, m.tets, b)
+    op, interior = stiffness.build_operator(m.nodes, m.tets, b)
     for other in (mask, b.astype(float)):
-        op2, interior2 = fem.build_operator(m.nodes, m.tets, other)
+        op2, interior2 = stiffness.build_operator(m.nodes, m.tets, other)
         np.testing.assert_array_equal(interior2, interior)
         np.testing.assert_array_equal(np.asarray(op2.boundary), b)
         np.testing.assert_array_equal(np.asarray(op2.slot_ib), np.asarray(op.slot_ib))
@@ -157,7 +157,7 @@ def test_build_operator_rejects_bad_boundary_indices():
 
 def test_operator_blocks_check_the_parameter_shapes():
     m = box_mesh((1, 1, 1))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     lam = np.ones(len(m.tets))
     with pytest.raises(ValueError, match=r"lam_e must have shape \(6,\) \(one value per element\), got \(5,\)"):
         op.blocks(lam[:-1], lam)
@@ -171,7 +171,7 @@ def test_ell_operator_matches_scipy_blocks():
     m = box_mesh((3, 3, 3))
     lam = np.linspace(1.0, 30.0, len(m.tets))
     mu = np.linspace(0.5, 2.0, len(m.tets))
-    op, interior = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, interior = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     k = fem.stiffness_matrix(m.nodes, m.tets, lam, mu)
     idf = (3 * interior[:, None] + np.arange(3)).ravel()
     bd = (3 * m.boundary[:, None] + np.arange(3)).ravel()
@@ -181,25 +181,25 @@ def test_ell_operator_matches_scipy_blocks():
     xi = rng.normal(size=(len(interior), 3))
     xb = rng.normal(size=(len(m.boundary), 3))
     np.testing.assert_allclose(
-        np.asarray(fem.ell_matvec(b_ii, op.cols_ii, op.row_ii, jnp.asarray(xi))).ravel(),
+        np.asarray(stiffness.ell_matvec(b_ii, op.cols_ii, op.row_ii, jnp.asarray(xi))).ravel(),
         k_ii @ xi.ravel(), rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(
-        np.asarray(fem.ell_matvec(b_ib, op.cols_ib, op.row_ib, jnp.asarray(xb))).ravel(),
+        np.asarray(stiffness.ell_matvec(b_ib, op.cols_ib, op.row_ib, jnp.asarray(xb))).ravel(),
         k_ib @ xb.ravel(), rtol=1e-12, atol=1e-10)
     # the dense forms and the diagonal blocks of the sliced layout
-    np.testing.assert_allclose(np.asarray(fem.ell_dense(b_ii, op.cols_ii, op.row_ii, len(interior))),
+    np.testing.assert_allclose(np.asarray(stiffness.ell_dense(b_ii, op.cols_ii, op.row_ii, len(interior))),
                                k_ii, rtol=0, atol=1e-12 * np.abs(k_ii).max())
-    np.testing.assert_allclose(np.asarray(fem.ell_dense(b_ib, op.cols_ib, op.row_ib, len(m.boundary))),
+    np.testing.assert_allclose(np.asarray(stiffness.ell_dense(b_ib, op.cols_ib, op.row_ib, len(m.boundary))),
                                k_ib, rtol=0, atol=1e-12 * np.abs(k_ib).max())
     diag = np.stack([k_ii[3 * r:3 * r + 3, 3 * r:3 * r + 3] for r in range(len(interior))])
-    np.testing.assert_allclose(np.asarray(fem.ell_diagonal(b_ii, op.row_ii)), diag, rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(stiffness.ell_diagonal(b_ii, op.row_ii)), diag, rtol=1e-14)
 
 
 def test_sliced_ell_layout_stores_every_block_once_and_little_padding():
     """Every nonzero 3x3 block of K_ii and K_ib has one slot; rows sorted by degree into
     ELL_SLICES slices, each as wide as its widest row; row_ii, row_ib are permutations."""
     m = box_mesh((4, 3, 3))
-    op, interior = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, interior = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     n_i, n_b = len(interior), len(m.boundary)
     k = fem.stiffness_matrix(m.nodes, m.tets, 1.0, 1.0)
     pattern = (abs(k) > 0).astype(int)
@@ -209,7 +209,7 @@ def test_sliced_ell_layout_stores_every_block_once_and_little_padding():
             blk |= pattern[a::3, b::3].toarray() > 0
     for cols, rows, other, n_col in ((op.cols_ii, op.row_ii, interior, n_i),
                                      (op.cols_ib, op.row_ib, np.asarray(m.boundary), n_b)):
-        assert len(cols) == fem.ELL_SLICES
+        assert len(cols) == stiffness.ELL_SLICES
         np.testing.assert_array_equal(np.sort(np.asarray(rows)), np.arange(n_i))
         c = [np.asarray(x) for x in cols]
         degree = np.concatenate([(x < n_col).sum(1) for x in c])
@@ -227,9 +227,9 @@ def test_group_blocks_combine_to_the_element_assembly():
     import jax.numpy as jnp
 
     m = box_mesh((3, 3, 3))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     group = np.arange(len(m.tets)) % 3
-    gb = fem.group_blocks(op, group, 3)
+    gb = stiffness.group_blocks(op, group, 3)
     assert [a.shape for a in gb.lam_ii] == [(3,) + c.shape + (3, 3) for c in op.cols_ii]
     assert [a.shape for a in gb.mu_ib] == [(3,) + c.shape + (3, 3) for c in op.cols_ib]
     lam_g, mu_g = np.array([0.7, 12.0, 31.0]), np.array([0.3, 1.0, 2.5])
@@ -239,6 +239,6 @@ def test_group_blocks_combine_to_the_element_assembly():
         scale = float(jnp.max(jnp.abs(b)))
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-13 * scale)
     with pytest.raises(ValueError, match="group must have shape"):
-        fem.group_blocks(op, group[:-1], 3)
+        stiffness.group_blocks(op, group[:-1], 3)
     with pytest.raises(ValueError, match="group must have shape"):
-        fem.group_blocks(op, group, 2)
+        stiffness.group_blocks(op, group, 2)

@@ -16,7 +16,7 @@ from bayesreg.images import (
     save_nifti,
     to_reference_grid,
 )
-from bayesreg.synthetic import interpolation_matrix, locate, warp_image
+from bayesreg.warp import interpolation_matrix, locate, warp_image
 from conftest import box_mesh
 
 

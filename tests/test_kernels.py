@@ -3,15 +3,13 @@
 import numpy as np
 import pytest
 
-from bayesreg import _xla
+import arviz as az
+import jax
+import jax.numpy as jnp
 
-_xla.configure()
-import arviz as az  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-
-from bayesreg import kernels as gk  # noqa: E402
-from bayesreg.sampler import sample_gradient  # noqa: E402
+from bayesreg.kernels import gibbs as gk
+from bayesreg.kernels.target import Cache, Target
+from bayesreg.sampler import sample_gradient
 
 D = 4
 S = np.array([0.5, 1.0, 2.0, 0.2])  # conditional scales of u given eta = 0
@@ -19,7 +17,7 @@ A = 1.5  # E[u | eta] = A * eta
 M_ETA, SD_ETA = 0.3, 0.15
 
 
-def toy_target() -> gk.Target:
+def toy_target() -> Target:
     """``eta ~ N(0.3, 0.15^2)``, ``u | eta ~ N(A eta, exp(eta)^2 diag S^2)``.
 
     Written as the posterior is: an unnormalised conditional of ``u`` (the "elastic prior")
@@ -47,7 +45,7 @@ def toy_target() -> gk.Target:
         return lp, lp, interior, jnp.asarray(0), jnp.asarray(True)
 
     def build_cache(eta, ln):
-        return gk.Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64))
+        return Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64))
 
     def position(w, eta):
         return jnp.concatenate([u_of(w), eta])
@@ -55,7 +53,7 @@ def toy_target() -> gk.Target:
     def coordinates(theta):
         return theta[:D] / f, theta[D:]
 
-    return gk.Target(u_lp, u_evaluate, evaluate, log_norm, build_cache, position, coordinates, 1)
+    return Target(u_lp, u_evaluate, evaluate, log_norm, build_cache, position, coordinates, 1)
 
 
 @pytest.mark.parametrize("kind,adapt_mass", [("mala", True), ("hmc", True), ("nuts", True), ("nuts", False)])
@@ -92,7 +90,7 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
 ETA_COV = np.array([[0.04, 0.0392], [0.0392, 0.04]])  # sd 0.2, correlation 0.98
 
 
-def correlated_target() -> gk.Target:
+def correlated_target() -> Target:
     """``eta ~ N(0, ETA_COV)`` (two strongly correlated "elastic parameters", like the overall
     stiffness scale under the exact normaliser), ``u | eta ~ N((eta_0 - eta_1) 1, I)``."""
     prec = jnp.asarray(np.linalg.inv(ETA_COV))
@@ -104,9 +102,9 @@ def correlated_target() -> gk.Target:
         lp = u_lp(w, eta, None, interior) + ln
         return lp, lp, interior, jnp.asarray(0), jnp.asarray(True)
 
-    return gk.Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
+    return Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
                      evaluate, lambda eta: jnp.zeros(()),
-                     lambda eta, ln: gk.Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
+                     lambda eta, ln: Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
                      lambda w, eta: jnp.concatenate([w, eta]), lambda theta: (theta[:2], theta[2:]), 2)
 
 
@@ -209,17 +207,17 @@ def test_warmup_and_sampling_chunks_compile_one_program():
     assert compiled.get("jit(mapped)") == 1, compiled
 
 
-def gaussian_target(dim: int) -> gk.Target:
+def gaussian_target(dim: int) -> Target:
     """``u ~ N(0, I)``, no elastic parameters (``n_free = 0``)."""
 
     def u_lp(w, eta, cache, interior):
         return -0.5 * jnp.sum(w**2)
 
-    return gk.Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
+    return Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
                      lambda w, eta, i, ln: (u_lp(w, eta, None, i), u_lp(w, eta, None, i), i, jnp.asarray(0),
                                             jnp.asarray(True)),
                      lambda eta: jnp.zeros(()),
-                     lambda eta, ln: gk.Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
+                     lambda eta, ln: Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
                      lambda w, eta: w, lambda theta: (theta, jnp.zeros((0,))), 0)
 
 
@@ -239,7 +237,7 @@ def test_hmc_jitter_breaks_a_periodic_trajectory(jitter):
 
     def step(carry, key):
         st, ca = carry
-        st, info, ca = kernel(key, st, params, ca)
+        st, info, ca = kernel.step(key, st, params, ca)
         return (st, ca), (st.position, info.grad_evals)
 
     _, (xs, n) = jax.jit(lambda k: jax.lax.scan(step, (state, cache), jax.random.split(k, n_steps)))(

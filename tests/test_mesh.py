@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from bayesreg import mesh as M
-from bayesreg.mesh import Mesh, mesh_brain_sized, mesh_quality
+from bayesreg import meshing
+from bayesreg.mesh import Mesh, mesh_quality
+from bayesreg.meshing import mesh_brain_sized
 
 
 def _fake_mesher(counts):
@@ -41,7 +43,7 @@ def test_sized_mesh_on_the_brain_is_within_tolerance_and_reports_its_attempts(br
 
 def test_sized_mesh_converges_on_the_power_law_and_passes_the_mesher_options(monkeypatch):
     fake, calls = _fake_mesher(lambda h: 900.0 * (16.0 / h) ** 4)
-    monkeypatch.setattr(M, "mesh_brain", fake)
+    monkeypatch.setattr(meshing, "mesh_brain", fake)
     mesh, info = mesh_brain_sized("labels", 801, tolerance=0.01, edge_length_mm=16.0, epsilon=0.03)
     # exact law, exponent known: the second attempt lands on the target
     assert [a["n_nodes"] for a in info["attempts"]] == [900, 801]
@@ -54,7 +56,7 @@ def test_sized_mesh_damps_scatter_and_keeps_the_closest_with_a_warning(monkeypat
     # counts alternate 20% above and below the law: no attempt is within 1%
     k = iter(range(100))
     fake, calls = _fake_mesher(lambda h: 801.0 * (16.0 / h) ** 4 * (1.2 if next(k) % 2 == 0 else 0.8))
-    monkeypatch.setattr(M, "mesh_brain", fake)
+    monkeypatch.setattr(meshing, "mesh_brain", fake)
     with pytest.warns(UserWarning, match="no mesh within 1% of 801 nodes in 6 attempts"):
         mesh, info = mesh_brain_sized("labels", 801, tolerance=0.01, max_attempts=6, edge_length_mm=16.0)
     counts = [a["n_nodes"] for a in info["attempts"]]
@@ -102,7 +104,7 @@ def _ball_labels(affine=None, shape=(16, 16, 16)):
 ])
 def test_mesh_brain_rejects_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        M.mesh_brain(_ball_labels(), **kwargs)
+        meshing.mesh_brain(_ball_labels(), **kwargs)
     if "edge_length_mm" not in kwargs:  # checked before any meshing, as mesh_brain's
         with pytest.raises(ValueError, match=match):
             mesh_brain_sized("labels", 800, **kwargs)
@@ -113,13 +115,13 @@ def test_mesh_brain_rejects_bad_label_maps_and_names_a_smoothing_that_removes_th
 
     ball = _ball_labels()
     with pytest.raises(ValueError, match=r"labels must be 3D, got shape \(16, 16\)"):
-        M.mesh_brain(Image(ball.data[:, :, 8], ball.affine))
+        meshing.mesh_brain(Image(ball.data[:, :, 8], ball.affine))
     # before: "fTetWild returned 0 elements"
     with pytest.raises(ValueError, match="labels affine is singular"):
-        M.mesh_brain(_ball_labels(np.diag([2.0, 2.0, 0.0, 1.0])))
+        meshing.mesh_brain(_ball_labels(np.diag([2.0, 2.0, 0.0, 1.0])))
     # before: scikit-image's "Surface level must be within volume data range"
     with pytest.raises(M.MeshError, match=r"smoothing_sigma_mm=200 removed the brain surface"):
-        M.mesh_brain(ball, smoothing_sigma_mm=200.0)
+        meshing.mesh_brain(ball, smoothing_sigma_mm=200.0)
     with pytest.raises(ValueError, match=r"edge_length_mm must be a finite number > 0, got inf"):
         mesh_brain_sized("labels", 800, edge_length_mm=np.inf)
 
@@ -129,7 +131,7 @@ def test_sized_mesh_stops_at_the_brains_extent(monkeypatch):
     edge nears the brain's size): the edge length grows to 0.9 of the brain's extent (150 mm
     here) and no further, and the search ends there with the closest mesh and a warning."""
     fake, calls = _fake_mesher(lambda h: max(180.0, 900.0 * (16.0 / h) ** 4))
-    monkeypatch.setattr(M, "mesh_brain", fake)
+    monkeypatch.setattr(meshing, "mesh_brain", fake)
     with pytest.warns(UserWarning, match="no mesh within 5% of 50 nodes"):
         mesh, info = mesh_brain_sized("labels", 50, max_attempts=12, edge_length_mm=100.0)
     edges = [h for h, _ in calls]
@@ -141,7 +143,7 @@ def test_edge_longer_than_the_brain_is_refused_before_fTetWild(brain):
     _, labels, _ = brain
     with pytest.raises(M.MeshError, match=r"edge_length_mm=1000 exceeds the largest extent of the "
                        r"intracranial surface \(1[5-9]\d mm"):
-        M.mesh_brain(labels, edge_length_mm=1000.0)
+        meshing.mesh_brain(labels, edge_length_mm=1000.0)
 
 
 def _box_in_ball():
@@ -225,21 +227,21 @@ def test_a_run_on_a_given_mesh_gets_that_mesh_and_the_same_data(tmp_path):
     import meshio
 
     from bayesreg.config import load_config
-    from bayesreg.pipeline import make_data
+    from bayesreg.problem import make_data
 
     tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26"]
     first = make_data(load_config("configs/quickstart.yaml", overrides=tiny))
-    mesh = first["mesh"]
+    mesh = first.mesh
     path = tmp_path / "mesh.vtu"  # as bayesreg.outputs writes it
     meshio.write(path, meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
                                    cell_data={"tissue": [mesh.tissue.astype(np.int32)]}))
     again = make_data(load_config("configs/quickstart.yaml", overrides=tiny + [f"mesh.file={path}"]))
-    for a, b in zip(again["mesh"], mesh):
+    for a, b in zip(again.mesh, mesh):
         np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(again["truth"].u, first["truth"].u)
-    np.testing.assert_array_equal(again["m"].data, first["m"].data)
-    np.testing.assert_array_equal(again["labels"].data, first["labels"].data)
-    assert again["mesh_info"]["file"] == str(path) and len(again["mesh_info"]["sha256"]) == 64
+    np.testing.assert_array_equal(again.truth.u, first.truth.u)
+    np.testing.assert_array_equal(again.m.data, first.m.data)
+    np.testing.assert_array_equal(again.labels.data, first.labels.data)
+    assert again.mesh_info["file"] == str(path) and len(again.mesh_info["sha256"]) == 64
 
     grown = tmp_path / "grown.vtu"  # 15% larger about its centre: nodes in the skull
     centre = mesh.nodes.mean(0)

@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 
 from bayesreg.fem import stiffness_matrix
-from bayesreg.kernels import make_target
-from bayesreg.posterior import (
-    elastic_groups, from_unconstrained, log_density, log_normaliser, to_unconstrained,
-)
+from bayesreg.kernels.target import make_target
+from bayesreg.parameters import from_unconstrained, to_unconstrained
+from bayesreg.posterior import elastic_groups, log_density, log_normaliser
 from test_posterior import _box_posterior
 
 
@@ -63,14 +62,14 @@ def test_normaliser_gradient_matches_finite_differences(small):
 def test_unconstrained_map_round_trip_and_jacobian(small):
     _, post, theta = small
     phi = jnp.asarray(theta[-5:])
-    eta = to_unconstrained(post, phi)
-    back, log_jac = from_unconstrained(post, eta)
+    eta = to_unconstrained(post.prior, phi)
+    back, log_jac = from_unconstrained(post.prior, eta)
     np.testing.assert_allclose(np.asarray(back), np.asarray(phi), rtol=1e-12)
-    jac = jax.jacfwd(lambda e: from_unconstrained(post, e)[0])(eta)
+    jac = jax.jacfwd(lambda e: from_unconstrained(post.prior, e)[0])(eta)
     assert float(log_jac) == pytest.approx(float(jnp.sum(jnp.log(jnp.diag(jac)))), rel=1e-12)
     # every real eta is a valid parameter, strictly inside the prior support
-    far, _ = from_unconstrained(post, jnp.array([-30.0, 30.0, 0.0, -30.0, 30.0]))
-    assert np.all(np.asarray(far) > 0) and np.all(np.asarray(far) <= np.asarray(post.prior_r2))
+    far, _ = from_unconstrained(post.prior, jnp.array([-30.0, 30.0, 0.0, -30.0, 30.0]))
+    assert np.all(np.asarray(far) > 0) and np.all(np.asarray(far) <= np.asarray(post.prior.r2))
 
 
 @pytest.mark.parametrize("condensed", [False, True])
@@ -90,7 +89,7 @@ def test_gibbs_target_agrees_with_the_posterior(small, condensed):
     lp, _ = log_density(post, jnp.asarray(theta), zeros, rtol=1e-12)
     assert bool(ok)
     assert float(lnat) == pytest.approx(float(lp) + float(log_normaliser(post, jnp.asarray(theta[-5:]))), rel=1e-9)
-    assert float(lz) == pytest.approx(float(lnat) + float(from_unconstrained(post, eta)[1]), rel=1e-12)
+    assert float(lz) == pytest.approx(float(lnat) + float(from_unconstrained(post.prior, eta)[1]), rel=1e-12)
     cache = tg.build_cache(eta, ln)
     f = jax.jit(lambda w_: tg.u_logdensity(w_, eta, cache, zeros))
     assert float(f(w)) == pytest.approx(float(lp), rel=1e-9)
@@ -107,8 +106,8 @@ def test_preconditioned_gibbs_kernel_gives_the_draws_of_block_jacobi(small):
     them: its solves (the elastic moves' and, without the condensation, the trajectories')
     meet the same tolerance, in fewer iterations."""
     condensed = False  # every solve of the kernel preconditioned
-    import bayesreg.sampler as smp
-    from bayesreg import kernels as gk
+    from bayesreg.chains import build_chunk
+    from bayesreg.kernels import gibbs as gk
 
     _, post, theta = small
     nb3 = 3 * post.n_boundary
@@ -124,7 +123,7 @@ def test_preconditioned_gibbs_kernel_gives_the_draws_of_block_jacobi(small):
         states = jax.vmap(lambda x: gk.init(tg, x, jnp.zeros((post.op.n_interior, 3)))[0])(jnp.asarray(x0))
         if precondition:
             assert kernel.init_cache(jax.tree.map(lambda a: a[0], states)).precond is not None
-        _, out = smp._build_chunk(kernel, 4, 1, 2, pieces=False)(
+        _, out = build_chunk(kernel, 4, 1, 2, method="threads").run(
             jax.random.split(jax.random.key(3), 2), states, params)
         outs.append(out)
         its.append(float(np.asarray(out[4]).mean()))
@@ -152,7 +151,7 @@ def _prior_only_target(exact: bool, t_r=0.01, tau=0.05):
     mesh, post, _ = _box_posterior(PRIOR_RECOVERY, t_r, phi_ref)
     post = post._replace(inv_t_s=jnp.zeros_like(post.inv_t_s))
     nb3 = 3 * post.n_boundary
-    rb = np.asarray(post.rigid_b)
+    rb = np.asarray(post.normaliser.rigid_b)
     prec = _dense_schur(mesh, post, phi_ref) / t_r + rb @ rb.T / tau**2
     factor = np.linalg.inv(np.linalg.cholesky(prec)).T  # u_b = F w, F F^T = prec^-1 at phi_ref
     tg = make_target(post, center_u=np.zeros(nb3), factor=factor, exact=exact, condensed=True)

@@ -11,10 +11,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bayesreg import outputs
-from bayesreg.diagnostics import coverage, gelman_rubin
+from bayesreg import fields, outputs
+from bayesreg.convergence import gelman_rubin
+from bayesreg.diagnostics import coverage
 from bayesreg.images import Image
-from bayesreg.synthetic import grid_moments, grid_moments_from, interpolation_matrix
+from bayesreg.rundir import RunDirectory
+from bayesreg.warp import grid_moments, grid_moments_from, interpolation_matrix
 from conftest import box_mesh
 
 
@@ -42,13 +44,13 @@ def _fake_run(seed=0, c=3, d=23):
 @pytest.mark.parametrize("chunk", [1, 7, 4096])
 def test_nodal_statistics_over_chunks_equal_all_draws(monkeypatch, chunk):
     mesh, problem, result, draws = _fake_run()
-    monkeypatch.setattr(outputs, "_CHUNK", chunk)
-    np.testing.assert_array_equal(outputs._nodal_draws(problem, result, slice(None)), draws)
-    np.testing.assert_array_equal(outputs._nodal_draws(problem, result, slice(5, None, 9)),
+    monkeypatch.setattr(fields, "CHUNK_DRAWS", chunk)
+    np.testing.assert_array_equal(fields.nodal_draws(problem, result, slice(None)), draws)
+    np.testing.assert_array_equal(fields.nodal_draws(problem, result, slice(5, None, 9)),
                                   draws[5::9])
-    mean = outputs._nodal_mean(problem, result)
+    mean = fields.nodal_mean(problem, result)
     np.testing.assert_allclose(mean, draws.mean(0), rtol=1e-13, atol=1e-13)
-    cov, sd, norm_sd, norm_iqr = outputs._nodal_spread(problem, result, mean, block=5)
+    cov, sd, norm_sd, norm_iqr = fields.nodal_spread(problem, result, mean, block=5)
     centred = draws - draws.mean(0)
     for a in range(3):
         np.testing.assert_allclose(cov[a], centred[:, :, a].T @ centred[:, :, a] / len(draws),
@@ -67,10 +69,10 @@ def test_grid_moments_equal_the_moments_of_interpolated_draws():
     grid = Image(np.zeros((9, 8, 7)), affine)  # voxels in and outside the 20 mm box
     w, inside = interpolation_matrix(mesh, grid)
     assert inside.sum() > 100
-    fields = np.stack([w @ x for x in draws])  # (S, voxels, 3)
+    interp = np.stack([w @ x for x in draws])  # (S, voxels, 3)
     mean, sd = grid_moments(mesh, grid, draws)
-    np.testing.assert_allclose(mean.reshape(-1, 3), fields.mean(0), atol=1e-12)
-    np.testing.assert_allclose(sd.reshape(-1, 3), fields.std(0), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(mean.reshape(-1, 3), interp.mean(0), atol=1e-12)
+    np.testing.assert_allclose(sd.reshape(-1, 3), interp.std(0), rtol=1e-9, atol=1e-12)
     assert np.all(sd.reshape(-1, 3)[~inside.ravel()] == 0.0)
     centred = draws - draws.mean(0)
     cov = np.stack([centred[:, :, a].T @ centred[:, :, a] for a in range(3)]) / len(draws)
@@ -106,21 +108,21 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     data.mkdir()
     (data / "f.nii.gz").write_text("the user's input")
     with pytest.raises(FileExistsError, match="not empty"):
-        outputs.RunDirectory(data)
+        RunDirectory(data)
     with pytest.raises(FileExistsError, match="holds none of run.json, checkpoint"):
-        outputs.RunDirectory(data, overwrite=True)
+        RunDirectory(data, overwrite=True)
     assert (data / "f.nii.gz").read_text() == "the user's input"
     with pytest.raises(NotADirectoryError, match="is a file"):
-        outputs.RunDirectory(data / "f.nii.gz" / "run")
+        RunDirectory(data / "f.nii.gz" / "run")
     with pytest.raises(FileExistsError, match="working directory"):
         (tmp_path / "run.json").write_text("{}")
-        outputs.RunDirectory(tmp_path, overwrite=True)
+        RunDirectory(tmp_path, overwrite=True)
     (tmp_path / "run.json").unlink()
 
     old = tmp_path / "run"
     old.mkdir()
     (old / "run.json").write_text('{"old": true}')
-    rd = outputs.RunDirectory(old, overwrite=True)  # the old run moves aside at once
+    rd = RunDirectory(old, overwrite=True)  # the old run moves aside at once
     hidden = rd.replaced
     assert hidden.is_dir() and hidden.name.startswith(f".run.replaced-{os.getpid()}-")
     assert not any(old.iterdir())
@@ -129,7 +131,7 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     assert (old / "run.json").read_text() == '{"old": true}' and not hidden.exists()
     assert sorted(p.name for p in old.iterdir()) == ["run.json"]
 
-    rd = outputs.RunDirectory(old, overwrite=True)
+    rd = RunDirectory(old, overwrite=True)
     rd.file("run.json").write_text('{"new": true}')
     rd.commit()  # a run that finished: the old one is gone
     assert (old / "run.json").read_text() == '{"new": true}' and not rd.replaced
@@ -139,11 +141,11 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     # does a second one in the same process (a notebook: before, its aside folder had the
     # first one's name and the move failed); the resumed run's commit deletes them
     for _ in range(2):
-        outputs.RunDirectory(old, overwrite=True)
+        RunDirectory(old, overwrite=True)
         (old / "checkpoint").mkdir()
         (old / "checkpoint" / "config.json").write_text("{}")
     assert len(list(tmp_path.glob(".run.replaced-*"))) == 2
-    resumed = outputs.RunDirectory(old, resume=True)
+    resumed = RunDirectory(old, resume=True)
     resumed.file("run.json").write_text('{"resumed": true}')
     resumed.commit()
     assert not list(tmp_path.glob(".run.replaced-*"))
@@ -151,7 +153,7 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
 
     # the aside folders of another run are not this one's, whatever its name's glob says
     (tmp_path / ".exp1.replaced-1-0").mkdir()
-    odd = outputs.RunDirectory(tmp_path / "exp[1]")
+    odd = RunDirectory(tmp_path / "exp[1]")
     odd.file("run.json").write_text("{}")
     odd.commit()
     assert (tmp_path / ".exp1.replaced-1-0").is_dir()
@@ -160,15 +162,15 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     # folder: that is a directory bayesreg wrote, which --overwrite may replace
     partial = tmp_path / "partial"
     (partial / ".outputs-partial").mkdir(parents=True)
-    outputs.RunDirectory(partial, overwrite=True).rollback()
+    RunDirectory(partial, overwrite=True).rollback()
     assert (partial / ".outputs-partial").is_dir()
 
     fresh = tmp_path / "fresh"
-    outputs.RunDirectory(fresh).rollback()
+    RunDirectory(fresh).rollback()
     assert not fresh.exists()
     empty = tmp_path / "empty"
     empty.mkdir()
-    outputs.RunDirectory(empty).rollback()
+    RunDirectory(empty).rollback()
     assert empty.is_dir() and not any(empty.iterdir())
 
 
@@ -199,9 +201,9 @@ def test_writes_are_flushed_to_disk_before_their_rename(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "b.nii.gz"]  # no temporaries
 
     events.clear()
-    rd = outputs.RunDirectory(tmp_path / "run")
+    rd = RunDirectory(tmp_path / "run")
     rd.file("summary.csv").write_text("x\n")
-    outputs._atomic_text(rd.file("run.json"), "{}")
+    _files.write_text_atomic(rd.file("run.json"), "{}")
     events.clear()
     rd.commit()
     synced = [e[1] for e in events if e[0] == "fsync"]
@@ -234,7 +236,7 @@ def test_summary_in_threads_equals_one_arviz_call(parts):
         warnings.simplefilter("ignore", RuntimeWarning)
         with arviz_fast_ess():
             ref = az.summary(tree, var_names=["lam", "mu", "ratio", "u_b"], ci_prob=0.9, ci_kind="eti")
-            got = outputs._summary(tree, ["lam", "mu", "ratio"], "u_b", "node", parts=parts)
+            got = outputs.summary_table(tree, ["lam", "mu", "ratio"], "u_b", "node", parts=parts)
     assert list(got.index) == list(ref.index) and list(got.columns) == list(ref.columns)
     np.testing.assert_array_equal(got.to_numpy(float), ref.to_numpy(float))
 
@@ -242,36 +244,15 @@ def test_summary_in_threads_equals_one_arviz_call(parts):
 def test_nodal_statistics_in_one_thread_when_memory_is_short(monkeypatch):
     """Above the accumulators' byte budget the covariances are summed in one thread; the
     figures are those of the threaded sum."""
-    from bayesreg import sampler
-
     _, problem, result, _ = _fake_run()
-    monkeypatch.setattr(outputs, "_CHUNK", 7)
-    monkeypatch.setattr(sampler, "_cores", lambda: 3)  # three threads whatever the machine
-    mean = outputs._nodal_mean(problem, result)
-    threaded = outputs._nodal_spread(problem, result, mean)
-    monkeypatch.setattr(outputs, "_SPREAD_MAX_BYTES", 1)
-    single = outputs._nodal_spread(problem, result, mean)
+    monkeypatch.setattr(fields, "CHUNK_DRAWS", 7)
+    monkeypatch.setattr(fields, "available_cores", lambda: 3)  # three threads whatever the machine
+    mean = fields.nodal_mean(problem, result)
+    threaded = fields.nodal_spread(problem, result, mean)
+    monkeypatch.setattr(fields, "SPREAD_MAX_BYTES", 1)
+    single = fields.nodal_spread(problem, result, mean)
     for a, b in zip(threaded, single):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
-
-
-def test_cg_iterations_per_solve_count_only_the_blocks_that_solve():
-    """The per-step CG count over the solves a step makes: one per random-walk block, none
-    for the ``u_b`` block under the cached condensation (before: halved there), and the
-    elastic moves plus one evaluation for a condensed gradient kernel."""
-    from types import SimpleNamespace
-
-    from bayesreg.outputs import _per_solve
-
-    def cfg(gradient, condensed, moves=8):
-        return SimpleNamespace(sampler=SimpleNamespace(gradient=gradient, use_condensed=condensed,
-                                                       elastic_moves=moves))
-
-    assert _per_solve(12.0, cfg(False, False), ["joint"]) == 12.0
-    assert _per_solve(12.0, cfg(False, False), ["u_b", "elastic"]) == 6.0
-    assert _per_solve(12.0, cfg(False, True), ["u_b", "elastic"]) == 12.0
-    assert _per_solve(18.0, cfg(True, True), ["u_b", "elastic"]) == 2.0
-    assert _per_solve(18.0, cfg(True, False), ["u_b", "elastic"]) is None
 
 
 @pytest.mark.parametrize("damage", ["truncated", "emptied", "text"])
@@ -279,7 +260,7 @@ def test_a_damaged_checkpoint_file_is_an_error_that_names_it(tmp_path, damage):
     """``--resume`` of a run whose starts, state or draws were damaged (a full disk, a copy
     cut short) ends with the file named, not a zipfile or NumPy traceback."""
     from bayesreg.checkpoint import Checkpoint
-    from bayesreg.pipeline import Initialisation
+    from bayesreg.initialisation import Initialisation
     from bayesreg.sampler import SamplerCheckpoint
 
     ck = Checkpoint(tmp_path)

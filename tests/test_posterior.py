@@ -7,7 +7,8 @@ import pytest
 import scipy.ndimage as ndi
 
 from bayesreg.images import Image
-from bayesreg.posterior import ParamLayout, build_posterior, log_density, split_position
+from bayesreg.parameters import ParamLayout
+from bayesreg.posterior import build_posterior, log_density, split_position
 from bayesreg.similarity import build_ssd
 from conftest import box_mesh, compilations
 
@@ -170,8 +171,8 @@ def test_position_shapes_are_checked_statically(small):
     """A theta 4 entries short (phi of length 1 broadcast over the 5 free parameters) gave a
     finite log-density; other lengths an opaque JAX TypeError.  The checks look at shapes
     only: under vmap they see one chain's theta, and out-of-support values still give -inf."""
-    from bayesreg.posterior import (condensation, elastic_groups, from_unconstrained, full_displacement,
-                                    log_density_condensed, to_unconstrained)
+    from bayesreg.parameters import from_unconstrained, to_unconstrained
+    from bayesreg.posterior import condensation, elastic_groups, full_displacement, log_density_condensed
 
     mesh, post, theta = small
     zero = jnp.zeros((post.op.n_interior, 3))
@@ -194,9 +195,9 @@ def test_position_shapes_are_checked_statically(small):
     with pytest.raises(ValueError, match=r"phi must have shape \(\.\.\., 5\) .*got \(3, 1\)"):
         elastic_groups(post, jnp.ones((3, 1)))
     with pytest.raises(ValueError, match=r"eta must have shape \(\.\.\., 5\) .*got \(4,\)"):
-        from_unconstrained(post, jnp.zeros(4))
+        from_unconstrained(post.prior, jnp.zeros(4))
     with pytest.raises(ValueError, match=r"phi must have shape \(\.\.\., 5\)"):
-        to_unconstrained(post, jnp.ones(1))
+        to_unconstrained(post.prior, jnp.ones(1))
     with pytest.raises(ValueError, match=rf"u_i must have shape \({post.op.n_interior}, 3\)"):
         full_displacement(post, jnp.zeros((post.n_boundary, 3)), zero[:-1])
     # vmapped over chains (traced, not compiled): one chain's shapes pass, a bad one raises
@@ -272,7 +273,8 @@ def test_condensed_kernel_samples_the_same_posterior():
     import arviz as az
 
     from bayesreg.posterior import condensation, log_density_condensed
-    from bayesreg.sampler import Condensation, sample
+    from bayesreg.kernels.rwmh import Condensation
+    from bayesreg.sampler import sample
 
     prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
     mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
@@ -307,85 +309,18 @@ def test_condensed_kernel_samples_the_same_posterior():
     assert np.max(np.abs(rel)) < 5.0
 
 
-def test_condensed_chunk_in_pieces_equals_whole_chunks(monkeypatch):
-    """The condensed kernel's cache (``H`` at each chain's parameters) passes from piece to
-    piece on a CPU with fewer cores than chains (:func:`bayesreg.sampler._chain_pieces`);
-    the draws equal those of whole chunks run by vmap, elastic moves accepted included."""
-    import bayesreg.sampler as smp
-    from bayesreg.posterior import condensation, log_density_condensed
-
-    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
-    mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
-    nb3 = 3 * len(mesh.boundary)
-    ld = lambda th, ui: log_density(post, th, ui, rtol=1e-10)  # noqa: E731
-    cond = smp.Condensation(lambda th, h: log_density_condensed(post, th, h),
-                            lambda th: condensation(post, th), 0, moves=2)
-    kernel = smp.build_kernel(ld, (np.arange(nb3), np.arange(nb3, post.dim)), cond)
-    x0 = np.tile(theta, (3, 1)) + 0.02 * np.random.default_rng(1).normal(size=(3, post.dim))
-    states = jax.vmap(lambda x: smp.init(x, ld, jnp.zeros((post.op.n_interior, 3))))(jnp.asarray(x0))
-    sig = (jnp.full(nb3, 0.02), jnp.abs(jnp.asarray(theta[nb3:])) * 0.05)
-    keys = jax.random.split(jax.random.key(5), 3)
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # vmapped whole chunks
-    expect = smp._build_chunk(kernel, 8, 2, 3)(keys, states, sig)
-    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
-    monkeypatch.setattr(smp, "_cores", lambda: 2)
-    assert smp._chain_pieces(3, 8) == 4
-    got = smp._build_chunk(kernel, 8, 2, 3)(keys, states, sig)
-    for g, e in zip(jax.tree.leaves(got), jax.tree.leaves(expect)):
-        np.testing.assert_allclose(np.asarray(g, float), np.asarray(e, float), rtol=1e-8, atol=1e-10)
-    acc = np.asarray(expect[1][3])  # (C, draws, blocks)
-    assert acc[..., 1].max() > 0  # elastic moves were accepted (the cache was rebuilt)
-
-
-@pytest.mark.parametrize("blocked", [False, True], ids=["joint", "blocked"])
-def test_preconditioned_kernel_gives_the_draws_of_the_block_jacobi_kernel(monkeypatch, blocked):
-    """The dense preconditioner (built at every chunk start, carried through the chunk and
-    from piece to piece) leaves the chains where block Jacobi takes them: the same proposals,
-    the same accept decisions (log-densities equal to the CG tolerance), in fewer CG
-    iterations; in pieces on a 2-core CPU as in whole vmapped chunks."""
-    import bayesreg.sampler as smp
-    from bayesreg.posterior import preconditioner
-
-    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
-    mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
-    nb3 = 3 * len(mesh.boundary)
-    ld = lambda th, ui, pre=None: log_density(post, th, ui, rtol=1e-10, precond=pre)  # noqa: E731
-    pre = smp.Preconditioner(ld, lambda th: preconditioner(post, th))
-    blocks = (np.arange(nb3), np.arange(nb3, post.dim)) if blocked else None
-    sig = ((jnp.full(nb3, 0.02), jnp.abs(jnp.asarray(theta[nb3:])) * 0.05) if blocked else
-           (jnp.concatenate([jnp.full(nb3, 0.01), jnp.abs(jnp.asarray(theta[nb3:])) * 0.02]),))
-    x0 = np.tile(theta, (3, 1)) + 0.02 * np.random.default_rng(1).normal(size=(3, post.dim))
-    states = jax.vmap(lambda x: smp.init(x, ld, jnp.zeros((post.op.n_interior, 3))))(jnp.asarray(x0))
-    keys = jax.random.split(jax.random.key(6), 3)
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # vmapped whole chunks
-    plain = smp._build_chunk(smp.build_kernel(ld, blocks), 8, 3, 3)(keys, states, sig)
-    fast = smp._build_chunk(smp.build_kernel(ld, blocks, preconditioner=pre), 8, 3, 3)(keys, states, sig)
-    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
-    monkeypatch.setattr(smp, "_cores", lambda: 2)
-    pieces = smp._build_chunk(smp.build_kernel(ld, blocks, preconditioner=pre), 8, 3, 3)(keys, states, sig)
-    for g, e in zip(jax.tree.leaves(pieces), jax.tree.leaves(fast)):  # the same arithmetic
-        np.testing.assert_allclose(np.asarray(g, float), np.asarray(e, float), rtol=1e-12, atol=1e-12)
-    (_, out_p), (_, out_f) = plain, fast
-    np.testing.assert_array_equal(np.asarray(out_f[0]), np.asarray(out_p[0]))  # positions
-    np.testing.assert_allclose(np.asarray(out_f[2]), np.asarray(out_p[2]), rtol=1e-9)  # log p
-    np.testing.assert_allclose(np.asarray(out_f[1]), np.asarray(out_p[1]), atol=1e-7)  # interior
-    acc = np.asarray(out_p[3])
-    assert 0.05 < acc.mean() < 0.95  # some moves accepted, some rejected
-    assert np.asarray(out_f[4]).mean() < 0.5 * np.asarray(out_p[4]).mean()  # CG iterations per step
-    assert np.asarray(out_f[5]).sum() == 0  # no failed solve
-
-
 def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
     """The barrier adds -(w/d - 1)^2 for a node at distance d < w of the skull's voxel
     cubes (a wall at world x = 36.5 mm, where the nearest-voxel rule flips), with d the
     soft minimum over the wall's cubes, nothing beyond w, and keeps the hard -inf; its
     gradient is finite and equals the formula's."""
     mesh, post, theta = small
-    from bayesreg.posterior import skull_distance, with_skull_barrier
+    from bayesreg.constraints import skull_distance
+    from bayesreg.posterior import with_skull_barrier
 
     w = 1.0
     barred = with_skull_barrier(post, w)
-    assert barred.barrier_offsets.shape == (27, 3)  # 1 mm voxels, w = 1 mm: the 27 nearest cubes
+    assert barred.skull.barrier_offsets.shape == (27, 3)  # 1 mm voxels, w = 1 mm: the 27 nearest cubes
     k = int(np.argmax(mesh.nodes[mesh.boundary, 0]))  # a node at x = 30 mm
     x0 = np.asarray(mesh.nodes[mesh.boundary[k]])
     tau = w / 20.0
@@ -405,7 +340,7 @@ def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
         p = x0 + np.array([36.5 - dx - x0[0], 0.0, 0.0])
         t[3 * k: 3 * k + 3] = p - x0
         lp0, lp1 = float(_lp(post, t)[0]), float(_lp(barred, t)[0])
-        got = float(skull_distance(barred, jnp.asarray(p[None]))[0])
+        got = float(skull_distance(barred.skull, jnp.asarray(p[None]))[0])
         if dx >= w:  # no cube within w: none searched (+inf) or farther than w
             assert got >= w
             d = got
@@ -435,7 +370,7 @@ def test_skull_distance_is_never_positive_where_the_hard_rule_forbids():
     rule forbids, equals the distance to the nearest forbidden cube within tau log 27
     elsewhere, and its gradient is finite."""
     from bayesreg.images import Image
-    from bayesreg.posterior import _node_forbidden, skull_distance
+    from bayesreg.constraints import points_forbidden, skull_distance
 
     rng = np.random.default_rng(7)
     mesh = box_mesh((2, 2, 2), size=(4.0, 4.0, 4.0))
@@ -451,8 +386,8 @@ def test_skull_distance_is_never_positive_where_the_hard_rule_forbids():
                                                              "mu": (1.0, 1.0, 0.0, 10.0)},
         phi_ref=np.array([1.0]), barrier_mm=1.2)
     pts = rng.uniform(-6.0, 8.0, size=(4000, 3))
-    d = np.asarray(skull_distance(post, jnp.asarray(pts)))
-    forb = np.asarray(_node_forbidden(post, jnp.asarray(pts)))
+    d = np.asarray(skull_distance(post.skull, jnp.asarray(pts)))
+    forb = np.asarray(points_forbidden(post.skull, jnp.asarray(pts)))
     assert forb.sum() > 300 and (~forb).sum() > 300
     assert np.all(d[forb] <= 0.0)
     # brute force: distance to every forbidden cube (and to the outside of the grid)
@@ -466,16 +401,15 @@ def test_skull_distance_is_never_positive_where_the_hard_rule_forbids():
     assert near.sum() > 300
     assert np.all(d[near] <= exact[near] + 1e-12)
     assert np.all(d[near] >= exact[near] - tau * np.log(27) - 1e-12)
-    g = jax.grad(lambda p: jnp.sum(skull_distance(post, p)))(jnp.asarray(pts[near]))
+    g = jax.grad(lambda p: jnp.sum(skull_distance(post.skull, p)))(jnp.asarray(pts[near]))
     assert np.all(np.isfinite(np.asarray(g)))
 
 
 def test_find_mode_reaches_a_stationary_point_from_a_far_start():
-    """``pipeline.find_mode`` (u_b alone, then u_b and log(phi) jointly): from a start with
+    """``find_mode`` (u_b alone, then u_b and log(phi) jointly): from a start with
     one ``lam`` at 97% of its prior range the returned point gains log p and its gradient
     in the search coordinates ``(u_b, log phi)`` has fallen by four orders of magnitude."""
-    from bayesreg.config import Config
-    from bayesreg.pipeline import Problem, find_mode
+    from bayesreg.mode import find_mode
 
     mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
     layout = ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2)),
@@ -483,17 +417,14 @@ def test_find_mode_reaches_a_stationary_point_from_a_far_start():
     phi = np.array([5.0, 10.0, 97.0])
     prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
     _, base, theta = _box_posterior(prior, 3.0, np.array([1.0, 10.0, 30.0, 0.5, 1.0]))
-    post = build_posterior(mesh, base.ssd, Image(np.asarray(base.forbidden).astype(np.uint8),
-                                                  np.linalg.inv(np.asarray(base.forbidden_inv_affine))),
+    post = build_posterior(mesh, base.ssd, Image(np.asarray(base.skull.forbidden).astype(np.uint8),
+                                                  np.linalg.inv(np.asarray(base.skull.inv_affine))),
                            t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
                            prior=prior, phi_ref=phi)
     theta = np.concatenate([theta[: 3 * len(mesh.boundary)], phi])
-    problem = Problem(None, None, None, mesh, layout, mesh.tissue, post, None, None, phi,
-                      1.0, 0, {})
-    cfg = Config.model_validate({"model": {"prior_normaliser": "paper"},
-                                 "init": {"optimizer_iterations": 600}})
     with compilations() as compiled:
-        mode, info = find_mode(problem, cfg, theta)
+        res = find_mode(post, theta, iterations=600)
+    mode = res.theta
     assert compiled.get("jit(step)") == 1  # both stages (u_b alone, then joint) share one program
     nb3 = 3 * len(mesh.boundary)
 
@@ -501,21 +432,22 @@ def test_find_mode_reaches_a_stationary_point_from_a_far_start():
         g = np.asarray(jax.grad(lambda t: _lp(post, t)[0])(jnp.asarray(th)))
         return np.concatenate([g[:nb3], th[nb3:] * g[nb3:]])
 
-    assert info["logp_mode"] > info["logp_start"]
-    assert float(_lp(post, mode)[0]) == pytest.approx(info["logp_mode"], rel=1e-9)
+    assert res.logp_mode > res.logp_start
+    assert float(_lp(post, mode)[0]) == pytest.approx(res.logp_mode, rel=1e-9)
     assert np.all((mode[nb3:] > 0) & (mode[nb3:] < 100))
     assert np.linalg.norm(grad_search(mode)) <= 1e-4 * np.linalg.norm(grad_search(theta))
 
 
 @pytest.mark.parametrize("level", [0, 1])
 def test_laplace_precision_is_the_gauss_newton_matrix_of_the_condensed_posterior(level):
-    """``pipeline.laplace_precision`` = ``2 J_b^T J_b / T_s + S / T_r`` (+ its small ridge), with
+    """``laplace_precision`` = ``2 J_b^T J_b / T_s + S / T_r`` (+ its small ridge), with
     ``J_b`` the Jacobian of the quadrature residuals with respect to ``u_b`` through the
     interior map ``u_i = -K_ii^-1 K_ib u_b`` (here by ``jax.jacfwd`` and a dense solve)."""
     import scipy.linalg as sla
 
     from bayesreg.fem import stiffness_matrix
-    from bayesreg.pipeline import Problem, _dofs, laplace_precision
+    from bayesreg.initialisation import laplace_precision
+    from bayesreg.problem import Problem
     from bayesreg.posterior import elastic_groups
     from bayesreg.similarity import ssd_residuals
 
@@ -526,7 +458,7 @@ def test_laplace_precision_is_the_gauss_newton_matrix_of_the_condensed_posterior
     prec = laplace_precision(problem, theta)
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
     k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[mesh.tissue], mu_g[mesh.tissue]).toarray()
-    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    bd, idf = (3 * mesh.boundary[:, None] + np.arange(3)).ravel(), (3 * mesh.interior[:, None] + np.arange(3)).ravel()
     h = -sla.solve(k[np.ix_(idf, idf)], k[np.ix_(idf, bd)], assume_a="pos")
     schur = k[np.ix_(bd, bd)] + k[np.ix_(idf, bd)].T @ h
 
@@ -638,10 +570,10 @@ def test_build_posterior_rejects_bad_priors_references_and_forbidden_images(chan
 def test_compiled_log_density_names_its_parts_for_the_profiler(small):
     """Every part of :data:`bayesreg.posterior.SCOPES` (and the kernel's proposal, accept
     and cache-build scopes) reaches the optimised program's metadata, where
-    ``benchmarks/profiling.py`` reads it to split a step's time."""
+    ``benchmarks/profile_step.py`` reads it to split a step's time."""
+    from bayesreg.kernels.rwmh import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner,
+                                       build_kernel, init)
     from bayesreg.posterior import SCOPES, preconditioner
-    from bayesreg.sampler import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner,
-                                  build_kernel, init)
 
     mesh, post, theta = small
     zeros = jnp.zeros((post.op.n_interior, 3))
@@ -652,7 +584,8 @@ def test_compiled_log_density_names_its_parts_for_the_profiler(small):
     kernel = build_kernel(logdensity)
     state = init(jnp.asarray(theta), logdensity, zeros)
     sigma = (jnp.full(theta.shape, 1e-3),)
-    text = jax.jit(kernel).lower(jax.random.key(0), state, sigma).compile().as_text()
+    cache = kernel.init_cache(state)
+    text = jax.jit(kernel.step).lower(jax.random.key(0), state, sigma, cache).compile().as_text()
     for scope in (*SCOPES.values(), PROPOSAL_SCOPE, ACCEPT_SCOPE):
         assert f"/{scope}/" in text, scope
     assert f"/{CACHE_SCOPE}/" not in text  # no cache: nothing built

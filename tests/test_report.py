@@ -212,7 +212,7 @@ def test_existing_report_not_overwritten(runs, tmp_path):
 def test_a_failing_overwrite_puts_the_old_report_back(runs, tmp_path, monkeypatch):
     """A report that fails while replacing another leaves the old one as it was (before:
     an empty directory, the old report in a hidden folder that the next report deleted)."""
-    import bayesreg.report as R
+    import bayesreg.report.write as R
 
     out = tmp_path / "report"
     paths = {"three_compartment": runs["three_compartment"][0]}

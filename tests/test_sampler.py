@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from bayesreg import fem
-from bayesreg.diagnostics import gelman_rubin
+from bayesreg import fem, stiffness
+from bayesreg.convergence import gelman_rubin
 from bayesreg.posterior import Aux
 from bayesreg.sampler import sample
 from bayesreg.solver import solve_interior
@@ -36,7 +36,7 @@ def _quadratic_problem():
     """Boundary displacements of a cube with an elastic prior and a Gaussian stand-in likelihood."""
     mesh = centred_cube()
     lam, mu, t_r = 10.0, 1.0, 50.0
-    op, _ = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    op, _ = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     grads, vol = fem.shape_gradients(mesh.nodes, mesh.tets)
     perm = np.empty(len(mesh.nodes), int)
     perm[mesh.boundary] = np.arange(len(mesh.boundary))
@@ -113,70 +113,6 @@ def test_sampler_stops_at_rhat_and_is_reproducible():
     assert a.converged and a.positions.shape[1] < 5000
     assert a.rhat_history[-1][1] < 1.2
     np.testing.assert_array_equal(a.positions, b.positions)
-
-
-@pytest.mark.parametrize("per_chain", [False, True])
-def test_chains_in_host_threads_equal_vmapped_chains(monkeypatch, per_chain):
-    import bayesreg.sampler as smp
-
-    # equal groups, at least one thread per core
-    assert [smp._chain_threads(c, 2) for c in (1, 2, 3, 4, 5, 6)] == [1, 2, 3, 2, 5, 2]
-    assert [smp._chain_threads(c, 16) for c in (3, 64, 1024)] == [3, 16, 16]
-    with pytest.raises(ValueError, match="n_chains"):
-        smp._chain_threads(0, 2)
-
-    def one_chain(key, x, scale):  # a random walk to a sphere: a while_loop of chain-dependent length
-        def body(c):
-            x_, k, n = c
-            k, sub = jax.random.split(k)
-            return x_ + scale * jax.random.normal(sub, x_.shape), k, n + 1
-
-        x, _, n = jax.lax.while_loop(lambda c: (jnp.sum(c[0] ** 2) < 16.0) & (c[2] < 5000), body, (x, key, 0))
-        return x, n
-
-    keys = jax.random.split(jax.random.key(7), 4)
-    x0 = jnp.asarray(np.random.default_rng(0).normal(size=(4, 3)))
-    scale = jnp.asarray([0.1, 0.2, 0.3, 0.4]) if per_chain else jnp.asarray(0.25)
-    expect = jax.vmap(one_chain, in_axes=(0, 0, 0 if per_chain else None))(keys, x0, scale)
-    monkeypatch.setattr(smp, "_chain_threads", lambda n: 2)  # 2 threads of 2 chains, on any machine
-    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
-    run = smp._over_chains(one_chain, 4, per_chain)
-    for _ in range(2):  # the first call compiles group 0 alone, the second runs both in the pool
-        got = run(keys, x0, scale)
-        np.testing.assert_allclose(got[0], expect[0], rtol=1e-12)
-        np.testing.assert_array_equal(got[1], expect[1])
-    assert len(set(np.asarray(expect[1]).tolist())) > 1  # the chains' loops did differ in length
-
-
-def test_chunk_pieces_on_a_cpu_equal_whole_chunks(monkeypatch):
-    """3 chains on 2 cores: a chunk of 6 draws runs as 2 pieces per chain on 2 workers, and gives
-    the draws of the whole chunks run by vmap (per-chain states and warm starts)."""
-    import bayesreg.sampler as smp
-
-    assert [smp._chain_pieces(c, 100, 2) for c in (1, 2, 3, 4, 5)] == [1, 1, 4, 1, 4]
-    assert [smp._chain_pieces(c, 100, 4) for c in (3, 6, 10, 8)] == [1, 4, 4, 1]
-    assert smp._chain_pieces(3, 50, 2) == 2  # 2 P pieces where the chunk allows, else P
-    assert smp._chain_pieces(3, 25, 2) == 1  # an odd chunk is not cut: whole chains in 3 threads
-    assert smp._chain_pieces(3, None, 2) == 1
-
-    logdensity, mean, cov, n_i = _quadratic_problem()
-    kernel = smp.build_kernel(logdensity)
-    x0 = mean + 0.1 * np.random.default_rng(5).normal(size=(3, len(mean)))
-    states = jax.vmap(lambda x: smp.init(x, logdensity, jnp.zeros((n_i, 3))))(jnp.asarray(x0))
-    sig = (jnp.full(len(mean), 0.05),)
-    keys = jax.random.split(jax.random.key(3), 3)
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # the vmapped path, on any machine
-    expect = smp._build_chunk(kernel, 6, 3, 3)(keys, states, sig)
-    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
-    monkeypatch.setattr(smp, "_cores", lambda: 2)
-    chunk = smp._build_chunk(kernel, 6, 3, 3)
-    for _ in range(2):  # the first call compiles chain 0's first piece alone
-        got = chunk(keys, states, sig)
-        for g, e in zip(jax.tree.leaves(got), jax.tree.leaves(expect)):
-            assert g.shape == e.shape
-            np.testing.assert_allclose(np.asarray(g, float), np.asarray(e, float), rtol=1e-9, atol=1e-12)
-    acc = np.asarray(expect[1][3])
-    assert 0 < acc.mean() < 1  # some proposals were rejected, some accepted
 
 
 def test_sampler_rejects_bad_start():

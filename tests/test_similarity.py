@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.images import Image, interpolate, interpolate_numpy
+from bayesreg.images import Image, interpolate_numpy
+from bayesreg.interpolation import interpolate
 from bayesreg.similarity import GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, ssd, ssd_residuals
 from conftest import box_mesh
 
@@ -132,7 +133,7 @@ def test_clamped_trilinear_with_a_cval_border_equals_interpolate_everywhere():
     bounds)."""
     from jax.test_util import check_grads
 
-    from bayesreg.images import trilinear_clamped
+    from bayesreg.interpolation import trilinear_clamped
 
     rng = np.random.default_rng(4)
     img = _grid_image(lambda x: rng.random(x.shape[:-1]), shape=(8, 9, 10))

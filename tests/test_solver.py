@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
-from bayesreg import fem
+from bayesreg import fem, stiffness
 from bayesreg.solver import solve_interior
 
 
@@ -26,7 +26,7 @@ def test_cg_matches_spsolve_on_brain_mesh(brain, csf):
     mu = np.array([csf, 1.0, 1.0])[mesh.tissue]
     ub = np.random.default_rng(0).normal(size=(len(mesh.boundary), 3))
     ref = _reference(mesh, lam, mu, ub)
-    op, interior = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    op, interior = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     np.testing.assert_array_equal(interior, mesh.interior)
     u_i, info = jax.jit(lambda a, b, c: solve_interior(op, a, b, c, jnp.zeros_like(ref), rtol=1e-13,
                                                        maxiter=5000))(lam, mu, ub)
@@ -41,7 +41,7 @@ def test_warm_start_needs_fewer_iterations(brain):
     mu = np.array([1e-2, 1.0, 1.0])[mesh.tissue]
     rng = np.random.default_rng(1)
     ub = rng.normal(size=(len(mesh.boundary), 3))
-    op, _ = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    op, _ = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     solve = jax.jit(lambda ub, x0: solve_interior(op, lam, mu, ub, x0))
     x, info_cold = solve(ub, jnp.zeros((op.n_interior, 3)))
     ub2 = ub + 0.01 * rng.normal(size=ub.shape)  # a random-walk-sized move
@@ -55,7 +55,7 @@ def test_nonconverged_solve_is_reported():
     from conftest import box_mesh
 
     m = box_mesh((3, 3, 3))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     ub = np.random.default_rng(2).normal(size=(len(m.boundary), 3))
     lam = np.full(len(m.tets), 10.0)
     mu = np.ones(len(m.tets))
@@ -72,7 +72,7 @@ def test_zero_boundary_displacement_solves_to_zero_from_any_warm_start():
     from conftest import box_mesh
 
     m = box_mesh((3, 3, 3))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     lam, mu = np.full(len(m.tets), 10.0), np.ones(len(m.tets))
     warm = np.random.default_rng(3).normal(size=(op.n_interior, 3))
     u_i, info = solve_interior(op, lam, mu, np.zeros((len(m.boundary), 3)), warm)
@@ -87,10 +87,11 @@ def test_gradient_through_solve_matches_finite_differences(preconditioner):
     parameters, as a chain's preconditioner is), against central differences."""
     from conftest import box_mesh
 
-    from bayesreg.solver import dense_preconditioner, solve_interior_blocks
+    from bayesreg.preconditioners import dense_preconditioner
+    from bayesreg.solver import solve_interior_blocks
 
     m = box_mesh((3, 3, 3))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     rng = np.random.default_rng(3)
     ub = jnp.asarray(rng.normal(size=(len(m.boundary), 3)))
     w = jnp.asarray(rng.normal(size=(op.n_interior, 3)))
@@ -117,10 +118,11 @@ def test_dense_preconditioner_solves_to_the_direct_solution_in_few_iterations(br
     the CG meets the same tolerance (SciPy direct solve), in a few iterations at parameters
     near the reference and in fewer than block Jacobi's far from it (the preconditioned
     eigenvalues lie between the smallest and largest ratio of the parameters)."""
-    from bayesreg.solver import dense_preconditioner, solve_interior_blocks
+    from bayesreg.preconditioners import dense_preconditioner
+    from bayesreg.solver import solve_interior_blocks
 
     _, _, mesh = brain
-    op, _ = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    op, _ = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     ub = np.random.default_rng(4).normal(size=(len(mesh.boundary), 3))
 
     def params(lam_g, mu_g):
@@ -145,10 +147,11 @@ def test_dense_preconditioner_solves_to_the_direct_solution_in_few_iterations(br
 def test_dense_preconditioner_falls_back_to_block_jacobi_when_the_factorisation_fails():
     from conftest import box_mesh
 
-    from bayesreg.solver import dense_preconditioner, solve_interior_blocks
+    from bayesreg.preconditioners import dense_preconditioner
+    from bayesreg.solver import solve_interior_blocks
 
     m = box_mesh((3, 3, 3))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     lam, mu = np.full(len(m.tets), 10.0), np.ones(len(m.tets))
     ub = jnp.asarray(np.random.default_rng(5).normal(size=(len(m.boundary), 3)))
     x0 = jnp.zeros((op.n_interior, 3))
@@ -169,11 +172,12 @@ def test_packed_preconditioner_is_the_dense_inverse(brain):
     below to float32 round-off) and packs back bit for bit; its product agrees with the
     dense product to float32 round-off for block sizes that divide the DOFs or leave
     padding; a solve takes the same iterations to the same solution with either."""
-    from bayesreg.solver import (PACKED_BLOCK_ROWS, DensePreconditioner, dense_preconditioner,
-                                 pack_symmetric, solve_interior_blocks, unpack_symmetric)
+    from bayesreg.preconditioners import (PACKED_BLOCK_ROWS, DensePreconditioner, dense_preconditioner,
+                                          pack_symmetric, unpack_symmetric)
+    from bayesreg.solver import solve_interior_blocks
 
     _, _, mesh = brain
-    op, _ = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    op, _ = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     lam, mu = np.asarray([1.0, 10.0, 30.0])[mesh.tissue], np.ones(len(mesh.tets))
     n = 3 * op.n_interior
     dense = dense_preconditioner(op, op.blocks(lam, mu)[0], block_rows=1)
@@ -211,10 +215,11 @@ def test_a_failing_preconditioned_solve_hands_over_to_block_jacobi():
     Jacobi from its iterate, to the same tolerance."""
     from conftest import box_mesh
 
-    from bayesreg.solver import DENSE_MAX_ITERATIONS, DensePreconditioner, solve_interior_blocks
+    from bayesreg.preconditioners import DENSE_MAX_ITERATIONS, DensePreconditioner
+    from bayesreg.solver import solve_interior_blocks
 
     m = box_mesh((3, 3, 3))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     lam, mu = np.full(len(m.tets), 10.0), np.ones(len(m.tets))
     ub = jnp.asarray(np.random.default_rng(8).normal(size=(len(m.boundary), 3)))
     x0 = jnp.zeros((op.n_interior, 3))
@@ -233,12 +238,13 @@ def test_spectral_preconditioner_is_the_exact_inverse_at_every_lam_and_mu(brain)
     meets the direct solution at rtol 1e-10 within 2 iterations, for ratios ``lam / mu``
     from 0.1 to 10^4 (block Jacobi needs tens to hundreds); it carries no gradient and a
     gradient through the solve still matches finite differences."""
-    from bayesreg.solver import solve_interior_blocks, spectral_preconditioner
+    from bayesreg.preconditioners import spectral_preconditioner
+    from bayesreg.solver import solve_interior_blocks
 
     _, _, mesh = brain
-    op, _ = fem.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
+    op, _ = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     one = np.ones(len(mesh.tets))
-    gb = fem.group_blocks(op, np.zeros(len(mesh.tets), int), 1)
+    gb = stiffness.group_blocks(op, np.zeros(len(mesh.tets), int), 1)
     spec = spectral_preconditioner(op, *gb.group(0))
     assert spec.basis.dtype == jnp.float32 and float(jnp.min(spec.eigenvalues)) >= 0.0
     ub = np.random.default_rng(6).normal(size=(len(mesh.boundary), 3))
@@ -273,7 +279,7 @@ def test_solver_entry_points_check_shapes_statically():
     from bayesreg.solver import interior_map, pcg, solve_interior_blocks
 
     m = box_mesh((2, 2, 2))
-    op, _ = fem.build_operator(m.nodes, m.tets, m.boundary)
+    op, _ = stiffness.build_operator(m.nodes, m.tets, m.boundary)
     n_b, n_i, n_e = len(m.boundary), op.n_interior, len(m.tets)
     lam, mu = np.full(n_e, 10.0), np.ones(n_e)
     ub = np.random.default_rng(7).normal(size=(n_b, 3))

@@ -13,7 +13,8 @@ from conftest import box_mesh
 from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image
 from bayesreg.mesh import boundary_nodes
-from bayesreg.synthetic import constrained_shift, warp_image
+from bayesreg.contact import constrained_shift
+from bayesreg.warp import warp_image
 
 PAPER_LAM = np.array([1e-6, 10.0, 30.0])  # CSF, GM, WM (paper Sec. 4.1)
 PAPER_MU = np.array([1e-6, 1.0, 1.0])
@@ -197,7 +198,8 @@ def test_locate_voxels_equals_locate_at_the_voxel_centres():
     """The grid search gives ``locate``'s elements and barycentric coordinates (bit for bit)
     on an oblique, flipped grid whose voxels overhang the mesh."""
     from bayesreg.images import Image
-    from bayesreg.synthetic import _grid_points, locate, locate_voxels
+    from bayesreg.images import grid_points
+    from bayesreg.warp import locate, locate_voxels
 
     mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
     rot = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
@@ -205,7 +207,7 @@ def test_locate_voxels_equals_locate_at_the_voxel_centres():
     affine[:3, :3] = rot @ np.diag([2.0, -1.5, 2.5])
     affine[:3, 3] = [15.0, 15.0, 15.0] - affine[:3, :3] @ [10.0, 12.0, 8.0]
     grid = Image(np.zeros((21, 25, 17)), affine)
-    expect = locate(mesh.nodes, mesh.tets, _grid_points(grid))
+    expect = locate(mesh.nodes, mesh.tets, grid_points(grid))
     got = locate_voxels(mesh.nodes, mesh.tets, grid.data.shape, grid.affine)
     assert 0 < np.sum(expect[0] >= 0) < len(expect[0])  # some centres inside, some outside
     np.testing.assert_array_equal(got[0], expect[0])

@@ -27,7 +27,7 @@ built with the object-oriented Matplotlib API on the Agg canvas (no pyplot state
 Units: displacements and distances in world mm, MSE in mm^2, divergence in mm/mm.
 """
 
-from bayesreg.report.data import PAPER, RunData, load_run
+from bayesreg.report.data import PAPER, TISSUE_COLORS, RunData, load_run
 from bayesreg.report.figures import (
     divergence, mesh_cut, plot_boundary_node, plot_dataset, plot_errors, plot_ratios,
     plot_uncertainty, skull_distance, skull_limits, skull_node, slice_index)
@@ -35,7 +35,7 @@ from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
 from bayesreg.report.write import write_report
 
 __all__ = [
-    "PAPER", "RunData", "load_run", "table1", "table2", "coverage_table", "ratio_table",
+    "PAPER", "TISSUE_COLORS", "RunData", "load_run", "table1", "table2", "coverage_table", "ratio_table",
     "divergence", "skull_distance", "skull_node", "skull_limits", "mesh_cut", "slice_index",
     "plot_dataset", "plot_errors", "plot_ratios", "plot_boundary_node", "plot_uncertainty",
     "write_report",
