@@ -30,7 +30,7 @@ _PAD = 3  # forbidden voxels added around the grid (the exterior of the grid is 
 
 
 def _nearest_forbidden(mask, inv_affine, points):
-    """The rule of ``posterior._node_forbidden`` in NumPy: nearest voxel ``floor(c + 0.5)``
+    """The rule of :func:`bayesreg.constraints.points_forbidden` in NumPy: nearest voxel ``floor(c + 0.5)``
     forbidden, or the point outside the grid; ``(P,)`` bool."""
     c = points @ inv_affine[:3, :3].T + inv_affine[:3, 3]
     idx = np.floor(c + 0.5).astype(np.int64)
@@ -154,35 +154,44 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     Clearance.  A point whose nearest voxel is forbidden lies within half a voxel diagonal
     of that voxel's centre; ``c`` defaults to that half diagonal, to cover the difference
     between ``d`` (a smoothed distance between voxel centres) and the nearest-voxel rule of
-    ``posterior._node_forbidden``.  Measured on the MNI skull at 2 mm and on random blobs
-    (1 mm, and 1 x 1.5 x 2 mm) with 4e5 random points each: every point that the rule
-    calls forbidden has ``d >= -0.49 h`` to ``-0.64 h`` (``h`` the smallest spacing),
-    inside the default ``c`` (``0.87 h`` isotropic).  The result is checked with exactly
+    :func:`bayesreg.constraints.points_forbidden` (points the rule forbids have ``d`` above
+    about ``-0.64 h``, ``h`` the smallest spacing, inside the default ``c``, ``0.87 h`` for
+    isotropic voxels).  The result is checked with exactly
     that rule (against the admissible region): a node failing it gets its clearance raised
     by ``h / 2`` and the loop goes on (``n_clearance_raises``), so a converged result has
     ``n_forbidden_nodes == 0``.  A node that is closer than ``c`` to the skull already at
     rest gets its rest distance as its clearance (never negative): the margin must not push
-    the brain inward where the mesh (after :func:`bayesreg.mesh.carve_skull`) already
+    the brain inward where the mesh (after :func:`bayesreg.meshing.carve_skull`) already
     touches the skull.
 
     Parameters
     ----------
-    mesh : Mesh  (N nodes, M elements, world mm)
-    lam_e, mu_e : (M,) array_like  per-element Lamé parameters, [lam] (e.g. kPa)
-    forbidden : Image  ``data > 0`` marks the skull; points outside the grid are forbidden
-    shift_mm : float  displacement of the pushed nodes, mm (> 0)
-    n_pushed : int  number of pushed nodes when ``pushed`` is None: the boundary nodes of
-        largest world z (top of the head, supine craniotomy), as :func:`brain_shift`
-    pushed : (P,) array_like of int, optional  node indices, all boundary nodes (sorted,
+    mesh : Mesh
+        (N nodes, M elements, world mm)
+    lam_e, mu_e : (M,) array_like
+        per-element Lamé parameters, [lam] (e.g. kPa)
+    forbidden : Image
+        ``data > 0`` marks the skull; points outside the grid are forbidden
+    shift_mm : float
+        displacement of the pushed nodes, mm (> 0)
+    n_pushed : int
+        number of pushed nodes when ``pushed`` is None: the boundary nodes of
+        largest world z (top of the head, supine craniotomy), as :func:`bayesreg.synthetic.brain_shift`
+    pushed : (P,) array_like of int, optional
+        node indices, all boundary nodes (sorted,
         duplicates dropped)
-    clearance_mm : float, optional  ``c`` above (default half the voxel diagonal of
+    clearance_mm : float, optional
+        ``c`` above (default half the voxel diagonal of
         ``forbidden``), >= 0
-    tol_mm : float  tolerance on the constraint violation ``max g_n``, mm (> 0)
-    max_iter : int  augmented-Lagrangian (outer) iterations (>= 1)
+    tol_mm : float
+        tolerance on the constraint violation ``max g_n``, mm (> 0)
+    max_iter : int
+        augmented-Lagrangian (outer) iterations (>= 1)
 
     Returns
     -------
-    truth : Truth  ``u`` (N, 3) mm, ``lam_e``, ``mu_e``, ``pushed`` (P,)
+    truth : Truth
+        ``u`` (N, 3) mm, ``lam_e``, ``mu_e``, ``pushed`` (P,)
     info : dict (JSON-serialisable)
         ``energy`` and ``energy_unconstrained`` (same pushed nodes, no skull), [lam] mm^3;
         ``max_violation_mm`` = max over the non-pushed nodes of ``d(x_n + u_n)`` (> 0: in
@@ -191,7 +200,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         for the pushed nodes (not constrained); ``max_constraint_mm`` = ``max g_n`` over
         the constrained nodes (``<= tol_mm`` when converged: ``d_n <= -c_n``, where ``c_n``
         is below ``clearance`` for a node nearer the skull at rest); ``n_forbidden_nodes`` (every node, by the
-        nearest-voxel rule of ``posterior._node_forbidden``); ``n_active`` (nodes with
+        nearest-voxel rule of :func:`bayesreg.constraints.points_forbidden`); ``n_active`` (nodes with
         ``g_n >= -tol_mm``); ``iterations`` (outer), ``newton_iterations`` (total);
         ``penalty`` (final dimensionless ``rho``); ``converged``; ``n_inverted`` (deformed
         elements with signed volume <= 0); ``clearance_mm``; ``n_clearance_raises``;

@@ -57,7 +57,8 @@ def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarr
     Returns
     -------
     theta : (dim,) ndarray
-    info : dict  ``{"start", "shrink"}`` (and the registration time)
+    info : dict
+        ``{"start", "shrink"}`` (and the registration time)
 
     Raises
     ------
@@ -239,11 +240,16 @@ class Initialisation(NamedTuple):
 
     Attributes
     ----------
-    x0 : (C, dim)  chain starts
-    center : (dim,)  central start (after the mode search, if any)
-    sigma : tuple of arrays  initial jumping-kernel scale per block
-    blocked : bool  u_b and the elastic parameters in separate blocks
-    info : dict  how the starts were made (mode search figures, timings)
+    x0 : (C, dim)
+        chain starts
+    center : (dim,)
+        central start (after the mode search, if any)
+    sigma : tuple of arrays
+        initial jumping-kernel scale per block
+    blocked : bool
+        u_b and the elastic parameters in separate blocks
+    info : dict
+        how the starts were made (mode search figures, timings)
     """
 
     x0: np.ndarray

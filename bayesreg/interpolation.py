@@ -38,9 +38,8 @@ def interpolate(volume, inv_affine, points, cval=0.0):
     -----
     Differentiable in every argument through a hand-written JVP (``jax.custom_jvp`` with
     symbolic zeros): the derivative in ``points`` is that of the trilinear polynomial of
-    the point's cell, computed from the same 8 gathered corners as the value.  JAX's own
-    reverse mode of the gather-and-blend took 9.3 ms per Gauss-point SSD gradient at
-    paper size (3,688 tetrahedra) against 3.9 ms for this rule (2-core CPU).
+    the point's cell, computed from the same 8 gathered corners as the value (JAX's own
+    reverse mode of the gather-and-blend is several times slower).
     """
     return _interpolate(volume, inv_affine, points, cval)
 
@@ -54,7 +53,7 @@ def _cell_corners(volume, inv_affine, points, cval):
     t = c - c0
     c0 = c0.astype(jnp.int32)
     # the 8 corners gathered at once from the flattened volume: one gather of (..., 8)
-    # instead of eight 3-D advanced-indexing gathers (2x faster on XLA:CPU at paper size)
+    # instead of eight 3-D advanced-indexing gathers (faster on XLA:CPU)
     offs = jnp.array(_CORNERS, jnp.int32)  # (8, 3)
     idx = c0[..., None, :] + offs
     inside = jnp.all((idx >= 0) & (idx < jnp.array(shp)), axis=-1)
@@ -128,8 +127,7 @@ def trilinear_clamped(volume, coords):
     its nearest point of the grid (coordinates clamped to ``[0, shape - 1]``), so a volume
     with one voxel of a constant ``c`` around its data interpolates exactly as
     :func:`interpolate` with ``cval=c`` does everywhere (inside, in the one-voxel band
-    where it blends toward ``c``, and beyond).  On the paper-size similarity term (14,500
-    points, one core of the 2-core CPU) it took 0.21 ms against 0.42-0.44 ms for
+    where it blends toward ``c``, and beyond), from four gathers of pairs instead of
     :func:`interpolate`'s eight single-value gathers.
 
     Parameters
@@ -163,8 +161,7 @@ def _cell_block(volume, c):
     """Offsets ``t`` ``(..., 3)`` in the cell of ``c`` (clamped coordinates) and its 2x2x2 voxels.
 
     The flat index of each cell's first corner is materialised (``optimization_barrier``)
-    before the gathers: fused into them, XLA:CPU recomputed it for every gathered value
-    (0.21 against 0.32 ms for the paper-size similarity term alone, 2-core CPU).
+    before the gathers: fused into them, XLA:CPU recomputes it for every gathered value.
     """
     c0 = jnp.minimum(jnp.floor(c), jnp.asarray(volume.shape, c.dtype) - 2.0)
     ci = c0.astype(jnp.int32)

@@ -143,7 +143,7 @@ MIN_INSIDE_FRACTION = 0.5
 
 
 def read_mesh(path, labels: Image) -> Mesh:
-    """A tetrahedral mesh from a file, labelled as :func:`mesh_brain` labels its elements.
+    """A tetrahedral mesh from a file, labelled as :func:`bayesreg.meshing.mesh_brain` labels its elements.
 
     Any format that meshio reads (VTU, XDMF, Gmsh ``.msh``, Medit ``.mesh``, ...): for
     instance a run's own ``mesh.vtu``, to sample again on the very mesh of that run (fTetWild

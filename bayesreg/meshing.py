@@ -133,8 +133,7 @@ def mesh_brain(
             f"edge_length_mm={float(edge_length_mm):g} exceeds the largest extent of the "
             f"intracranial surface ({extent.max():.0f} mm; its box is "
             f"{' x '.join(f'{e:.0f}' for e in extent)} mm): no element can be that long, and "
-            "fTetWild spends minutes trying (MNI152 at 2 mm: 15 s at 200 mm and 35 s at 400 mm "
-            "for the ~180 nodes it makes at 60 mm); use a smaller edge length")
+            "fTetWild spends minutes trying; use a smaller edge length")
     try:
         # fTetWild writes a scratch file (__tracked_surface.stl) into the working folder
         with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
@@ -198,8 +197,8 @@ def mesh_brain_sized(
         Wanted number of nodes (>= 20).
     tolerance : float
         Accept a mesh with ``|n - target_nodes| <= tolerance * target_nodes`` (in (0, 1)).
-        At 0.05, 8 runs for the paper's 801 nodes on the 2 mm MNI152 brain took 1-9
-        attempts (1.3-15 s on the 2-core CPU); at 0.03 one run of 8 used all 12.
+        fTetWild's node counts scatter by a few percent at one edge length, so a tolerance
+        below about 0.05 can take many attempts.
     max_attempts : int
         Meshes to try at most (>= 1).  When none is within the tolerance, the closest is
         returned, a :class:`UserWarning` names the counts, and ``info["within_tolerance"]``

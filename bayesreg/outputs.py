@@ -72,11 +72,15 @@ class RunResult(NamedTuple):
 
     Attributes
     ----------
-    dir : Path  the run directory
-    posterior : DataTree  ArviZ posterior and sample stats
+    dir : Path
+        the run directory
+    posterior : DataTree
+        ArviZ posterior and sample stats
     summary : pandas.DataFrame
-    errors : dict or None  error table (synthetic truth)
-    info : dict  content of ``run.json``
+    errors : dict or None
+        error table (synthetic truth)
+    info : dict
+        content of ``run.json``
     """
 
     dir: Path
@@ -102,7 +106,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
 
     Parameters
     ----------
-    problem : bayesreg.pipeline.Problem
+    problem : bayesreg.problem.Problem
     result : bayesreg.sampler.SamplerResult
     u_init : (N, 3) ndarray
         Nodal displacement of the chains' central start (mm).
@@ -164,9 +168,7 @@ def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = 
     The same table as one ``az.summary(tree, var_names=small + [big], ...)`` call, row for
     row and value for value (ArviZ's diagnostics are per estimand; tested).  ArviZ's NumPy
     work (the rank normalisations' sorts above all) releases the GIL, so the threads use
-    the cores: on the paper experiment's 3 x 25,000 draws of 1,032 boundary coordinates,
-    60 s in one call against 24 s for ``u_b`` in two threads (2-core CPU).  ``parts``
-    defaults to the cores available.
+    the cores.  ``parts`` defaults to the cores available.
     """
     import arviz as az
     import pandas as pd
@@ -251,7 +253,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         the central start's interior).
     problem : Problem
     result : SamplerResult
-        The draws and the sampler's own description of the run (:class:`SamplerInfo`).
+        The draws and the sampler's own description of the run (:class:`bayesreg.sampler.SamplerInfo`).
     init : Initialisation
         Its central start is the "initial configuration" of the error table.
     timings : dict

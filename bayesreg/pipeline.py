@@ -136,12 +136,14 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
 
     Examples
     --------
-    The quickstart on tiny settings (a coarse mesh on 3 mm images, a few draws):
+    The quickstart's problem on tiny settings (a coarse mesh on 3 mm images, two chains of
+    the paper's random walk, a few draws):
 
     >>> import bayesreg
-    >>> tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26", "init.optimizer_iterations=20",
-    ...         "sampler.warmup_steps=20", "sampler.chunk_draws=10", "sampler.max_draws=10",
-    ...         "sampler.min_draws=10", "sampler.max_tree_depth=3", "sampler.elastic_moves=2"]
+    >>> tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26", "sampler.kind=rwmh",
+    ...         "sampler.chains=2", "sampler.proposal=isotropic", "init.method=perturb",
+    ...         "sampler.warmup_steps=20", "sampler.thinning=1", "sampler.chunk_draws=10",
+    ...         "sampler.max_draws=10", "sampler.min_draws=10"]
     >>> result = bayesreg.run("configs/quickstart.yaml", out=getfixture("tmp_path") / "run",
     ...                       overrides=tiny, progress=False)
     >>> result.posterior.posterior["u_b"].dims

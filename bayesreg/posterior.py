@@ -362,7 +362,8 @@ def elastic_groups(post: Posterior, phi):
     Parameters
     ----------
     post : Posterior
-    phi : (..., n_free) array  (batched draws allowed)
+    phi : (..., n_free) array
+        (batched draws allowed)
 
     Returns
     -------
@@ -398,9 +399,9 @@ def stiffness_blocks(post: Posterior, lam_g, mu_g):
     """ELL blocks ``(b_ii, b_ib)`` of ``K_ii``, ``K_ib`` (paper Eqs. 5-7) for per-group
     Lamé parameters ``lam_g``, ``mu_g`` ``(G,)``.
 
-    From the shared per-group unit blocks (:class:`bayesreg.fem.GroupBlocks`) when the
+    From the shared per-group unit blocks (:class:`bayesreg.stiffness.GroupBlocks`) when the
     posterior has them, else assembled from the elements
-    (:meth:`bayesreg.fem.ElasticOperator.blocks`); the two agree to round-off (tested).
+    (:meth:`bayesreg.stiffness.ElasticOperator.blocks`); the two agree to round-off (tested).
     """
     if post.unit_blocks is not None:
         return post.unit_blocks.combine(lam_g, mu_g)
@@ -469,6 +470,36 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
         ``theta`` not of shape ``(dim,)`` or ``u_i0`` not ``(n_i, 3)`` (static shape checks:
         under ``vmap`` over chains these are the shapes of one chain).  Values are never
         checked: an invalid position gives ``-inf``.
+
+    Examples
+    --------
+    Two tetrahedra over a smooth image: identical images make ``E_s = 0`` at rest, and a
+    rigid translation of every boundary node leaves ``E_r = 0`` while ``E_s`` grows:
+
+    >>> import jax.numpy as jnp, numpy as np
+    >>> import bayesreg
+    >>> from bayesreg.images import Image
+    >>> from bayesreg.mesh import Mesh, boundary_nodes, orient_tets
+    >>> from bayesreg.parameters import ParamLayout
+    >>> from bayesreg.posterior import build_posterior, log_density
+    >>> from bayesreg.similarity import build_ssd
+    >>> bayesreg.configure_jax()
+    >>> i, j, k = np.meshgrid(*[np.arange(40.0)] * 3, indexing="ij")
+    >>> img = Image(np.sin(i / 6) + np.cos(j / 7) + k / 40, np.eye(4))
+    >>> nodes = np.array([[0, 0, 0], [20, 0, 0], [0, 20, 0], [0, 0, 20], [20, 20, 20]], float) + 10
+    >>> tets = orient_tets(nodes, np.array([[0, 1, 2, 3], [1, 2, 3, 4]]))
+    >>> mesh = Mesh(nodes, tets, np.zeros(2, np.int64), boundary_nodes(tets))
+    >>> post = build_posterior(
+    ...     mesh, build_ssd(nodes, tets, img, img), Image(np.zeros((40, 40, 40), np.uint8), np.eye(4)),
+    ...     t_s=1.0, t_r=1.0, layout=ParamLayout(("all",), (("lam", 0),), (("mu", 0, 1.0),)),
+    ...     element_group=np.zeros(2, np.int64), prior={"lam": (1, 1, 0, 100)}, phi_ref=[5.0])
+    >>> interior = jnp.zeros((post.op.n_interior, 3))  # no interior node in this mesh
+    >>> lp, aux = log_density(post, jnp.asarray(np.r_[np.zeros(15), 5.0]), interior)
+    >>> round(float(aux.e_s), 12), float(aux.e_r)  # (m is stored in float32)
+    (0.0, 0.0)
+    >>> lp, aux = log_density(post, jnp.asarray(np.r_[np.tile([1.0, 0.0, 0.0], 5), 5.0]), interior)
+    >>> bool(aux.e_s > 0), abs(float(aux.e_r)) < 1e-12
+    (True, True)
     """
     u_b, phi = split_position(post, theta)
     check_shape("u_i0", u_i0, (post.op.n_interior, 3), "warm start, one row per interior node")
@@ -539,7 +570,7 @@ def condensation(post: Posterior, theta):
 
 def preconditioner(post: Posterior, theta) -> DensePreconditioner:
     """Dense CG preconditioner ``K_ii(phi)^-1`` (float32) at the parameters of ``theta``
-    (:func:`bayesreg.solver.dense_preconditioner`; :attr:`Posterior.phi_ref` when they leave
+    (:func:`bayesreg.preconditioners.dense_preconditioner`; :attr:`Posterior.phi_ref` when they leave
     the prior support).  Built once per chain and reused while its parameters move: the
     preconditioner of :func:`log_density` (``precond``) at any nearby parameters."""
     _, phi = split_position(post, theta)
@@ -559,8 +590,10 @@ def log_density_condensed(post: Posterior, theta, h):
     Parameters
     ----------
     post : Posterior
-    theta : (dim,) array  ``[u_b.ravel() (mm), phi]``
-    h : (3 n_i, 3 n_b) array  interior map at ``theta``'s ``phi``
+    theta : (dim,) array
+        ``[u_b.ravel() (mm), phi]``
+    h : (3 n_i, 3 n_b) array
+        interior map at ``theta``'s ``phi``
 
     Returns
     -------

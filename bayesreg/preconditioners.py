@@ -33,8 +33,8 @@ __all__ = ["DensePreconditioner", "dense_preconditioner", "SpectralPreconditione
 
 
 #: Iterations of a solve preconditioned by :class:`DensePreconditioner` before it hands over
-#: to block Jacobi (:func:`solve_interior_blocks`): 2-3 are typical, 25 with the reference
-#: parameters a factor 100 off.
+#: to block Jacobi (:func:`bayesreg.solver.solve_interior_blocks`): a few are typical, a few
+#: tens with the reference parameters a factor 100 off.
 DENSE_MAX_ITERATIONS = 50
 
 
@@ -45,8 +45,8 @@ DENSE_MAX_DOFS = 4096
 
 #: Block rows of the packed storage of :class:`DensePreconditioner` on a CPU (its lower block
 #: triangle, ``R (R + 1) / 2`` blocks): 8 at the paper's size gives blocks of 185 DOFs and
-#: 56% of the dense bytes.  On other backends the inverse stays dense (1: the form measured
-#: on the GPUs, where the chains' batched dense products run at the device's bandwidth).
+#: 56% of the dense bytes.  On other backends the inverse stays dense (1: the chains'
+#: batched dense products run at the device's bandwidth).
 PACKED_BLOCK_ROWS = 8
 
 
@@ -91,7 +91,7 @@ class DensePreconditioner(NamedTuple):
     ----------
     inverse : float32 array, (3 n_i, 3 n_i) or (R (R + 1) / 2, b, b)
         ``K_ii(lam_ref, mu_ref)^-1``, DOFs node-major (``3 * row + axis``, rows in the
-        :class:`bayesreg.fem.ElasticOperator`'s interior order); symmetric positive
+        :class:`bayesreg.stiffness.ElasticOperator`'s interior order); symmetric positive
         definite.  Dense, or packed as its lower block triangle (:func:`pack_symmetric`,
         ``R`` block rows of ``b`` DOFs, zero-padded to ``R b``), which
         :func:`dense_preconditioner` builds on a CPU (:data:`PACKED_BLOCK_ROWS`).  Applied
@@ -105,11 +105,9 @@ class DensePreconditioner(NamedTuple):
     Notes
     -----
     Why packed on a CPU: XLA:CPU runs the batched products on all the cores it has, the
-    dense matrix-vector product on one.  At the paper's size (1,479 DOFs, 4.9 instead of
-    8.75 MB) a product took 0.134 against 0.218 ms on the 2-core CPU, and one chain ran
-    1.3-1.5x the MH steps/s; pinned to one core, or with a chain per core, the same as
-    dense (``benchmarks/README.md``, "The preconditioner packed", 2026-11-26).  The
-    preconditioned residuals agree with the dense form's to float32 round-off.
+    dense matrix-vector product on one, so a single chain with idle cores runs faster
+    packed; with a chain per core the two forms cost the same.  The preconditioned
+    residuals agree with the dense form's to float32 round-off.
     """
 
     inverse: jax.Array
@@ -145,8 +143,7 @@ def dense_preconditioner(op: ElasticOperator, b_ii, *, block_rows: int | None = 
 
     ``K_ii`` is scaled to unit diagonal (``D^-1/2 K_ii D^-1/2``), factorised by Cholesky in
     float32 and inverted (``L^-T L^-1``), and the scaling is folded back into the inverse.
-    Cost ``(3 n_i)^3`` flops: about 80 ms at the paper's size (1,371 interior DOFs) on one
-    core of the 2-core CPU; memory ``4 (3 n_i)^2`` bytes (see :data:`DENSE_MAX_DOFS`).
+    Cost ``(3 n_i)^3`` flops; memory ``4 (3 n_i)^2`` bytes (see :data:`DENSE_MAX_DOFS`).
 
     A preconditioner only has to be close to ``K_ii^-1``: float32 halves the bytes that each
     application streams (a 1,371-DOF product took 114 us against 243 us in float64), and the
@@ -211,14 +208,12 @@ class SpectralPreconditioner(NamedTuple):
     ``K_ii^-1 = V diag(1 / (lam w + mu)) V^T``: exact for every parameter value, where
     :class:`DensePreconditioner` holds one value's inverse.  ``V`` is stored in float32 (the
     CG iterates in float64 to its own tolerance; the float32 rounding leaves one or two
-    iterations to do: measured 1.0 per proposal to 1e-8 from the paper's uniform config's
-    starts and 1.8 after its warm-up, against 3.2-3.5 with each chain's chunk-start dense
-    inverse, ``benchmarks/steps.py``) and is the same for every chain.
+    iterations to do) and is the same for every chain.
 
     Attributes
     ----------
     basis : (3 n_i, 3 n_i) float32 array
-        ``V``, DOFs node-major in the :class:`bayesreg.fem.ElasticOperator`'s interior order.
+        ``V``, DOFs node-major in the :class:`bayesreg.stiffness.ElasticOperator`'s interior order.
     eigenvalues : (3 n_i,) float64 array
         ``w >= 0`` (round-off may leave the smallest at about ``-1e-16``).
     lam, mu : () arrays
@@ -242,16 +237,15 @@ class SpectralPreconditioner(NamedTuple):
 def spectral_preconditioner(op: ElasticOperator, lam_ii, mu_ii) -> SpectralPreconditioner:
     """:class:`SpectralPreconditioner` from the unit blocks of ``K_ii`` of one group.
 
-    Host computation (SciPy's generalised ``eigh``, float64): about 1-2 s at the paper's
-    size (1,400 interior DOFs) on the 2-core CPU, memory ``4 (3 n_i)^2`` bytes for the basis
-    (see :data:`DENSE_MAX_DOFS`).
+    Host computation (SciPy's generalised ``eigh``, float64, ``O((3 n_i)^3)``), memory
+    ``4 (3 n_i)^2`` bytes for the basis (see :data:`DENSE_MAX_DOFS`).
 
     Parameters
     ----------
     op : ElasticOperator
     lam_ii, mu_ii : tuples of (R_k, S_k, 3, 3) arrays
         Sliced ELL blocks of ``K_ii`` for ``lam = 1, mu = 0`` and ``lam = 0, mu = 1``
-        (:meth:`bayesreg.fem.GroupBlocks.group` of a single group).
+        (:meth:`bayesreg.stiffness.GroupBlocks.group` of a single group).
 
     Returns
     -------

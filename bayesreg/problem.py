@@ -369,7 +369,8 @@ def prepare(cfg: Config) -> Problem:
 
     Raises
     ------
-    As :func:`make_data` and :func:`assemble`.
+    FileNotFoundError, MeshError, ValueError
+        As :func:`make_data` and :func:`assemble`.
 
     Examples
     --------

@@ -81,22 +81,35 @@ class SamplerResult(NamedTuple):
 
     Attributes
     ----------
-    positions : (C, D, dim)   thinned post-warm-up draws
-    interior : (C, D, n_i, 3)   interior FE solution of each draw
+    positions : (C, D, dim)
+        thinned post-warm-up draws
+    interior : (C, D, n_i, 3)
+        interior FE solution of each draw
     logdensity : (C, D)
-    acceptance : (C, D, B)   mean acceptance probability per block over each thinning interval
-    cg_iterations : (C, D)   mean CG iterations per step over each interval
-    solve_failures : (C, D)   non-converged (rejected) solves per interval
-    grad_evals : (C, D)   mean gradient evaluations per step over each interval (0: RW-MH)
-    divergences : (C, D)   divergent transitions per interval (gradient kernels)
+    acceptance : (C, D, B)
+        mean acceptance probability per block over each thinning interval
+    cg_iterations : (C, D)
+        mean CG iterations per step over each interval
+    solve_failures : (C, D)
+        non-converged (rejected) solves per interval
+    grad_evals : (C, D)
+        mean gradient evaluations per step over each interval (0: RW-MH)
+    divergences : (C, D)
+        divergent transitions per interval (gradient kernels)
     rhat_history : list of (draws per chain, max monitored R-hat)
-    sigma : tuple  the frozen tuned values: the proposal scale of each block (RW-MH), or
+    sigma : tuple
+        the frozen tuned values: the proposal scale of each block (RW-MH), or
         ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free))`` (gradient kernels)
-    warmup_acceptance : (B,) ndarray  acceptance per block in the last warm-up chunk
-    timings : dict  seconds for compile, warm-up, sampling
-    converged : bool   max R-hat < threshold at the end
-    final_states : state pytree  the chains' states at the end (leaves ``(C, ...)``)
-    info : SamplerInfo  how the run was sampled
+    warmup_acceptance : (B,) ndarray
+        acceptance per block in the last warm-up chunk
+    timings : dict
+        seconds for compile, warm-up, sampling
+    converged : bool
+        max R-hat < threshold at the end
+    final_states : state pytree
+        the chains' states at the end (leaves ``(C, ...)``)
+    info : SamplerInfo
+        how the run was sampled
     """
 
     positions: np.ndarray
@@ -126,11 +139,14 @@ class SamplerCheckpoint(NamedTuple):
     ----------
     states : state pytree (leaves ``(C, ...)``), or the list of its leaves (from a file)
         the chains after the last finished chunk
-    sigma : tuple of arrays  the frozen tuned values (see ``SamplerResult.sigma``)
+    sigma : tuple of arrays
+        the frozen tuned values (see ``SamplerResult.sigma``)
     warmup_acceptance : (B,) ndarray
-    chunks_done : int  sampling chunks finished (0 right after the warm-up)
+    chunks_done : int
+        sampling chunks finished (0 right after the warm-up)
     rhat_history : list of (draws per chain, max monitored R-hat)
-    timings : dict  seconds spent so far
+    timings : dict
+        seconds spent so far
     """
 
     states: object
@@ -192,7 +208,7 @@ def sample(
         ``2.38 / sqrt(d_b)`` times the within-chain standard deviation of the chains' draws
         since the previous window (Haario-style diagonal adaptation): a vector ``sigma`` is
         replaced, the rows of a matrix factor are rescaled (its correlations are kept).
-        Blocks of at most ``DENSE_MAX`` coordinates (the elastic parameters) get the dense
+        Blocks of at most ``DENSE_MAX`` (16) coordinates (the elastic parameters) get the dense
         factor ``2.38 / sqrt(d_b) chol(C)`` of the window's within-chain covariance ``C``
         instead (their ``sigma`` is taken as a diagonal factor from the start, so the kernel
         is traced once).  The scale adaptation then restarts.
@@ -543,20 +559,29 @@ def sample_gradient(
     ----------
     rng_key : PRNGKey
     target : bayesreg.kernels.target.Target
-    initial_positions : (C, dim) array  natural positions ``[u_b.ravel(), phi]``
-    interior0 : (n_i, 3) array  warm start of the first solve
+    initial_positions : (C, dim) array
+        natural positions ``[u_b.ravel(), phi]``
+    interior0 : (n_i, 3) array
+        warm start of the first solve
     kind : {"mala", "hmc", "nuts"}
-    step_size : float  initial leapfrog step (in the preconditioned coordinates ``w``)
+    step_size : float
+        initial leapfrog step (in the preconditioned coordinates ``w``)
     eta_scale : float, (n_free,) or (n_free, n_free) array
         initial scale(s), or lower-triangular factor, of the elastic random walk
-    dense_mass : bool  adapt a dense inverse mass matrix instead of a diagonal one
-    adapt_mass : bool  adapt the inverse mass matrix at all (else identity in ``w``)
-    num_integration_steps : int  HMC's leapfrog steps (their mean if jittered)
-    jitter_integration_steps : bool  HMC: draw the number of leapfrog steps uniformly from
+    dense_mass : bool
+        adapt a dense inverse mass matrix instead of a diagonal one
+    adapt_mass : bool
+        adapt the inverse mass matrix at all (else identity in ``w``)
+    num_integration_steps : int
+        HMC's leapfrog steps (their mean if jittered)
+    jitter_integration_steps : bool
+        HMC: draw the number of leapfrog steps uniformly from
         ``1 .. 2 num_integration_steps - 1`` each transition
         (:func:`bayesreg.kernels.gibbs.build_kernel`)
-    max_tree_depth : int  NUTS' maximum number of trajectory doublings
-    elastic_moves : int  elastic random-walk updates per transition
+    max_tree_depth : int
+        NUTS' maximum number of trajectory doublings
+    elastic_moves : int
+        elastic random-walk updates per transition
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
     estimands, progress, on_chunk, resume, resume_draws
         As :func:`sample` (``warmup_steps`` rounded up to whole chunks).
@@ -606,8 +631,7 @@ def sample_gradient(
         ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
         # BlackJAX's initial adaptation states hold weakly typed floats (python 0.0) that
         # the warm-up step returns strongly typed: made strong here, so that the chunk
-        # program compiles once, not twice (9-10 s a compilation at the quickstart's size);
-        # the integer counters stay weak in and out
+        # program compiles once, not twice; the integer counters stay weak in and out
         return jax.tree.map(lambda a: jnp.asarray(a, a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
                             else a, ws)
 
@@ -618,7 +642,7 @@ def sample_gradient(
         return ws._replace(step_size=frozen.step_size, inverse_mass=frozen.inverse_mass,
                            eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale))
 
-    # the draws' keys as the chunks of :func:`_build_chunk` and the former warm-up took them
+    # the draws' keys as a chunk of :func:`bayesreg.chains.build_chunk` takes them
     samp_keys = jax.jit(jax.vmap(lambda k: jax.vmap(lambda kd: jax.random.split(kd, thinning))(
         jax.random.split(k, chunk_draws))))
     warm_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, chunk_draws * thinning).reshape(

@@ -219,10 +219,13 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
 
     Parameters
     ----------
-    nodes : (N, 3) array_like  world mm
+    nodes : (N, 3) array_like
+        world mm
     tets : (M, 4) array_like of int
-    f, m : Image  pre- and intra-operative images
-    cval : float  value of ``m`` outside its grid
+    f, m : Image
+        pre- and intra-operative images
+    cval : float
+        value of ``m`` outside its grid
     quadrature_level : int
         0 is the paper's 4 Gauss points per element, k the composite rule with ``4 * 8^k``
         (:func:`quadrature_rule`; ``ValueError`` outside 0..3).
@@ -236,12 +239,10 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     moving_dtype : {"float64", "float32"}
         Storage precision of ``m`` in the term.  float64 (default) keeps its values as
         given; float32 rounds them once (relative error at most ``2^-24``) and halves the
-        bytes that every evaluation gathers from: where several chains share a CPU's
-        cache, the paper's random walk ran about 1.1x the MH steps/s with it (3 chains,
-        2 cores, ``benchmarks/README.md``).  The interpolation, the residuals and ``E_s``
-        are float64 either way.  On the paper-size problem the rounding moved
-        ``log p = -E_s / T_s + ...`` by 7e-5 (an offset nearly constant over the chains'
-        states, varying by 6e-6 between proposals), the size of the CG tolerance's effect.
+        bytes that every evaluation gathers from (several chains share a CPU's cache).
+        The interpolation, the residuals and ``E_s`` are float64 either way; the rounding
+        moves ``log p`` by an offset nearly constant over the chains' states, of the size
+        of the CG tolerance's effect.
 
     Raises
     ------
@@ -286,7 +287,7 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
 def sample_moving(term: SSDTerm, points):
     """The moving image at world points ``(..., 3)`` mm, ``(...,)``: trilinear, ``cval``
     outside its grid, valid inside the box of :func:`build_ssd` (``reach``); differentiable
-    (:func:`bayesreg.images.trilinear_clamped`)."""
+    (:func:`bayesreg.interpolation.trilinear_clamped`)."""
     a = term.m_inv_affine
     return trilinear_clamped(term.m, points @ a[:3, :3].T + a[:3, 3])
 

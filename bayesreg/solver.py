@@ -132,7 +132,7 @@ def solve_interior(op: ElasticOperator, lam_e, mu_e, u_b, u_i0, *, rtol=1e-8, ma
     Parameters
     ----------
     op : ElasticOperator
-        Layout from :func:`bayesreg.fem.build_operator`.
+        Layout from :func:`bayesreg.stiffness.build_operator`.
     lam_e, mu_e : (M,) array
         Per-element Lamé parameters (must be positive: ``K_ii`` is then SPD).
     u_b : (n_b, 3) array
@@ -156,10 +156,31 @@ def solve_interior(op: ElasticOperator, lam_e, mu_e, u_b, u_i0, *, rtol=1e-8, ma
         ``(n_i, 3)`` (static shape checks, valid under ``jit`` and ``vmap``; the values are
         not checked: non-positive parameters give a solve reported not converged).
 
+    Examples
+    --------
+    A rigid translation of the boundary moves the interior with it (``K`` annihilates rigid
+    motions), here the centre of a cube of 12 tetrahedra:
+
+    >>> import jax.numpy as jnp, numpy as np
+    >>> import bayesreg
+    >>> from bayesreg.mesh import boundary_nodes, orient_tets
+    >>> from bayesreg.solver import solve_interior
+    >>> from bayesreg.stiffness import build_operator
+    >>> bayesreg.configure_jax()
+    >>> corners = np.array([[x, y, z] for x in (0.0, 20.0) for y in (0.0, 20.0) for z in (0.0, 20.0)])
+    >>> nodes = np.vstack([corners, [[10.0, 10.0, 10.0]]])
+    >>> faces = [(0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5)]
+    >>> tets = orient_tets(nodes, np.array([t for a, b, c, d in faces for t in ([a, b, c, 8], [a, c, d, 8])]))
+    >>> op, interior = build_operator(nodes, tets, boundary_nodes(tets))
+    >>> u_b = jnp.tile(jnp.array([1.0, -2.0, 0.5]), (8, 1))  # mm
+    >>> u_i, info = solve_interior(op, jnp.full(12, 10.0), jnp.ones(12), u_b, jnp.zeros((1, 3)))
+    >>> np.round(np.asarray(u_i), 6).tolist(), bool(info.converged)
+    ([[1.0, -2.0, 0.5]], True)
+
     See Also
     --------
     solve_interior_blocks : the same from assembled blocks (e.g. per-group,
-        :class:`bayesreg.fem.GroupBlocks`).
+        :class:`bayesreg.stiffness.GroupBlocks`).
     """
     _check_displacements(op, u_b, u_i0)
     b_ii, b_ib = op.blocks(lam_e, mu_e)
@@ -175,13 +196,13 @@ def solve_interior_blocks(op: ElasticOperator, b_ii, b_ib, u_b, u_i0, *, rtol=1e
     op : ElasticOperator
         Supplies the sliced ELL layout (``cols_ii``, ``row_ii``, ``cols_ib``, ``row_ib``).
     b_ii, b_ib : tuples of (R_k, S_k, 3, 3) arrays
-        Sliced ELL blocks of ``K_ii``, ``K_ib``, from :meth:`bayesreg.fem.ElasticOperator.blocks` or
-        :meth:`bayesreg.fem.GroupBlocks.combine`.
+        Sliced ELL blocks of ``K_ii``, ``K_ib``, from :meth:`bayesreg.stiffness.ElasticOperator.blocks` or
+        :meth:`bayesreg.stiffness.GroupBlocks.combine`.
     u_b, u_i0, rtol, maxiter
         As :func:`solve_interior`.
     precond : DensePreconditioner or SpectralPreconditioner, optional
-        Preconditioner (built at any positive parameters, :func:`dense_preconditioner`, or
-        exact at the current ones, :func:`spectral_preconditioner`); default the 3x3 block
+        Preconditioner (built at any positive parameters, :func:`bayesreg.preconditioners.dense_preconditioner`, or
+        exact at the current ones, :func:`bayesreg.preconditioners.spectral_preconditioner`); default the 3x3 block
         Jacobi of ``b_ii``.  It carries no gradient.  A
         preconditioned solve that has not converged after ``min(maxiter,
         DENSE_MAX_ITERATIONS)`` iterations (a preconditioner built too far from the current
@@ -237,15 +258,17 @@ def interior_map(op: ElasticOperator, lam_e, mu_e, n_boundary: int):
 
     The condensation of the FE system (paper Eq. 7) for fixed ``lam``, ``mu``: with it a
     move of the boundary nodes costs one mat-vec instead of a CG solve.  Built by a dense
-    float64 Cholesky factorisation of ``K_ii`` (``O(n_i^3)``: about 0.1 s at the paper's
-    mesh size on a 2-core CPU) and memory ``72 n_i n_b`` bytes; meant for meshes up to a
+    float64 Cholesky factorisation of ``K_ii`` (``O(n_i^3)`` flops) and memory ``72 n_i n_b``
+    bytes; meant for meshes up to a
     few thousand nodes.  DOF order node-major on both sides (``3 * node + axis``).
 
     Parameters
     ----------
     op : ElasticOperator
-    lam_e, mu_e : (M,) array  positive per-element Lamé parameters
-    n_boundary : int  number of boundary nodes ``n_b``
+    lam_e, mu_e : (M,) array
+        positive per-element Lamé parameters
+    n_boundary : int
+        number of boundary nodes ``n_b``
 
     Returns
     -------

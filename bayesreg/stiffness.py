@@ -300,9 +300,24 @@ def build_operator(nodes, tets, boundary):
     Raises
     ------
     ValueError
-        As :func:`shape_gradients`, or ``boundary`` not 1-D, not integer (nor integral
+        As :func:`bayesreg.fem.shape_gradients`, or ``boundary`` not 1-D, not integer (nor integral
         floats, nor a boolean mask of length ``N``), empty, with repeated indices or with
         indices outside ``[0, N)``.
+
+    Examples
+    --------
+    A cube of 12 tetrahedra around one interior node (its centre):
+
+    >>> import numpy as np
+    >>> from bayesreg.mesh import boundary_nodes, orient_tets
+    >>> from bayesreg.stiffness import build_operator
+    >>> corners = np.array([[x, y, z] for x in (0.0, 20.0) for y in (0.0, 20.0) for z in (0.0, 20.0)])
+    >>> nodes = np.vstack([corners, [[10.0, 10.0, 10.0]]])
+    >>> faces = [(0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5)]
+    >>> tets = orient_tets(nodes, np.array([t for a, b, c, d in faces for t in ([a, b, c, 8], [a, c, d, 8])]))
+    >>> op, interior = build_operator(nodes, tets, boundary_nodes(tets))
+    >>> op.n_interior, interior.tolist()
+    (1, [8])
     """
     nodes, tets = check_mesh(nodes, tets)
     n = len(nodes)

@@ -29,9 +29,12 @@ class Truth(NamedTuple):
 
     Attributes
     ----------
-    u : (N, 3)  nodal displacements, mm
-    lam_e, mu_e : (M,)  per-element Lamé parameters used
-    pushed : (P,) int  nodes given the full push (Dirichlet)
+    u : (N, 3)
+        nodal displacements, mm
+    lam_e, mu_e : (M,)
+        per-element Lamé parameters used
+    pushed : (P,) int
+        nodes given the full push (Dirichlet)
     """
 
     u: np.ndarray

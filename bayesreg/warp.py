@@ -31,13 +31,16 @@ def locate(nodes, tets, points, *, tol=1e-9):
 
     Parameters
     ----------
-    nodes : (N, 3)  world mm
+    nodes : (N, 3)
+        world mm
     tets : (M, 4)
-    points : (P, 3)  world mm, e.g. voxel centres
+    points : (P, 3)
+        world mm, e.g. voxel centres
 
     Returns
     -------
-    elem : (P,) int  (-1 where no element contains the point)
+    elem : (P,) int
+        (-1 where no element contains the point)
     bary : (P, 4)
     """
     points = np.asarray(points, np.float64)
@@ -89,14 +92,18 @@ def locate_voxels(nodes, tets, shape, affine, *, tol=1e-9):
 
     Parameters
     ----------
-    nodes : (N, 3)  world mm
+    nodes : (N, 3)
+        world mm
     tets : (M, 4)
-    shape : (3,) int  grid shape ``(I, J, K)``
-    affine : (4, 4)  voxel-to-world matrix of the grid
+    shape : (3,) int
+        grid shape ``(I, J, K)``
+    affine : (4, 4)
+        voxel-to-world matrix of the grid
 
     Returns
     -------
-    elem : (I*J*K,) int  (-1 where no element contains the voxel centre)
+    elem : (I*J*K,) int
+        (-1 where no element contains the voxel centre)
     bary : (I*J*K, 4)
     """
     affine = np.asarray(affine, np.float64)
@@ -158,13 +165,17 @@ def grid_moments(mesh: Mesh, grid: Image, draws, *, located=None):
     Parameters
     ----------
     mesh : Mesh
-    grid : Image  (only its shape and affine are used)
-    draws : (S, N, 3) array  nodal displacement draws, mm
-    located : tuple, optional  :func:`locate_grid` of ``(mesh, grid)``, if already computed
+    grid : Image
+        (only its shape and affine are used)
+    draws : (S, N, 3) array
+        nodal displacement draws, mm
+    located : tuple, optional
+        :func:`locate_grid` of ``(mesh, grid)``, if already computed
 
     Returns
     -------
-    mean, sd : (I, J, K, 3) ndarray  mm; zero outside the mesh
+    mean, sd : (I, J, K, 3) ndarray
+        mm; zero outside the mesh
     """
     draws = np.asarray(draws, np.float64)
     mean_n = draws.mean(0)
@@ -182,14 +193,19 @@ def grid_moments_from(mesh: Mesh, grid: Image, mean, cov, *, located=None):
     Parameters
     ----------
     mesh : Mesh
-    grid : Image  (only its shape and affine are used)
-    mean : (N, 3) array  posterior mean of the nodal displacement, mm
-    cov : (3, N, N) array  posterior covariance of the nodal displacement per axis, mm^2
-    located : tuple, optional  :func:`locate_grid` of ``(mesh, grid)``, if already computed
+    grid : Image
+        (only its shape and affine are used)
+    mean : (N, 3) array
+        posterior mean of the nodal displacement, mm
+    cov : (3, N, N) array
+        posterior covariance of the nodal displacement per axis, mm^2
+    located : tuple, optional
+        :func:`locate_grid` of ``(mesh, grid)``, if already computed
 
     Returns
     -------
-    mean, sd : (I, J, K, 3) ndarray  mm; zero outside the mesh
+    mean, sd : (I, J, K, 3) ndarray
+        mm; zero outside the mesh
 
     Raises
     ------

@@ -1,6 +1,6 @@
 """The time of a step, split by part, from a profile of the sampler's compiled programs.
 
-Shared by ``profile_step.py`` and ``run.py``'s figure 2b.  The log-density and the random
+Used by ``profile_step.py``.  The log-density and the random
 walk carry :func:`jax.named_scope` names (:data:`bayesreg.posterior.SCOPES`,
 :data:`bayesreg.kernels.rwmh.PROPOSAL_SCOPE`, :data:`bayesreg.kernels.rwmh.ACCEPT_SCOPE`,
 :data:`bayesreg.kernels.rwmh.CACHE_SCOPE`) into the
@@ -21,8 +21,7 @@ where XLA runs independent operations of one chain on both cores at once.
 On a GPU the device's own kernels and copies are read instead (the host's launch events
 would count them twice), the kernels inside command buffers by their own names
 (:func:`split_profile`), and a chunk is profiled whole, with the device idle at the
-trace's start and stop (:class:`ChunkProfiler`).  Measured on an H200 (2026-11-26,
-``benchmarks/README.md``).
+trace's start and stop (:class:`ChunkProfiler`).
 """
 
 from __future__ import annotations
@@ -344,8 +343,8 @@ class ChunkProfiler:
     tracing off) and split it by part.  ``dump_dir`` is :func:`enable_hlo_dump`'s folder.
 
     ``start(expected_s)`` and ``stop()`` bracket the chunk to profile.  The profiler keeps
-    every event in memory until it stops (about 1 kB each: a 90-second chunk of 64 chains
-    at the paper's size took 8.5 GB), so a profile lasts at most ``max_seconds`` (``None``:
+    every event in memory until it stops (about 1 kB each: gigabytes for a chunk of many
+    chains that lasts a minute), so a profile lasts at most ``max_seconds`` (``None``:
     no limit).  A chunk expected to last longer (``expected_s``, the timed chunks' length)
     is profiled in a window of ``max_seconds`` that opens a third of the way in, past the
     chains' chunk-start cache builds, so that the window holds steps only; a timer thread
@@ -353,12 +352,12 @@ class ChunkProfiler:
     trace and the HLO dumped so far, keeps the step's programs (:func:`step_programs`) and
     returns :func:`per_step`'s figures over ``n_steps`` (all chains' steps of the chunk)
     where the whole chunk was profiled, else over the steps that ``steps_per_s`` (all
-    chains' rate over the chunk, builds included: the builds are at most about a tenth of a
-    chunk in ``run.py``) gives for the window (``"window_s"``, ``"steps_estimated"`` in the
+    chains' rate over the chunk, builds included: at the configs' chunk length the builds
+    are a few percent of a chunk) gives for the window (``"window_s"``, ``"steps_estimated"`` in the
     result).  On an accelerator the whole chunk is profiled whatever its length, and
     :func:`split_profile` looks for its kernels in the programs compiled since the profiler
     was made (the chunk's own, where it compiled for this profiler's row): a trace stopped
-    while the device runs can leave its CUDA context broken (an H200 here, 2026-11-26:
+    while the device runs can leave its CUDA context broken (seen on an H200:
     ``CUDA_ERROR_LAUNCH_FAILED`` at the next synchronisation, as in jax-ml/jax#40260), and
     it is started and stopped only while the device is idle (before the chunk's launch,
     after its results are on the host).  ``close()`` removes the trace (the dump stays for
@@ -368,7 +367,7 @@ class ChunkProfiler:
     def __init__(self, dump_dir: str, max_seconds: float | None = 1.0, on_begin=None):
         self.dump_dir = dump_dir
         self.max_seconds = max_seconds
-        self.on_begin = on_begin  # called as the profile opens (run.py: keep the peak RSS so far)
+        self.on_begin = on_begin  # called as the profile opens
         self.trace_dir = None
         self.running = False
         self.window = False  # a window of the chunk, not the whole of it

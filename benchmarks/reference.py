@@ -50,14 +50,14 @@ def _world_to_voxel(affine, points):
 
 
 class ReferencePosterior:
-    """``theta -> log p`` in NumPy/SciPy for a :class:`bayesreg.pipeline.Problem`.
+    """``theta -> log p`` in NumPy/SciPy for a :class:`bayesreg.problem.Problem`.
 
     Parameters
     ----------
-    problem : bayesreg.pipeline.Problem
+    problem : bayesreg.problem.Problem
     cfg : bayesreg.config.Config
         Temperatures, priors and image smoothing are read from it (as
-        :func:`bayesreg.pipeline.assemble` does).
+        :func:`bayesreg.problem.assemble` does).
     permc_spec : str
         Column ordering of :func:`scipy.sparse.linalg.splu` (``MMD_AT_PLUS_A``: 0.02 / 0.3 /
         6 s per factor at 900 / 3400 / 9800 nodes on a 2-core CPU; ``COLAMD`` about 2x slower).
@@ -85,7 +85,7 @@ class ReferencePosterior:
         self.free_index = np.asarray(post.free_index, dtype=np.int64)
         self.n_groups = len(self.base) // 2
         self.prior = tuple(np.asarray(a, dtype=np.float64) for a in
-                           (post.prior_a, post.prior_b, post.prior_r1, post.prior_r2))
+                           (post.prior.a, post.prior.b, post.prior.r1, post.prior.r2))
         self.inv_t_s = 1.0 / cfg.model.t_s
         self.inv_t_r = 1.0 / cfg.model.t_r
 

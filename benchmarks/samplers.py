@@ -1,41 +1,47 @@
-"""Compare the samplers (RW-MH, MALA, HMC, NUTS) on the quickstart problem, elastic parameters sampled.
+"""Compare the samplers (RW-MH, MALA, HMC, NUTS) on the quickstart problem by ESS per second.
 
-For each kernel: one run of ``configs/quickstart.yaml`` (its mesh and synthetic truth built
-once and cached in ``benchmarks/.cache/``), no early stop, then from the stored draws:
+``benchmarks/run.py`` gives a kernel's cost (steps per second); this script gives what a
+step buys.  For each kernel: one run of ``configs/quickstart.yaml`` (its mesh and synthetic
+truth built once and cached in ``benchmarks/.cache/``) through
+:func:`bayesreg.pipeline.sample_problem`, no early stop, then from the stored draws:
 
 * min bulk ESS over every monitored estimand (boundary coordinates, free parameters, lam/mu
-  ratios) and per second of sampling, and of start-up + warm-up + sampling;
+  ratios), per second of sampling and of start-up + warm-up + sampling;
 * wall time until the rank-normalised split R-hat (ArviZ) < 1.01 and until the classic
   Gelman-Rubin R-hat < 1.2 on every estimand, from R-hat on every prefix of whole chunks
   (time of a prefix: start-up + warm-up + its share of the sampling time);
 * gradient evaluations per step and per stored draw, acceptance, divergences.
 
-Run: ``python benchmarks/samplers.py [--kinds rwmh,mala,hmc,nuts] [--normaliser exact|paper]
-[--draws N] [--warmup N] [--set key=value ...] [--tag T] [--out benchmarks/results]``.  Figures go to
-``samplers-<normaliser>.json`` and ``.md`` in ``--out``.  Minutes per kernel on a 2-core CPU.
+Run from the repository root::
+
+    python benchmarks/samplers.py                          # the four kernels, the quickstart's model
+    python benchmarks/samplers.py --kinds nuts --set sampler.elastic_moves=8 --tag moves8
+
+Writes ``samplers-<normaliser>[-tag].json`` and ``.md`` in ``--out`` (default
+``benchmarks/results/``).  Several minutes per kernel on a 2-core CPU.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bayesreg import _xla
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import run  # noqa: E402  (benchmarks/run.py: the cached problem)
 
-_xla.configure()
-import arviz as az  # noqa: E402
-import jax  # noqa: E402
-
-from bayesreg import pipeline  # noqa: E402
+import bayesreg  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
-from bayesreg.diagnostics import gelman_rubin  # noqa: E402
+from bayesreg.convergence import gelman_rubin  # noqa: E402
+from bayesreg.initialisation import initialise  # noqa: E402
+from bayesreg.pipeline import sample_problem  # noqa: E402
 from bayesreg.posterior import elastic_groups  # noqa: E402
+from bayesreg.problem import assemble  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "quickstart.yaml"
@@ -46,35 +52,8 @@ KINDS = {
                   "sampler.condensed=true"]),
     "mala": (1, ["sampler.kind=mala"]),
     "hmc": (1, ["sampler.kind=hmc", "sampler.hmc_steps=16"]),
-    "nuts": (1, ["sampler.kind=nuts", "sampler.max_tree_depth=6"]),
+    "nuts": (1, ["sampler.kind=nuts"]),
 }
-
-
-def cache_tag(cfg) -> str:
-    """8 hex digits of a hash of the config's data, mesh and synthetic sections: the key of a
-    cached problem.  Without ``mesh.target_nodes`` the keys that came with it are left out,
-    so problems cached before it existed keep their names."""
-    sections = {k: cfg.model_dump(mode="json")[k] for k in ("data", "mesh", "synthetic")}
-    if sections["mesh"].get("target_nodes") is None:
-        for key in ("target_nodes", "target_tolerance", "max_attempts"):
-            sections["mesh"].pop(key, None)
-    return hashlib.sha1(json.dumps(sections, sort_keys=True).encode()).hexdigest()[:8]
-
-
-def problem_for(cfg, cache: Path, prefix: str = "quickstart"):
-    """The problem of ``cfg`` from ``cache`` or built (and cached), and whether it was cached.
-
-    The file name carries ``prefix`` and a hash of the data, mesh and synthetic sections
-    (:func:`cache_tag`), so a change there builds a new one (meshing is not reproducible:
-    the cache keeps one mesh for every run that compares on it)."""
-    tag = cache_tag(cfg)
-    path = cache / f"{prefix}-e{cfg.mesh.edge_length_mm:g}-r{cfg.data.resolution_mm:g}-{tag}.npz"
-    if path.is_file():
-        return pipeline.load_problem(path, cfg), True
-    problem = pipeline.prepare(cfg)
-    cache.mkdir(parents=True, exist_ok=True)
-    pipeline.save_problem(problem, path)
-    return problem, False
 
 
 def estimands(problem, draws):
@@ -95,6 +74,8 @@ def _name(j: int, nb3: int, problem) -> str:
 
 
 def rank_rhat_max(x):
+    import arviz as az
+
     return float(np.nanmax(np.asarray(az.rhat(x, method="rank"))))
 
 
@@ -108,15 +89,18 @@ def measure(kind: str, args) -> dict:
                          f"sampler.min_draws={draws}", f"sampler.chunk_draws={chunk}",
                          "output.progress=false", f"seed={args.seed}"] + list(args.set or [])
     cfg = load_config(CONFIG, overrides=overrides)
-    problem, _ = problem_for(cfg, args.cache)
+    data, _ = run.cached_data(cfg, args.cache, "quickstart")
+    problem = assemble(cfg, data)
     t0 = time.perf_counter()
-    init = pipeline.initialise(problem, cfg)
+    init = initialise(problem, cfg)
     t_init = time.perf_counter() - t0
-    result, _ = pipeline.sample_problem(problem, cfg, init)
+    result, _ = sample_problem(problem, cfg, init)
     tm = result.timings
     t_warm, t_samp = tm.get("warmup_s", 0.0), tm["sampling_s"]
     est = estimands(problem, result.positions)  # (C, D, K)
     n = est.shape[1]
+    import arviz as az
+
     ess = np.asarray(az.ess(est, method="bulk"))
     nb3 = 3 * problem.posterior.n_boundary
     # prefixes of whole chunks
@@ -151,9 +135,12 @@ def measure(kind: str, args) -> dict:
 
 
 def markdown(rows, args) -> str:
+    import jax
+
     base = next((r for r in rows if r["kind"] == "rwmh"), None)
     lines = [f"Quickstart problem, elastic parameters sampled, prior normaliser `{args.normaliser}`, "
-             f"{platform.processor() or platform.machine()}, JAX {jax.__version__} ({jax.default_backend()}).", "",
+             f"{platform.processor() or platform.machine()}, JAX {jax.__version__} ({jax.default_backend()}), "
+             f"commit {run.git('rev-parse', '--short', 'HEAD')}.", "",
              "| kernel | steps/s/chain | grads/draw | acceptance u_b, elastic | divergences | min bulk ESS "
              "(elastic) | min-ESS/s sampling | min-ESS/s total | x RW-MH (sampling) | rank R-hat max | "
              "t to rank R-hat<1.01 | t to classic R-hat<1.2 |", "|" + "---|" * 12]
@@ -175,7 +162,8 @@ def markdown(rows, args) -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--kinds", default="rwmh,mala,hmc,nuts")
-    p.add_argument("--normaliser", choices=["exact", "paper"], default="exact")
+    p.add_argument("--normaliser", choices=["exact", "paper"], default="paper",
+                   help="model.prior_normaliser (default paper, as the quickstart)")
     p.add_argument("--draws", type=int, default=400, help="stored draws per chain (gradient kernels)")
     p.add_argument("--warmup", type=int, default=500, help="warm-up steps (gradient kernels)")
     p.add_argument("--draws-rw", type=int, default=1000, help="stored draws per chain (RW-MH, thinning 10)")
@@ -188,6 +176,7 @@ def main(argv=None):
     p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results")
     args = p.parse_args(argv)
+    bayesreg.configure_jax()  # float64, XLA flags, BLAS threads: before any JAX computation
     rows = []
     args.out.mkdir(parents=True, exist_ok=True)
     for kind in args.kinds.split(","):

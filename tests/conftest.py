@@ -1,4 +1,8 @@
-"""Shared fixtures: structured box meshes and a small real brain mesh."""
+"""Shared fixtures: structured box meshes, a small real brain mesh, a small box posterior.
+
+Plain helpers shared between test files (analytic images, posteriors of known form, toy
+targets) are in ``helpers.py``.
+"""
 
 from __future__ import annotations
 
@@ -16,17 +20,17 @@ import pytest
 # One persistent JAX compilation cache for the whole session, shared by pytest-xdist's workers
 # and the processes the tests start (notebook kernels): they inherit the environment set
 # here, before JAX is imported.  Many tests build the same programs on the same fixtures
-# (a resumed run, a variant against its reference), and a hit skips XLA's compilation: the
-# suite took 568 s against 764 s without it, starting from an empty cache (2-core CPU,
-# 2026-11-25).  The executables are those a fresh compilation gives (the key is the program,
-# the compile options and XLA_FLAGS), and `compilations()` still counts a hit: JAX logs
-# "Finished XLA compilation" around the lookup.  A user's own JAX_COMPILATION_CACHE_DIR is
-# kept (and not deleted); the session's temporary one is removed at the end.
+# (a resumed run, a variant against its reference), and a hit skips XLA's compilation.
+# The executables are those a fresh compilation gives (the key is the program, the compile
+# options and XLA_FLAGS), and `compilations()` still counts a hit: JAX logs "Finished XLA
+# compilation" around the lookup.  A user's own JAX_COMPILATION_CACHE_DIR is kept (and not
+# deleted); the session's temporary one is removed at the end.
 _SESSION_CACHE = None
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _SESSION_CACHE = tempfile.mkdtemp(prefix="bayesreg-test-jax-cache-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _SESSION_CACHE
-    # default 1 s; the shared fixtures' log-densities and solves compile in 0.3-1 s each
+    # JAX's default threshold is 1 s; the shared fixtures' log-densities and solves compile
+    # faster than that, and are worth caching too
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.3")
 
 import bayesreg  # noqa: E402
@@ -87,6 +91,18 @@ def brain():
     mesh = mesh_brain(labels, edge_length_mm=20.0)
     labels, _ = carve_skull(labels, mesh)
     return t1, labels, mesh
+
+
+@pytest.fixture(scope="session")
+def small():
+    """A box posterior with weakly informative priors: ``(mesh, post, theta)``
+    (:func:`helpers.box_posterior`; shared, so ``theta`` is read-only)."""
+    from helpers import box_posterior
+
+    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+    mesh, post, theta = box_posterior(prior, 3.0, np.array([1.0, 10.0, 30.0, 0.5, 1.0]))
+    theta.setflags(write=False)  # shared by many tests: they work on copies
+    return mesh, post, theta
 
 
 @contextlib.contextmanager

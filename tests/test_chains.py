@@ -7,7 +7,7 @@ import pytest
 
 from bayesreg import chains
 from bayesreg.kernels import rwmh
-from test_sampler import _quadratic_problem
+from helpers import quadratic_problem
 
 
 @pytest.mark.parametrize("per_chain", [False, True])
@@ -51,7 +51,7 @@ def test_chunk_pieces_on_a_cpu_equal_whole_chunks(monkeypatch):
     assert chains.chain_pieces(3, 25, 2) == 1  # an odd chunk is not cut: whole chains in 3 threads
     assert chains.chain_pieces(3, None, 2) == 1
 
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    logdensity, mean, cov, n_i = quadratic_problem()
     kernel = rwmh.build_kernel(logdensity)
     x0 = mean + 0.1 * np.random.default_rng(5).normal(size=(3, len(mean)))
     states = jax.vmap(lambda x: rwmh.init(x, logdensity, jnp.zeros((n_i, 3))))(jnp.asarray(x0))

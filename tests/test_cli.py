@@ -1,11 +1,16 @@
 """End to end: the CLI on tiny settings writes every output; bad input fails clearly."""
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from bayesreg import cli
+from bayesreg.checkpoint import Checkpoint
 from bayesreg.cli import main
+from bayesreg.config import load_config
 
 # the quickstart (NUTS) on tiny settings: a coarse mesh on 3 mm images, a short mode search
 # and warm-up, 4 elastic moves per transition (24 in the config)
@@ -38,8 +43,8 @@ def tiny_run(tmp_path_factory):
     """The quickstart through the CLI on tiny settings (4 chunks of 10 draws per chain), with
     a copy of its run directory as it stood after chunk 2 (a run killed there).
 
-    One run serves the output checks and the resume check (each tiny run costs about 100 s
-    of the CI's budget).  Returns ``(out, killed, args, printed, compiled)``, ``compiled``
+    One run serves the output checks and the resume check (a tiny run is the costliest
+    setup of the suite).  Returns ``(out, killed, args, printed, compiled)``, ``compiled``
     the run's XLA compilations by program name.
     """
     import contextlib
@@ -47,8 +52,6 @@ def tiny_run(tmp_path_factory):
     import shutil
 
     from conftest import compilations
-
-    from bayesreg.checkpoint import Checkpoint
 
     root = tmp_path_factory.mktemp("tiny")
     out, killed = root / "run", root / "killed"
@@ -117,8 +120,8 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     assert "exists" in capsys.readouterr().err
     assert (out / "run.json").read_text() == json.dumps(info, indent=2)
 
-    # one test, not two: pytest-xdist's workers would each build the fixture (its
-    # xdist_group does not group under pytest 9.2, which moved Node._nodeid)
+    # one test, not two: each pytest-xdist worker that ran one of them would build the
+    # module's fixture (the tiny run) again
     _killed_run_resumes_to_the_uninterrupted_result(tiny_run)
 
 
@@ -200,9 +203,8 @@ def test_a_run_that_fails_before_sampling_leaves_nothing_and_puts_back_what_it_r
 
 
 def test_overwrite_refuses_inputs_inside_the_directory_it_replaces(tmp_path, capsys):
-    """A rerun on a run's own mesh into that run's directory with --overwrite: refused with
-    the key named, before anything moves (before: the directory moved aside first, and the
-    mesh was then 'not found')."""
+    """A rerun on a run's own mesh into that run's directory with --overwrite is refused with
+    the key named, before anything moves (the directory and the mesh in it stay)."""
     run = tmp_path / "qs"
     run.mkdir()
     (run / "run.json").write_text("{}")
@@ -222,47 +224,72 @@ def test_resume_needs_an_unfinished_run(tmp_path, capsys):
     assert "either CONFIG or --resume" in capsys.readouterr().err
 
 
-def test_report_labels_paths_with_equals_signs_and_refuses_one_label_for_two_runs(tmp_path, capsys):
-    from bayesreg.cli import _report_runs
+@pytest.fixture
+def reports(monkeypatch):
+    """The ``{label: run directory}`` mappings ``bayesreg report``/``reproduce`` hand to
+    :func:`bayesreg.report.write_report` (replaced here: the runs are not real)."""
+    handed = []
 
+    def write_report(runs, out, overwrite=False):
+        handed.append(dict(runs))
+        return Path(out)
+
+    monkeypatch.setattr(cli, "write_report", write_report)
+    return handed
+
+
+def test_report_labels_paths_with_equals_signs_and_refuses_one_label_for_two_runs(tmp_path, capsys, reports):
+    """``bayesreg report [LABEL=]RUN_DIR ...``: an existing directory is a run directory, ``=``
+    and all; otherwise the label ends at the first ``=``; without a label the directory's
+    name is the label.  Two runs labelled alike, or an empty label, are refused."""
     (tmp_path / "t_r=300").mkdir()
     for d in ("a/uniform", "b/uniform"):
         (tmp_path / d).mkdir(parents=True)
-    # an existing directory is a run directory, '=' and all; else the label ends at the first '='
-    assert _report_runs([str(tmp_path / "t_r=300")]) == {"t_r=300": tmp_path / "t_r=300"}
-    assert _report_runs([f"hot={tmp_path / 't_r=300'}"]) == {"hot": tmp_path / "t_r=300"}
-    assert _report_runs([str(tmp_path / "a/uniform"), f"b={tmp_path / 'b/uniform'}"]) == {
+
+    def labels(*items):
+        assert main(["report", *items, "--out", str(tmp_path / "r")]) == 0
+        assert "report in" in capsys.readouterr().out
+        return reports.pop()
+
+    assert labels(str(tmp_path / "t_r=300")) == {"t_r=300": tmp_path / "t_r=300"}
+    assert labels(f"hot={tmp_path / 't_r=300'}") == {"hot": tmp_path / "t_r=300"}
+    assert labels(str(tmp_path / "a/uniform"), f"b={tmp_path / 'b/uniform'}") == {
         "uniform": tmp_path / "a/uniform", "b": tmp_path / "b/uniform"}
-    # two runs named alike: refused (before: the second replaced the first in the report)
     args = ["report", str(tmp_path / "a/uniform"), str(tmp_path / "b/uniform"), "--out", str(tmp_path / "r")]
     assert main(args) == 2
     assert "two runs are labelled 'uniform'" in capsys.readouterr().err
     assert main(["report", "=x", "--out", str(tmp_path / "r")]) == 2
     assert "empty label in '=x'" in capsys.readouterr().err
-    assert not (tmp_path / "r").exists()
+    assert not reports and not (tmp_path / "r").exists()
 
 
-def test_reproduce_reuses_or_resumes_only_a_run_of_the_same_config(tmp_path):
-    """``bayesreg reproduce`` into a folder that holds runs: a finished (or unfinished) run is
-    reused (resumed) only if its config is the one asked for, ``--set`` included (before: any
-    run there was reused, whatever made it)."""
-    from bayesreg.checkpoint import Checkpoint
-    from bayesreg.cli import _run_or_resume
-    from bayesreg.config import load_config
-
-    out = tmp_path / "uniform"
-    made = load_config("configs/paper_uniform.yaml", overrides=["sampler.max_draws=500"])
-    made.output.dir = out  # as the run saved it
-    Checkpoint(out).save_config(made)
-    (out / "run.json").write_text(json.dumps({"config": made.model_dump(mode="json"), "errors": None}))
-    res = _run_or_resume("configs/paper_uniform.yaml", out, ["sampler.max_draws=500"], False)
-    assert res.dir == out and res.info["errors"] is None  # the same config: reused
-    with pytest.raises(ValueError, match=r"holds a run of another config \(model.t_r: 10000.0 there, "
-                       r"99.0 asked; sampler.max_draws: 500 there, \d+ asked\)"):
-        _run_or_resume("configs/paper_uniform.yaml", out, ["model.t_r=99"], False)
-    (Checkpoint(out).config_path).unlink()  # a run without checkpoints: run.json's config
-    with pytest.raises(ValueError, match="model.elastic: 'uniform' there, 'tissue' asked"):
-        _run_or_resume("configs/paper_three_compartment.yaml", out, ["sampler.max_draws=500"], False)
+def test_reproduce_reuses_or_resumes_only_a_run_of_the_same_config(tmp_path, capsys, monkeypatch, reports):
+    """``bayesreg reproduce`` into a folder that holds runs reuses a finished run only if its
+    config is the one asked for, ``--set`` included; a run of another config (read from its
+    checkpoint, or from ``run.json`` without one) is refused with the differing keys named."""
+    monkeypatch.setattr(cli, "format_report", lambda errors, info: "")  # the runs hold no results
+    paper = tmp_path / "paper"
+    made = {}
+    for label, name in cli.PAPER_CONFIGS.items():
+        out = paper / label
+        made[label] = load_config(f"configs/{name}", overrides=["sampler.max_draws=500"])
+        made[label].output.dir = out  # as the run saved it
+        Checkpoint(out).save_config(made[label])
+        (out / "run.json").write_text(json.dumps({"config": made[label].model_dump(mode="json"), "errors": None}))
+    args = ["reproduce", "--out", str(paper), "--no-progress", "--set", "sampler.max_draws=500"]
+    assert main(args) == 0  # the same configs: reused
+    assert capsys.readouterr().out.count("finished run found, reused") == 2
+    assert reports.pop() == {label: paper / label for label in cli.PAPER_CONFIGS}
+    assert main(["reproduce", "--out", str(paper), "--no-progress", "--set", "model.t_r=99"]) == 2
+    assert re.search(r"holds a run of another config \(model.t_r: 10000.0 there, 99.0 asked; "
+                     r"sampler.max_draws: 500 there, \d+ asked\)", capsys.readouterr().err)
+    # a run without checkpoints: run.json's config (here the uniform model's) is compared
+    first = paper / next(iter(cli.PAPER_CONFIGS))
+    (Checkpoint(first).config_path).unlink()
+    (first / "run.json").write_text(json.dumps({"config": made["uniform"].model_dump(mode="json")}))
+    assert main(args) == 2
+    assert "model.elastic: 'uniform' there, 'tissue' asked" in capsys.readouterr().err
+    assert not reports
 
 
 def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):

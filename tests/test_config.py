@@ -9,8 +9,8 @@ def test_quickstart_config_is_valid():
     cfg = load_config("configs/quickstart.yaml")
     assert cfg.sampler.chains == 3 and cfg.sampler.rhat_threshold == 1.2
     assert cfg.model.elastic == "tissue"
-    # the main job: NUTS on the 32-point quadrature with the 1 mm barrier (converges in
-    # minutes); the paper's random walk stays in configs/paper_*.yaml
+    # the main job: NUTS on the 32-point quadrature with the 1 mm barrier; the paper's
+    # random walk stays in configs/paper_*.yaml
     assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.use_condensed
     assert cfg.model.quadrature_level == 1 and cfg.model.skull_barrier_mm == 1.0
     assert cfg.model.prior_normaliser == "paper" and cfg.model.fixed is not None
@@ -102,93 +102,6 @@ def test_sampler_defaults_follow_the_kernel():
     assert rw.sampler.thinning == 10 and rw.sampler.warmup_steps == 2000 and not rw.sampler.use_condensed
     given = load_config(None, overrides=["sampler.kind=rwmh", "sampler.thinning=3"])
     assert given.sampler.thinning == 3
-
-
-def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
-    """A checkpointed config without ``model.skull_barrier_mm``, ``quadrature_level`` and
-    ``moving_dtype`` (a run from before the keys existed) resumes with the hard constraint
-    alone, the 4-point rule and ``m`` in float64, not the later defaults (1 mm, level 1,
-    float32)."""
-    import json
-
-    from bayesreg.checkpoint import Checkpoint
-
-    cfg = load_config("configs/quickstart.yaml")
-    raw = cfg.model_dump(mode="json")
-    del raw["model"]["skull_barrier_mm"], raw["model"]["quadrature_level"], raw["model"]["moving_dtype"]
-    (tmp_path / "checkpoint").mkdir()
-    (tmp_path / "checkpoint" / "config.json").write_text(json.dumps(raw))
-    resumed = Checkpoint(tmp_path).load_config().model
-    assert resumed.skull_barrier_mm == 0.0 and resumed.quadrature_level == 0
-    assert resumed.moving_dtype == "float64"  # m exactly as given, as before the key
-    assert load_config(None).model.skull_barrier_mm == 1.0
-    assert load_config(None).model.moving_dtype == "float32"
-
-
-def test_preconditioner_choice_follows_size_and_memory():
-    """``solver.preconditioner: auto`` takes the spectral preconditioner where the posterior
-    has one (one parameter group), else the dense one where its inverses fit (``3 n_i <=
-    4096`` DOFs, at most 2 GiB for all chains), else block Jacobi; a bad value names the key."""
-    from types import SimpleNamespace
-
-    from bayesreg.targets import cg_preconditioner, dense_preconditioning
-
-    def problem(n_interior, spectral=None):
-        return SimpleNamespace(posterior=SimpleNamespace(op=SimpleNamespace(n_interior=n_interior),
-                                                         spectral=spectral))
-
-    cfg = load_config("configs/paper_three_compartment.yaml")
-    assert cfg.solver.preconditioner == "auto"
-    assert dense_preconditioning(problem(457), cfg)  # the paper's size: 7.5 MB a chain
-    assert not dense_preconditioning(problem(2400), cfg)  # 7,200 DOFs
-    assert not dense_preconditioning(problem(457), cfg, n_chains=1024)  # 7.7 GB in all
-    assert cg_preconditioner(problem(2400), cfg) == "block-jacobi"
-    assert not dense_preconditioning(problem(457, spectral=True), cfg)
-    assert cg_preconditioner(problem(457, spectral=True), cfg) == "spectral"
-    forced = load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=dense"])
-    assert dense_preconditioning(problem(2400), forced)
-    off = load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=block-jacobi"])
-    assert not dense_preconditioning(problem(457), off)
-    with pytest.raises(ConfigError, match=r"solver\.preconditioner"):
-        load_config(None, overrides=["solver.preconditioner=ilu"])
-    with pytest.raises(ConfigError, match=r"spectral needs one parameter group"):
-        load_config("configs/paper_three_compartment.yaml", overrides=["solver.preconditioner=spectral"])
-    load_config("configs/paper_uniform.yaml", overrides=["solver.preconditioner=spectral"])
-
-
-def test_dense_budget_follows_the_device_memory(monkeypatch):
-    """``auto``'s budget for the chains' dense inverses: 2 GiB on a CPU; on an accelerator a
-    sixteenth of the memory it reports (an H200's 112.6 GB: dense at 256 chains of the paper's
-    size, block Jacobi at 1,024), at least 2 GiB, and 2 GiB where the device reports no
-    memory."""
-    from types import SimpleNamespace
-
-    import jax
-
-    from bayesreg import targets
-
-    post = SimpleNamespace(op=SimpleNamespace(n_interior=493), spectral=None)  # 1,479 DOFs
-    problem = SimpleNamespace(posterior=post)
-    cfg = load_config("configs/paper_three_compartment.yaml")
-    assert targets.dense_budget_bytes() == 2 * 2**30  # the tests run on a CPU
-    assert targets.dense_preconditioning(problem, cfg, n_chains=245)  # 2.14 GB <= 2 GiB
-    assert not targets.dense_preconditioning(problem, cfg, n_chains=256)  # 2.24 GB
-
-    def device(stats):
-        return SimpleNamespace(memory_stats=lambda: stats)
-
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    monkeypatch.setattr(jax, "devices", lambda *a: [device({"bytes_limit": 112_583_507_968})])
-    assert targets.dense_budget_bytes() == 112_583_507_968 // 16
-    assert targets.dense_preconditioning(problem, cfg, n_chains=256)
-    assert targets.dense_preconditioning(problem, cfg, n_chains=800)  # 7.0 GB
-    assert not targets.dense_preconditioning(problem, cfg, n_chains=1024)  # 8.96 GB
-    assert targets.cg_preconditioner(problem, cfg, n_chains=1024) == "block-jacobi"
-    monkeypatch.setattr(jax, "devices", lambda *a: [device({"bytes_limit": 8 * 2**30})])
-    assert targets.dense_budget_bytes() == 2 * 2**30  # a small device: never below the CPU's
-    for stats in (None, {}, {"bytes_in_use": 0}):
-        monkeypatch.setattr(jax, "devices", lambda *a, stats=stats: [device(stats)])
-        assert targets.dense_budget_bytes() == 2 * 2**30
 
 
 def test_paper_configs_mesh_to_the_papers_node_count():

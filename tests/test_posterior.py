@@ -6,54 +6,28 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
+from bayesreg import fem
 from bayesreg.images import Image
-from bayesreg.parameters import ParamLayout
-from bayesreg.posterior import build_posterior, log_density, split_position
+from bayesreg.kernels.rwmh import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner, build_kernel,
+                                   init)
+from bayesreg.parameters import ParamLayout, from_unconstrained, to_unconstrained
+from bayesreg.posterior import (SCOPES, build_posterior, condensation, elastic_groups, full_displacement,
+                                log_density, log_density_condensed, preconditioner, split_position)
 from bayesreg.similarity import build_ssd
-from conftest import box_mesh, compilations
-
-
-def _box_posterior(prior, t_r, phi, *, quadrature_level=0):
-    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
-    rng = np.random.default_rng(0)
-    shape = (48, 48, 48)
-    affine = np.diag([1.0, 1.0, 1.0, 1.0])
-    affine[:3, 3] = -9.0
-    f = Image(ndi.gaussian_filter(rng.random(shape), 2.0) * 4, affine)
-    m = Image(np.roll(f.data, 1, axis=0), affine)
-    # skull: everything with world x > 36 mm
-    x = np.arange(shape[0]) - 9.0
-    forbidden = Image(np.broadcast_to((x > 36.0)[:, None, None], shape).astype(np.uint8), affine)
-    layout = ParamLayout(("csf", "gm", "wm"),
-                         free=(("lam", 0), ("lam", 1), ("lam", 2), ("mu", 0), ("mu", 2)),
-                         fixed=(("mu", 1, 1.0),))
-    post = build_posterior(mesh, build_ssd(mesh.nodes, mesh.tets, f, m, quadrature_level=quadrature_level),
-                           forbidden, t_s=0.5,
-                           t_r=t_r, layout=layout, element_group=mesh.tissue, prior=prior,
-                           phi_ref=phi)
-    theta = np.concatenate([0.3 * rng.normal(size=3 * len(mesh.boundary)), phi])
-    return mesh, post, theta
-
-
-@pytest.fixture(scope="module")
-def small():
-    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
-    return _box_posterior(prior, 3.0, np.array([1.0, 10.0, 30.0, 0.5, 1.0]))
-
-
-def _lp(post, theta):
-    return log_density(post, jnp.asarray(theta), jnp.zeros((post.op.n_interior, 3)), rtol=1e-12)
+from bayesreg.solver import interior_map
+from conftest import box_mesh
+from helpers import log_p
 
 
 def test_finite_at_valid_point_and_matches_energies(small):
     mesh, post, theta = small
-    lp, aux = _lp(post, theta)
+    lp, aux = log_p(post, theta)
     assert np.isfinite(float(lp)) and bool(aux.solve.converged)
     # prior: Beta(2,3) on [0,100] for lam, uniform on [0,10] for mu
     from scipy import stats
 
     lam = theta[-5:-2]
-    mu = theta[-2:]
+    assert np.all((theta[-2:] > 0) & (theta[-2:] < 10))  # mu: the uniform density is constant there
     lprior = stats.beta(2, 3).logpdf(lam / 100).sum() - 3 * np.log(100) - 2 * np.log(10)
     expected = -float(aux.e_s) / 0.5 - float(aux.e_r) / 3.0 + lprior
     assert float(lp) == pytest.approx(expected, rel=1e-10)
@@ -66,21 +40,21 @@ def test_constraint_violations_give_minus_inf(small):
     # a non-positive parameter
     t = theta.copy()
     t[nb3 + 3] = -0.1
-    assert float(_lp(post, t)[0]) == -np.inf
+    assert float(log_p(post, t)[0]) == -np.inf
     # outside the prior range [r1, r2]
     t = theta.copy()
     t[nb3] = 150.0
-    assert float(_lp(post, t)[0]) == -np.inf
+    assert float(log_p(post, t)[0]) == -np.inf
     # a boundary node moved into the skull (x > 36 mm)
     t = theta.copy()
     k = int(np.argmax(mesh.nodes[mesh.boundary, 0]))
     t[3 * k] = 8.0
-    assert float(_lp(post, t)[0]) == -np.inf
+    assert float(log_p(post, t)[0]) == -np.inf
     # an inverted element: push one corner through the opposite face
     t = theta.copy()
     corner = int(np.flatnonzero(np.all(mesh.nodes[mesh.boundary] == 0.0, axis=1))[0])
     t[3 * corner: 3 * corner + 3] = [25.0, 25.0, 25.0]
-    assert float(_lp(post, t)[0]) == -np.inf
+    assert float(log_p(post, t)[0]) == -np.inf
 
 
 def test_parameters_outside_the_support_are_rejected_without_a_solve(small):
@@ -90,7 +64,7 @@ def test_parameters_outside_the_support_are_rejected_without_a_solve(small):
     nb3 = 3 * len(mesh.boundary)
     bad = theta.copy()
     bad[nb3 + 3] = -0.1
-    warm = _lp(post, theta)[1].interior
+    warm = log_p(post, theta)[1].interior
     lp, aux = log_density(post, jnp.asarray(bad), warm)
     assert float(lp) == -np.inf and int(aux.solve.iterations) == 0 and bool(aux.solve.converged)
     np.testing.assert_array_equal(np.asarray(aux.interior), np.asarray(warm))
@@ -103,8 +77,6 @@ def test_parameters_outside_the_support_are_rejected_without_a_solve(small):
 def test_dense_preconditioner_leaves_the_log_density_unchanged(small):
     """The preconditioner (built at other parameters) changes the CG's iterations, not the
     log-density nor the interior solution (same tolerance), nor its -inf cases."""
-    from bayesreg.posterior import preconditioner
-
     mesh, post, theta = small
     nb3 = 3 * len(mesh.boundary)
     other = theta.copy()
@@ -141,7 +113,7 @@ def test_nonconverged_solve_gives_minus_inf(small):
 
 def test_gradient_finite_and_equal_to_finite_differences(small):
     _, post, theta = small
-    f = jax.jit(lambda th: _lp(post, th)[0])
+    f = jax.jit(lambda th: log_p(post, th)[0])
     g = np.asarray(jax.grad(f)(jnp.asarray(theta)))
     assert np.all(np.isfinite(g))
     rng = np.random.default_rng(5)
@@ -168,12 +140,10 @@ def test_split_position_is_node_major(small):
 
 
 def test_position_shapes_are_checked_statically(small):
-    """A theta 4 entries short (phi of length 1 broadcast over the 5 free parameters) gave a
-    finite log-density; other lengths an opaque JAX TypeError.  The checks look at shapes
-    only: under vmap they see one chain's theta, and out-of-support values still give -inf."""
-    from bayesreg.parameters import from_unconstrained, to_unconstrained
-    from bayesreg.posterior import condensation, elastic_groups, full_displacement, log_density_condensed
-
+    """A position, warm start, map or parameter vector of the wrong shape is refused with its
+    expected shape named (a theta 4 entries short is not broadcast).  The checks look at
+    shapes only: under vmap they see one chain's theta, and out-of-support values still
+    give -inf."""
     mesh, post, theta = small
     zero = jnp.zeros((post.op.n_interior, 3))
     dim = post.dim
@@ -228,15 +198,10 @@ def test_bad_temperatures_and_priors_raise(small):
 
 def test_condensed_log_density_equals_the_solved_one(small):
     """u_i = H u_b from the dense condensation gives the CG log-density (and its -inf cases)."""
-    from bayesreg.posterior import condensation, log_density_condensed
-    from bayesreg.solver import interior_map
-
     mesh, post, theta = small
     h = condensation(post, jnp.asarray(theta))
     assert h.shape == (3 * len(mesh.interior), 3 * len(mesh.boundary))
     # H against the SciPy direct solve of K_ii H = -K_ib
-    from bayesreg import fem
-    from bayesreg.posterior import elastic_groups
 
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(theta[-5:])))
     k = fem.stiffness_matrix(mesh.nodes, mesh.tets, lam_g[mesh.tissue], mu_g[mesh.tissue]).toarray()
@@ -249,7 +214,7 @@ def test_condensed_log_density_equals_the_solved_one(small):
     for _ in range(3):  # moves of u_b only: the same parameters, the same map
         t = theta.copy()
         t[:nb3] += 0.2 * rng.normal(size=nb3)
-        lp, aux = _lp(post, t)
+        lp, aux = log_p(post, t)
         lpc, auxc = log_density_condensed(post, jnp.asarray(t), h)
         assert float(lpc) == pytest.approx(float(lp), rel=1e-10)
         np.testing.assert_allclose(np.asarray(auxc.interior), np.asarray(aux.interior), atol=1e-9)
@@ -262,229 +227,16 @@ def test_condensed_log_density_equals_the_solved_one(small):
     assert float(log_density_condensed(post, jnp.asarray(theta), bad)[0]) == -np.inf
 
 
-@pytest.mark.slow
-def test_condensed_kernel_samples_the_same_posterior():
-    """Blocked RW-MH with cached u_b moves (and several per step) against the plain kernel.
-
-    On a posterior whose elastic parameters are identified (informative Beta priors, weak
-    elastic temperature), so that both kernels mix within the run and the comparison has
-    power; tolerances from the Monte Carlo error (mean ESS of each coordinate).
-    """
-    import arviz as az
-
-    from bayesreg.posterior import condensation, log_density_condensed
-    from bayesreg.kernels.rwmh import Condensation
-    from bayesreg.sampler import sample
-
-    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
-    mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
-    nb3 = 3 * len(mesh.boundary)
-    blocks = (np.arange(nb3), np.arange(nb3, post.dim))
-    ld = partial_ld = lambda th, ui: log_density(post, th, ui, rtol=1e-10)  # noqa: E731
-    rng = np.random.default_rng(3)
-    x0 = np.tile(theta, (4, 1))
-    x0[:, :nb3] += 0.05 * rng.normal(size=(4, nb3))
-    sig = (np.full(nb3, 0.02), np.abs(theta[nb3:]) * 0.05)
-    kw = dict(blocks=blocks, adapt_diagonal=(True, True), thinning=4, warmup_steps=2000,
-              max_draws=1000, min_draws=1000, chunk_draws=250, progress=False)
-    plain = sample(jax.random.key(1), partial_ld, x0, jnp.zeros((post.op.n_interior, 3)), sig, **kw)
-    cond = Condensation(lambda th, h: log_density_condensed(post, th, h),
-                        lambda th: condensation(post, th), 0, moves=3)
-    fast = sample(jax.random.key(2), ld, x0, jnp.zeros((post.op.n_interior, 3)), sig,
-                  condensation=cond, **kw)
-    assert fast.solve_failures.sum() == 0 and fast.cg_iterations.mean() > 0  # elastic moves solve
-    for res in (plain, fast):
-        assert 0.1 < res.acceptance.mean() < 0.6
-    # means and sds of every coordinate agree within Monte Carlo error (joint, 173 estimands)
-    zs, rs = [], []
-    stats = []
-    for res in (plain, fast):
-        ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(post.dim)])
-        d = res.positions.reshape(-1, post.dim)
-        stats.append((d.mean(0), d.std(0), np.maximum(ess, 10)))
-    (m1, s1, e1), (m2, s2, e2) = stats
-    z = (m1 - m2) / np.sqrt(s1**2 / e1 + s2**2 / e2)
-    assert np.max(np.abs(z)) < 5.0
-    rel = np.log(s2 / s1) / np.sqrt(1 / (2 * e1) + 1 / (2 * e2))  # sd of log(sd) ~ 1/sqrt(2 ESS)
-    assert np.max(np.abs(rel)) < 5.0
-
-
-def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
-    """The barrier adds -(w/d - 1)^2 for a node at distance d < w of the skull's voxel
-    cubes (a wall at world x = 36.5 mm, where the nearest-voxel rule flips), with d the
-    soft minimum over the wall's cubes, nothing beyond w, and keeps the hard -inf; its
-    gradient is finite and equals the formula's."""
-    mesh, post, theta = small
-    from bayesreg.constraints import skull_distance
-    from bayesreg.posterior import with_skull_barrier
-
-    w = 1.0
-    barred = with_skull_barrier(post, w)
-    assert barred.skull.barrier_offsets.shape == (27, 3)  # 1 mm voxels, w = 1 mm: the 27 nearest cubes
-    k = int(np.argmax(mesh.nodes[mesh.boundary, 0]))  # a node at x = 30 mm
-    x0 = np.asarray(mesh.nodes[mesh.boundary[k]])
-    tau = w / 20.0
-
-    def soft(p):  # the wall's cubes x >= 36.5 next to p (voxel centres on integers)
-        v = np.floor(p + 0.5)
-        d = []
-        for o in np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3):
-            cc = v + o
-            if cc[0] > 36.0:
-                gap = np.maximum(np.abs(p - cc) - 0.5, 0.0)
-                d.append(np.linalg.norm(gap))
-        return -tau * np.log(np.sum(np.exp(-np.array(d) / tau)))
-
-    for dx in (0.5, 0.1, 0.9, 1.5):
-        t = theta.copy()
-        p = x0 + np.array([36.5 - dx - x0[0], 0.0, 0.0])
-        t[3 * k: 3 * k + 3] = p - x0
-        lp0, lp1 = float(_lp(post, t)[0]), float(_lp(barred, t)[0])
-        got = float(skull_distance(barred.skull, jnp.asarray(p[None]))[0])
-        if dx >= w:  # no cube within w: none searched (+inf) or farther than w
-            assert got >= w
-            d = got
-        else:
-            d = soft(p)
-            assert d == pytest.approx(got, abs=1e-12)
-            assert dx - tau * np.log(9) <= d <= dx
-        expected = -(w / d - 1.0) ** 2 if d < w else 0.0
-        assert lp1 - lp0 == pytest.approx(expected, abs=1e-8), dx
-    t[3 * k] = 36.6 - x0[0]  # across the wall: still -inf
-    assert float(_lp(barred, t)[0]) == -np.inf
-    t[3 * k] = 36.2 - x0[0]
-    g = jax.grad(lambda th: _lp(barred, th)[0])(jnp.asarray(t))
-    assert np.all(np.isfinite(np.asarray(g)))
-    # d(barrier)/dx = 2 (w/d - 1) w / d^2 * dd/dx, dd/dx = -1 in front of one cube's face
-    g0 = jax.grad(lambda th: _lp(post, th)[0])(jnp.asarray(t))
-    p = x0 + np.array([36.2 - x0[0], 0.0, 0.0])
-    d = soft(p)
-    dd = (soft(p + [1e-7, 0, 0]) - soft(p - [1e-7, 0, 0])) / 2e-7
-    assert dd == pytest.approx(-1.0, abs=0.02)  # the lateral cubes bend it slightly
-    assert float(g[3 * k] - g0[3 * k]) == pytest.approx(2 * (w / d - 1) * w / d**2 * dd, rel=1e-5)
-
-
-def test_skull_distance_is_never_positive_where_the_hard_rule_forbids():
-    """At random points near a random voxel set (the staircase corners that defeated a
-    trilinear signed distance), the barrier's distance is <= 0 wherever the nearest-voxel
-    rule forbids, equals the distance to the nearest forbidden cube within tau log 27
-    elsewhere, and its gradient is finite."""
-    from bayesreg.images import Image
-    from bayesreg.constraints import points_forbidden, skull_distance
-
-    rng = np.random.default_rng(7)
-    mesh = box_mesh((2, 2, 2), size=(4.0, 4.0, 4.0))
-    spacing = np.array([2.0, 2.0, 1.5])
-    mask = rng.random((12, 12, 12)) < 0.15
-    affine = np.diag([*spacing, 1.0])
-    affine[:3, 3] = -8.0
-    ssd_img = Image(np.zeros((12, 12, 12)), affine)
-    post = build_posterior(
-        mesh, build_ssd(mesh.nodes, mesh.tets, ssd_img, ssd_img), Image(mask.astype(np.uint8), affine),
-        t_s=1.0, t_r=1.0, layout=ParamLayout(("all",), free=(("lam", 0),), fixed=(("mu", 0, 1.0),)),
-        element_group=np.zeros(len(mesh.tets), int), prior={"lam": (1.0, 1.0, 0.0, 10.0),
-                                                             "mu": (1.0, 1.0, 0.0, 10.0)},
-        phi_ref=np.array([1.0]), barrier_mm=1.2)
-    pts = rng.uniform(-6.0, 8.0, size=(4000, 3))
-    d = np.asarray(skull_distance(post.skull, jnp.asarray(pts)))
-    forb = np.asarray(points_forbidden(post.skull, jnp.asarray(pts)))
-    assert forb.sum() > 300 and (~forb).sum() > 300
-    assert np.all(d[forb] <= 0.0)
-    # brute force: distance to every forbidden cube (and to the outside of the grid)
-    centres = np.argwhere(mask) * spacing - 8.0
-    gap = np.maximum(np.abs(pts[:, None, :] - centres[None]) - spacing / 2, 0.0)
-    exact = np.linalg.norm(gap, axis=-1).min(axis=1)
-    lo, hi = -8.0 - spacing / 2, -8.0 + 11.5 * spacing
-    exact = np.minimum(exact, np.min(np.concatenate([pts - lo, hi - pts], 1), axis=1))
-    near = ~forb & (exact < 1.2)
-    tau = 1.2 / 20
-    assert near.sum() > 300
-    assert np.all(d[near] <= exact[near] + 1e-12)
-    assert np.all(d[near] >= exact[near] - tau * np.log(27) - 1e-12)
-    g = jax.grad(lambda p: jnp.sum(skull_distance(post.skull, p)))(jnp.asarray(pts[near]))
-    assert np.all(np.isfinite(np.asarray(g)))
-
-
-def test_find_mode_reaches_a_stationary_point_from_a_far_start():
-    """``find_mode`` (u_b alone, then u_b and log(phi) jointly): from a start with
-    one ``lam`` at 97% of its prior range the returned point gains log p and its gradient
-    in the search coordinates ``(u_b, log phi)`` has fallen by four orders of magnitude."""
-    from bayesreg.mode import find_mode
-
-    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
-    layout = ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2)),
-                         fixed=(("mu", 0, 1.0), ("mu", 1, 1.0), ("mu", 2, 1.0)))
-    phi = np.array([5.0, 10.0, 97.0])
-    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
-    _, base, theta = _box_posterior(prior, 3.0, np.array([1.0, 10.0, 30.0, 0.5, 1.0]))
-    post = build_posterior(mesh, base.ssd, Image(np.asarray(base.skull.forbidden).astype(np.uint8),
-                                                  np.linalg.inv(np.asarray(base.skull.inv_affine))),
-                           t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
-                           prior=prior, phi_ref=phi)
-    theta = np.concatenate([theta[: 3 * len(mesh.boundary)], phi])
-    with compilations() as compiled:
-        res = find_mode(post, theta, iterations=600)
-    mode = res.theta
-    assert compiled.get("jit(step)") == 1  # both stages (u_b alone, then joint) share one program
-    nb3 = 3 * len(mesh.boundary)
-
-    def grad_search(th):  # gradient in (u_b, log phi): d/d log phi = phi d/d phi
-        g = np.asarray(jax.grad(lambda t: _lp(post, t)[0])(jnp.asarray(th)))
-        return np.concatenate([g[:nb3], th[nb3:] * g[nb3:]])
-
-    assert res.logp_mode > res.logp_start
-    assert float(_lp(post, mode)[0]) == pytest.approx(res.logp_mode, rel=1e-9)
-    assert np.all((mode[nb3:] > 0) & (mode[nb3:] < 100))
-    assert np.linalg.norm(grad_search(mode)) <= 1e-4 * np.linalg.norm(grad_search(theta))
-
-
-@pytest.mark.parametrize("level", [0, 1])
-def test_laplace_precision_is_the_gauss_newton_matrix_of_the_condensed_posterior(level):
-    """``laplace_precision`` = ``2 J_b^T J_b / T_s + S / T_r`` (+ its small ridge), with
-    ``J_b`` the Jacobian of the quadrature residuals with respect to ``u_b`` through the
-    interior map ``u_i = -K_ii^-1 K_ib u_b`` (here by ``jax.jacfwd`` and a dense solve)."""
-    import scipy.linalg as sla
-
-    from bayesreg.fem import stiffness_matrix
-    from bayesreg.initialisation import laplace_precision
-    from bayesreg.problem import Problem
-    from bayesreg.posterior import elastic_groups
-    from bayesreg.similarity import ssd_residuals
-
-    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
-    phi = np.array([1.0, 10.0, 30.0, 0.5, 1.0])
-    mesh, post, theta = _box_posterior(prior, 3.0, phi, quadrature_level=level)
-    problem = Problem(None, None, None, mesh, None, mesh.tissue, post, None, None, phi, 1.0, 0, {})
-    prec = laplace_precision(problem, theta)
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
-    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[mesh.tissue], mu_g[mesh.tissue]).toarray()
-    bd, idf = (3 * mesh.boundary[:, None] + np.arange(3)).ravel(), (3 * mesh.interior[:, None] + np.arange(3)).ravel()
-    h = -sla.solve(k[np.ix_(idf, idf)], k[np.ix_(idf, bd)], assume_a="pos")
-    schur = k[np.ix_(bd, bd)] + k[np.ix_(idf, bd)].T @ h
-
-    def residuals(u_b):
-        u = jnp.zeros(3 * len(mesh.nodes)).at[bd].set(u_b).at[idf].set(jnp.asarray(h) @ u_b)
-        return ssd_residuals(post.ssd, u.reshape(-1, 3)[mesh.tets]).ravel()
-
-    nb3 = 3 * len(mesh.boundary)
-    jac = np.asarray(jax.jacfwd(residuals)(jnp.asarray(theta[:nb3])))
-    assert jac.shape == (len(mesh.tets) * 4 * 8**level, nb3)
-    expected = 2.0 / 0.5 * jac.T @ jac + schur / 3.0
-    ridge = 1e-6 * np.trace(expected) / nb3
-    np.testing.assert_allclose(prec, expected + ridge * np.eye(nb3), rtol=1e-7,
-                               atol=1e-9 * np.abs(expected).max())
-
-
 def test_grouped_stiffness_blocks_give_the_element_assembled_log_density(small):
     """The per-group blocks (tissue model) and the per-element assembly are the same K."""
     _, post, theta = small
     assert post.unit_blocks is not None and post.unit_blocks.lam_ii[0].shape[0] == 3
-    lp, aux = _lp(post, theta)
-    lp_e, aux_e = _lp(post._replace(unit_blocks=None), theta)
+    lp, aux = log_p(post, theta)
+    lp_e, aux_e = log_p(post._replace(unit_blocks=None), theta)
     assert float(lp) == pytest.approx(float(lp_e), rel=1e-12)
     np.testing.assert_allclose(np.asarray(aux.interior), np.asarray(aux_e.interior), rtol=0, atol=1e-10)
-    g = jax.grad(lambda th: _lp(post, th)[0])(jnp.asarray(theta))
-    g_e = jax.grad(lambda th: _lp(post._replace(unit_blocks=None), th)[0])(jnp.asarray(theta))
+    g = jax.grad(lambda th: log_p(post, th)[0])(jnp.asarray(theta))
+    g_e = jax.grad(lambda th: log_p(post._replace(unit_blocks=None), th)[0])(jnp.asarray(theta))
     np.testing.assert_allclose(np.asarray(g), np.asarray(g_e), rtol=1e-8, atol=1e-8 * float(jnp.max(jnp.abs(g_e))))
 
 
@@ -521,7 +273,7 @@ def test_a_boundary_node_in_the_skull_is_rejected_without_a_solve(small):
     iteration and no energy for such a proposal (the paper's joint walk proposes many while
     nodes slide along the skull)."""
     mesh, post, theta = small
-    warm = _lp(post, theta)[1].interior
+    warm = log_p(post, theta)[1].interior
     t = theta.copy()
     t[3 * int(np.argmax(mesh.nodes[mesh.boundary, 0]))] = 8.0  # into the skull (x > 36 mm)
     lp, aux = log_density(post, jnp.asarray(t), warm)
@@ -571,10 +323,6 @@ def test_compiled_log_density_names_its_parts_for_the_profiler(small):
     """Every part of :data:`bayesreg.posterior.SCOPES` (and the kernel's proposal, accept
     and cache-build scopes) reaches the optimised program's metadata, where
     ``benchmarks/profile_step.py`` reads it to split a step's time."""
-    from bayesreg.kernels.rwmh import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner,
-                                       build_kernel, init)
-    from bayesreg.posterior import SCOPES, preconditioner
-
     mesh, post, theta = small
     zeros = jnp.zeros((post.op.n_interior, 3))
 

@@ -210,8 +210,8 @@ def test_existing_report_not_overwritten(runs, tmp_path):
 
 
 def test_a_failing_overwrite_puts_the_old_report_back(runs, tmp_path, monkeypatch):
-    """A report that fails while replacing another leaves the old one as it was (before:
-    an empty directory, the old report in a hidden folder that the next report deleted)."""
+    """A report that fails while replacing another leaves the old one as it was, and nothing
+    beside it (no empty directory, no hidden copy of the old report)."""
     import bayesreg.report.write as R
 
     out = tmp_path / "report"

@@ -1,25 +1,86 @@
-"""The random-walk kernel (bayesreg.kernels.rwmh): its cached interior map and preconditioner
-leave the draws where the plain kernel takes them."""
+"""The random-walk kernel (bayesreg.kernels.rwmh): it leaves known posteriors invariant, and
+its cached interior map and preconditioner leave the draws where the plain kernel takes them."""
 
+import arviz as az
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.linalg as sla
 
 from bayesreg import chains
+from bayesreg.convergence import gelman_rubin
 from bayesreg.kernels import rwmh
-from bayesreg.posterior import log_density
-from test_posterior import _box_posterior
+from bayesreg.posterior import condensation, log_density, log_density_condensed, preconditioner
+from bayesreg.sampler import sample
+from helpers import box_posterior, quadratic_problem
 
 
-def test_condensed_chunk_in_pieces_equals_whole_chunks(monkeypatch):
+@pytest.fixture(scope="module")
+def identified():
+    """A box posterior whose elastic parameters are identified (informative Beta priors,
+    weak elastic temperature): ``(mesh, post, theta)``, shared by the module's tests."""
+    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
+    mesh, post, theta = box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
+    theta.setflags(write=False)
+    return mesh, post, theta
+
+
+def test_rwmh_reproduces_known_gaussian_posterior():
+    logdensity, mean, cov, n_i = quadratic_problem()
+    d = len(mean)
+    chol = sla.cholesky(cov, lower=True)
+    chains = 4
+    x0 = mean + 3.0 * np.random.default_rng(0).normal(size=(chains, d)) @ chol.T
+    res = sample(
+        jax.random.key(7), logdensity, x0, jnp.zeros((n_i, 3)), 2.38 / np.sqrt(d) * chol,
+        thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
+        target_acceptance=0.25, progress=False,
+    )
+    draws = res.positions.reshape(-1, d)
+    assert 0.15 < res.acceptance.mean() < 0.4
+    assert res.solve_failures.sum() == 0
+
+    ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(d)])
+    assert ess.min() > 200
+    # means within 4.5 Monte Carlo standard errors (joint over d = 24 coordinates)
+    z = (draws.mean(0) - mean) / np.sqrt(np.diag(cov) / ess)
+    assert np.max(np.abs(z)) < 4.5
+    # variances: relative error of a variance estimate ~ sqrt(2 / ESS)
+    rel = draws.var(0) / np.diag(cov) - 1
+    assert np.max(np.abs(rel) / np.sqrt(2.0 / ess)) < 4.5
+    # a cross-covariance too
+    c01 = np.cov(draws[:, 0], draws[:, 1])[0, 1]
+    assert c01 == pytest.approx(cov[0, 1], abs=4.5 * np.sqrt(cov[0, 0] * cov[1, 1] / ess[:2].min()))
+    assert gelman_rubin(res.positions).max() < 1.1
+
+
+def test_blocked_kernel_targets_the_same_posterior():
+    """Metropolis-within-Gibbs over two blocks leaves the same Gaussian posterior invariant."""
+    logdensity, mean, cov, n_i = quadratic_problem()
+    d = len(mean)
+    half = d // 2
+    blocks = (np.arange(half), np.arange(half, d))
+    sig = tuple(2.38 / np.sqrt(len(b)) * sla.cholesky(cov[np.ix_(b, b)], lower=True) for b in blocks)
+    x0 = mean + np.random.default_rng(4).normal(size=(4, d)) @ sla.cholesky(cov, lower=True).T
+    res = sample(jax.random.key(11), logdensity, x0, jnp.zeros((n_i, 3)), sig, blocks=blocks,
+                 thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
+                 progress=False)
+    assert res.acceptance.shape[-1] == 2
+
+    ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(d)])
+    draws = res.positions.reshape(-1, d)
+    z = (draws.mean(0) - mean) / np.sqrt(np.diag(cov) / ess)
+    assert np.max(np.abs(z)) < 4.5
+    rel = draws.var(0) / np.diag(cov) - 1
+    assert np.max(np.abs(rel) / np.sqrt(2.0 / ess)) < 4.5
+
+
+def test_condensed_chunk_in_pieces_equals_whole_chunks(identified, monkeypatch):
     """The condensed kernel's cache (``H`` at each chain's parameters) passes from piece to
     piece on a CPU with fewer cores than chains (:func:`bayesreg.chains.chain_pieces`);
     the draws equal those of whole chunks run by vmap, elastic moves accepted included."""
-    from bayesreg.posterior import condensation, log_density_condensed
-
-    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
-    mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
+    mesh, post, theta = identified
     nb3 = 3 * len(mesh.boundary)
     ld = lambda th, ui: log_density(post, th, ui, rtol=1e-10)  # noqa: E731
     cond = rwmh.Condensation(lambda th, h: log_density_condensed(post, th, h),
@@ -40,15 +101,12 @@ def test_condensed_chunk_in_pieces_equals_whole_chunks(monkeypatch):
 
 
 @pytest.mark.parametrize("blocked", [False, True], ids=["joint", "blocked"])
-def test_preconditioned_kernel_gives_the_draws_of_the_block_jacobi_kernel(monkeypatch, blocked):
+def test_preconditioned_kernel_gives_the_draws_of_the_block_jacobi_kernel(identified, monkeypatch, blocked):
     """The dense preconditioner (built at every chunk start, carried through the chunk and
     from piece to piece) leaves the chains where block Jacobi takes them: the same proposals,
     the same accept decisions (log-densities equal to the CG tolerance), in fewer CG
     iterations; in pieces on a 2-core CPU as in whole vmapped chunks."""
-    from bayesreg.posterior import preconditioner
-
-    prior = {"lam": (20.0, 20.0, 0.0, 60.0), "mu": (20.0, 20.0, 0.0, 2.0)}
-    mesh, post, theta = _box_posterior(prior, 30.0, np.array([30.0, 30.0, 30.0, 1.0, 1.0]))
+    mesh, post, theta = identified
     nb3 = 3 * len(mesh.boundary)
     ld = lambda th, ui, pre=None: log_density(post, th, ui, rtol=1e-10, precond=pre)  # noqa: E731
     pre = rwmh.Preconditioner(ld, lambda th: preconditioner(post, th))
@@ -76,3 +134,41 @@ def test_preconditioned_kernel_gives_the_draws_of_the_block_jacobi_kernel(monkey
     assert np.asarray(out_f[4]).mean() < 0.5 * np.asarray(out_p[4]).mean()  # CG iterations per step
     assert np.asarray(out_f[5]).sum() == 0  # no failed solve
 
+
+@pytest.mark.slow
+def test_condensed_kernel_samples_the_same_posterior(identified):
+    """Blocked RW-MH with cached u_b moves (and several per step) against the plain kernel.
+
+    On a posterior whose elastic parameters are identified (informative Beta priors, weak
+    elastic temperature), so that both kernels mix within the run and the comparison has
+    power; tolerances from the Monte Carlo error (mean ESS of each coordinate).
+    """
+    mesh, post, theta = identified
+    nb3 = 3 * len(mesh.boundary)
+    blocks = (np.arange(nb3), np.arange(nb3, post.dim))
+    ld = partial_ld = lambda th, ui: log_density(post, th, ui, rtol=1e-10)  # noqa: E731
+    rng = np.random.default_rng(3)
+    x0 = np.tile(theta, (4, 1))
+    x0[:, :nb3] += 0.05 * rng.normal(size=(4, nb3))
+    sig = (np.full(nb3, 0.02), np.abs(theta[nb3:]) * 0.05)
+    kw = dict(blocks=blocks, adapt_diagonal=(True, True), thinning=4, warmup_steps=2000,
+              max_draws=1000, min_draws=1000, chunk_draws=250, progress=False)
+    plain = sample(jax.random.key(1), partial_ld, x0, jnp.zeros((post.op.n_interior, 3)), sig, **kw)
+    cond = rwmh.Condensation(lambda th, h: log_density_condensed(post, th, h),
+                        lambda th: condensation(post, th), 0, moves=3)
+    fast = sample(jax.random.key(2), ld, x0, jnp.zeros((post.op.n_interior, 3)), sig,
+                  condensation=cond, **kw)
+    assert fast.solve_failures.sum() == 0 and fast.cg_iterations.mean() > 0  # elastic moves solve
+    for res in (plain, fast):
+        assert 0.1 < res.acceptance.mean() < 0.6
+    # means and sds of every coordinate agree within Monte Carlo error (joint, 173 estimands)
+    stats = []
+    for res in (plain, fast):
+        ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(post.dim)])
+        d = res.positions.reshape(-1, post.dim)
+        stats.append((d.mean(0), d.std(0), np.maximum(ess, 10)))
+    (m1, s1, e1), (m2, s2, e2) = stats
+    z = (m1 - m2) / np.sqrt(s1**2 / e1 + s2**2 / e2)
+    assert np.max(np.abs(z)) < 5.0
+    rel = np.log(s2 / s1) / np.sqrt(1 / (2 * e1) + 1 / (2 * e2))  # sd of log(sd) ~ 1/sqrt(2 ESS)
+    assert np.max(np.abs(rel)) < 5.0

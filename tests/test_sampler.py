@@ -1,4 +1,5 @@
-"""RW-MH driver against a known Gaussian posterior; classic R-hat on known cases."""
+"""The driver (bayesreg.sampler): stopping, argument checks, runs without warm-up, resuming
+from a checkpoint, one compiled program, and the record of how a run was sampled."""
 
 from functools import partial
 
@@ -8,101 +9,17 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from bayesreg import fem, stiffness
-from bayesreg.convergence import gelman_rubin
+from bayesreg.chains import CHAIN_METHODS
+from bayesreg.kernels.rwmh import Condensation, Preconditioner
 from bayesreg.posterior import Aux
-from bayesreg.sampler import sample
-from bayesreg.solver import solve_interior
-from conftest import centred_cube
-
-
-def test_gelman_rubin_known_cases():
-    rng = np.random.default_rng(0)
-    iid = rng.normal(size=(4, 2000, 3))
-    assert np.all(np.abs(gelman_rubin(iid) - 1) < 0.01)
-    shifted = iid + np.array([0.0, 0.0, 3.0, 3.0])[:, None, None]
-    assert np.all(gelman_rubin(shifted) > 1.5)
-    # the formula: W = mean within variance, B/n = variance of means
-    x = rng.normal(size=(3, 50))
-    n = 50
-    w = x.var(1, ddof=1).mean()
-    var_plus = (n - 1) / n * w + x.mean(1).var(ddof=1)
-    assert gelman_rubin(x) == pytest.approx(np.sqrt(var_plus / w))
-    with pytest.raises(ValueError):
-        gelman_rubin(np.zeros((1, 10)))
-
-
-def _quadratic_problem():
-    """Boundary displacements of a cube with an elastic prior and a Gaussian stand-in likelihood."""
-    mesh = centred_cube()
-    lam, mu, t_r = 10.0, 1.0, 50.0
-    op, _ = stiffness.build_operator(mesh.nodes, mesh.tets, mesh.boundary)
-    grads, vol = fem.shape_gradients(mesh.nodes, mesh.tets)
-    perm = np.empty(len(mesh.nodes), int)
-    perm[mesh.boundary] = np.arange(len(mesh.boundary))
-    perm[mesh.interior] = len(mesh.boundary) + np.arange(len(mesh.interior))
-    d = 3 * len(mesh.boundary)
-    rng = np.random.default_rng(42)
-    q = rng.normal(size=(d, d))
-    a_prec = q @ q.T / d * 4.0 + np.eye(d) * 2.0  # likelihood precision (1/mm^2)
-    a_mean = rng.normal(size=d)
-    lam_e = jnp.full(len(mesh.tets), lam)
-    mu_e = jnp.full(len(mesh.tets), mu)
-
-    def logdensity(theta, u_i0):
-        u_b = theta.reshape(-1, 3)
-        u_i, info = solve_interior(op, lam_e, mu_e, u_b, u_i0, rtol=1e-12)
-        u = jnp.concatenate([u_b, u_i])[perm]
-        e_r = fem.element_strain_energy(jnp.asarray(grads), jnp.asarray(np.abs(vol)), u[mesh.tets],
-                                        lam_e, mu_e)
-        r = theta - a_mean
-        e_s = 0.5 * r @ (a_prec @ r)
-        lp = -e_s - e_r / t_r
-        return jnp.where(info.converged, lp, -jnp.inf), Aux(u_i, info, e_s, e_r)
-
-    # exact posterior: precision A + S / T_r, S the Schur complement of K
-    k = fem.stiffness_matrix(mesh.nodes, mesh.tets, lam, mu).toarray()
-    bd = (3 * mesh.boundary[:, None] + np.arange(3)).ravel()
-    idf = (3 * mesh.interior[:, None] + np.arange(3)).ravel()
-    s = k[np.ix_(bd, bd)] - k[np.ix_(bd, idf)] @ np.linalg.solve(k[np.ix_(idf, idf)], k[np.ix_(idf, bd)])
-    prec = a_prec + s / t_r
-    cov = np.linalg.inv(prec)
-    mean = cov @ (a_prec @ a_mean)
-    return logdensity, mean, cov, len(mesh.interior)
-
-
-def test_rwmh_reproduces_known_gaussian_posterior():
-    logdensity, mean, cov, n_i = _quadratic_problem()
-    d = len(mean)
-    chol = sla.cholesky(cov, lower=True)
-    chains = 4
-    x0 = mean + 3.0 * np.random.default_rng(0).normal(size=(chains, d)) @ chol.T
-    res = sample(
-        jax.random.key(7), logdensity, x0, jnp.zeros((n_i, 3)), 2.38 / np.sqrt(d) * chol,
-        thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
-        target_acceptance=0.25, progress=False,
-    )
-    draws = res.positions.reshape(-1, d)
-    assert 0.15 < res.acceptance.mean() < 0.4
-    assert res.solve_failures.sum() == 0
-    import arviz as az
-
-    ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(d)])
-    assert ess.min() > 200
-    # means within 4.5 Monte Carlo standard errors (joint over d = 24 coordinates)
-    z = (draws.mean(0) - mean) / np.sqrt(np.diag(cov) / ess)
-    assert np.max(np.abs(z)) < 4.5
-    # variances: relative error of a variance estimate ~ sqrt(2 / ESS)
-    rel = draws.var(0) / np.diag(cov) - 1
-    assert np.max(np.abs(rel) / np.sqrt(2.0 / ess)) < 4.5
-    # a cross-covariance too
-    c01 = np.cov(draws[:, 0], draws[:, 1])[0, 1]
-    assert c01 == pytest.approx(cov[0, 1], abs=4.5 * np.sqrt(cov[0, 0] * cov[1, 1] / ess[:2].min()))
-    assert gelman_rubin(res.positions).max() < 1.1
+from bayesreg.sampler import SamplerCheckpoint, sample, sample_gradient
+from bayesreg.solver import SolveInfo
+from conftest import compilations
+from helpers import D, M_ETA, SD_ETA, gaussian_target, quadratic_problem, toy_target
 
 
 def test_sampler_stops_at_rhat_and_is_reproducible():
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     chol = sla.cholesky(cov, lower=True)
     x0 = mean + np.random.default_rng(1).normal(size=(3, d)) @ chol.T
@@ -116,7 +33,7 @@ def test_sampler_stops_at_rhat_and_is_reproducible():
 
 
 def test_sampler_rejects_bad_start():
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    logdensity, mean, cov, n_i = quadratic_problem()
 
     def bad(theta, u_i0):
         lp, aux = logdensity(theta, u_i0)
@@ -130,12 +47,11 @@ def test_sampler_rejects_bad_start():
 
 
 def test_sampler_rejects_bad_scales_blocks_and_draw_counts():
-    """sigma NaN, 0 or negative, blocks that leave out (or repeat) a coordinate, min_draws >
-    max_draws and chunk_draws > max_draws (which returned a whole chunk) were accepted.
-    The checks run before anything is traced."""
-    from bayesreg.sampler import sample_gradient
-
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    """Refused with the argument named, before anything is traced: a sigma NaN, 0 or
+    negative, blocks that leave out (or repeat) a coordinate or are not integer indices,
+    min_draws > max_draws and chunk_draws > max_draws; the gradient driver also checks its
+    step size and elastic scales."""
+    logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     x0 = np.tile(mean, (2, 1))
     run = partial(sample, jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), progress=False)
@@ -179,41 +95,10 @@ def test_sampler_rejects_bad_scales_blocks_and_draw_counts():
         grad(eta_scale=np.array([0.1, 0.0]))
 
 
-def test_blocked_kernel_targets_the_same_posterior():
-    """Metropolis-within-Gibbs over two blocks leaves the same Gaussian posterior invariant."""
-    logdensity, mean, cov, n_i = _quadratic_problem()
-    d = len(mean)
-    half = d // 2
-    blocks = (np.arange(half), np.arange(half, d))
-    sig = tuple(2.38 / np.sqrt(len(b)) * sla.cholesky(cov[np.ix_(b, b)], lower=True) for b in blocks)
-    x0 = mean + np.random.default_rng(4).normal(size=(4, d)) @ sla.cholesky(cov, lower=True).T
-    res = sample(jax.random.key(11), logdensity, x0, jnp.zeros((n_i, 3)), sig, blocks=blocks,
-                 thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
-                 progress=False)
-    assert res.acceptance.shape[-1] == 2
-    import arviz as az
-
-    ess = np.array([float(az.ess(res.positions[:, :, k], method="mean")) for k in range(d)])
-    draws = res.positions.reshape(-1, d)
-    z = (draws.mean(0) - mean) / np.sqrt(np.diag(cov) / ess)
-    assert np.max(np.abs(z)) < 4.5
-    rel = draws.var(0) / np.diag(cov) - 1
-    assert np.max(np.abs(rel) / np.sqrt(2.0 / ess)) < 4.5
-
-
-def test_split_rhat_detects_a_common_drift():
-    rng = np.random.default_rng(5)
-    trend = np.linspace(0.0, 5.0, 1000)
-    drifting = rng.normal(size=(3, 1000)) + trend  # every chain drifts the same way
-    assert gelman_rubin(drifting) < 1.01  # whole-chain R-hat is blind to it
-    assert gelman_rubin(drifting, split=True) > 1.2  # the stopping threshold catches it
-    assert abs(gelman_rubin(rng.normal(size=(3, 1000)), split=True) - 1) < 0.01
-
-
 def test_without_warmup_the_given_kernel_samples_unchanged():
     """``warmup_steps=0`` (the paper's fixed kernel): the scale is the one given, no warm-up
     acceptance (NaN, written as null in run.json), and every step is stored."""
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     sig = 2.38 / np.sqrt(d) * sla.cholesky(cov, lower=True)
     x0 = mean + np.random.default_rng(5).normal(size=(2, d)) @ sig.T
@@ -222,10 +107,12 @@ def test_without_warmup_the_given_kernel_samples_unchanged():
     np.testing.assert_array_equal(res.sigma[0], sig)
     assert np.all(np.isnan(res.warmup_acceptance))
     assert res.positions.shape == (2, 40, d) and 0.05 < res.acceptance.mean() < 0.6
+    assert res.info.warmup_steps == 0 and res.info.thinning == 2
+    assert res.info.preconditioner == "unknown"  # neither a Preconditioner nor a name given
 
 
 def test_split_rhat_monitor_waits_for_enough_draws():
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    logdensity, mean, cov, n_i = quadratic_problem()
     x0 = np.tile(mean, (2, 1)) + 0.01
     res = sample(jax.random.key(2), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
                  thinning=1, warmup_steps=0, max_draws=6, min_draws=2, chunk_draws=2,
@@ -237,9 +124,7 @@ def test_split_rhat_monitor_waits_for_enough_draws():
 
 def test_resume_from_a_checkpoint_equals_an_uninterrupted_run():
     """Checkpoints after the warm-up and every chunk; continuing from any equals not stopping."""
-    from bayesreg.sampler import SamplerCheckpoint
-
-    logdensity, mean, cov, n_i = _quadratic_problem()
+    logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     chol = sla.cholesky(cov, lower=True)
     x0 = mean + 2.0 * np.random.default_rng(3).normal(size=(3, d)) @ chol.T
@@ -262,3 +147,123 @@ def test_resume_from_a_checkpoint_equals_an_uninterrupted_run():
         np.testing.assert_array_equal(resumed.interior, full.interior)
         np.testing.assert_array_equal(resumed.acceptance, full.acceptance)
         assert resumed.rhat_history == full.rhat_history
+        assert resumed.info == full.info  # the same record, adapted scales included
+    assert full.info.blocks == ("block0", "block1") and full.info.solves_per_step == 2.0
+    assert full.info.warmup_steps == 120 and len(full.info.adapted["proposal_sd_rms_per_block"]) == 2
+
+
+@pytest.mark.parametrize("kind", ["mala", "nuts"])
+def test_without_warmup_a_gradient_kernel_samples_at_the_given_step_size(kind):
+    """``warmup_steps=0``: the step size given is the one used (not the dual averaging's
+    initial average ``exp(0) = 1``)."""
+    rng = np.random.default_rng(0)
+    x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
+    for step in (0.05, 0.3):
+        res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
+                              step_size=step, eta_scale=0.5, warmup_steps=0, max_draws=10,
+                              min_draws=10, chunk_draws=10, thinning=1, progress=False)
+        np.testing.assert_allclose(res.sigma[0], step)
+
+
+def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
+    """Checkpoint after chunk 2 (state leaves and tuned values as a file would hold them),
+    resume: the draws equal those of the run never interrupted."""
+    rng = np.random.default_rng(2)
+    x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
+    saved = []
+
+    def keep(ckpt, out):
+        leaves = jax.tree.leaves(ckpt.states)
+        saved.append((ckpt._replace(states=[np.asarray(a) for a in leaves]), out))
+
+    kw = dict(kind="nuts", warmup_steps=40, max_draws=30, min_draws=30, chunk_draws=10, thinning=2,
+              progress=False)
+    full = sample_gradient(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), on_chunk=keep, **kw)
+    ckpt, _ = saved[2]
+    draws = tuple(np.concatenate([o[j] for _, o in saved[1:3]], axis=1) for j in range(len(saved[1][1])))
+    resumed = sample_gradient(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), resume=ckpt,
+                              resume_draws=draws, **kw)
+    np.testing.assert_array_equal(resumed.positions, full.positions)
+    np.testing.assert_array_equal(resumed.grad_evals, full.grad_evals)
+
+
+def test_warmup_and_sampling_chunks_compile_one_program():
+    """Four warm-up chunks and three sampling chunks run one compiled chunk program (the
+    sampling is the warm-up's program with the adaptation discarded; BlackJAX's weakly
+    typed initial adaptation state would otherwise give the warm-up a second one)."""
+    rng = np.random.default_rng(3)
+    x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
+    with compilations() as compiled:
+        sample_gradient(jax.random.key(8), toy_target(), x0, jnp.zeros((1, 3)), kind="nuts",
+                        warmup_steps=80, max_draws=30, min_draws=30, chunk_draws=10, thinning=2,
+                        progress=False)
+    assert compiled.get("jit(mapped)") == 1, compiled
+
+
+def _standard_normal(x, interior):
+    """``log N(x; 0, I)`` with the by-products of a log-density (placeholder solve figures)."""
+    solve = SolveInfo(jnp.asarray(0), jnp.asarray(0.0), jnp.asarray(True))
+    return -0.5 * jnp.sum(x**2), Aux(interior, solve, jnp.zeros(()), jnp.zeros(()))
+
+
+def test_sample_records_how_the_random_walk_ran():
+    """``SamplerResult.info`` of :func:`sample`: kind ``"rwmh"``; the blocks' names
+    (``("joint",)`` for one block, or the names given); one solve per block and step, one
+    fewer with a condensation (its block's moves solve nothing); the preconditioner
+    (``"dense"`` with a :class:`Preconditioner`, else the ``cg_preconditioner`` named); the
+    chain method in use; the thinning; the warm-up in whole chunks; the adapted proposal
+    scales.  (Default block names and ``"unknown"`` without a preconditioner: the resume
+    and no-warm-up tests above.)"""
+    x0 = 0.1 * np.arange(8.0).reshape(2, 4)
+    zero = jnp.zeros((0, 3))
+    run = partial(sample, jax.random.key(0), _standard_normal, x0, zero, thinning=3, max_draws=4,
+                  min_draws=4, chunk_draws=2, progress=False)
+    info = run(np.ones(4), warmup_steps=7, chain_method="vectorized", cg_preconditioner="spectral").info
+    assert info.kind == "rwmh" and info.blocks == ("joint",) and info.solves_per_step == 1.0
+    assert info.preconditioner == "spectral" and not info.condensed
+    assert info.chain_method == "vectorized" and info.thinning == 3
+    assert info.warmup_steps == 12  # 7 steps asked: two chunks of 2 draws x 3 steps
+    assert info.rhat_threshold == 1.2 and not info.rhat_split
+    assert len(info.adapted["proposal_sd_rms_per_block"]) == 1 and info.adapted["elastic_proposal_sd"] is None
+
+    blocks = (np.arange(2), np.arange(2, 4))
+    condensed = Condensation(lambda x, h: _standard_normal(x, zero), lambda x: jnp.zeros(()), 0, moves=2)
+    pre = Preconditioner(lambda x, guess, p: _standard_normal(x, guess), lambda x: jnp.zeros(()))
+    info = run((np.ones(2), np.ones(2)), blocks=blocks, block_names=("u_b", "elastic"), warmup_steps=0,
+               condensation=condensed, preconditioner=pre, cg_preconditioner="block-jacobi").info
+    assert info.blocks == ("u_b", "elastic") and info.solves_per_step == 1.0 and info.condensed
+    assert info.preconditioner == "dense"  # the Preconditioner given, whatever cg_preconditioner says
+    assert info.chain_method in CHAIN_METHODS and info.chain_method != "auto"
+    np.testing.assert_allclose(info.adapted["elastic_proposal_sd"], [1.0, 1.0])  # as given: no warm-up
+    with pytest.raises(ValueError, match="2 blocks but 1 block_names"):
+        run((np.ones(2), np.ones(2)), blocks=blocks, block_names=("u_b",), warmup_steps=0)
+
+
+def test_sample_gradient_records_how_the_gradient_kernel_ran():
+    """``SamplerResult.info`` of :func:`sample_gradient`: the kernel; the blocks (``u_b`` and
+    ``elastic``, or ``u_b`` alone without free parameters); the target's preconditioner and
+    condensed flag; the solves counted per step, ``elastic_moves + 1`` for a condensed
+    target with free parameters (the trajectories solve nothing) and ``None`` otherwise
+    (every gradient solves, a varying number per step); the warm-up in whole chunks; the
+    adapted step sizes."""
+    rng = np.random.default_rng(0)
+    x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
+    # the chunk program of the MALA run without warm-up above (compiled once for both)
+    kw = dict(kind="mala", elastic_moves=1, thinning=1, max_draws=10, min_draws=10, chunk_draws=10,
+              progress=False)
+    info = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), warmup_steps=15, **kw).info
+    assert info.kind == "mala" and info.blocks == ("u_b", "elastic")
+    assert info.solves_per_step is None and info.preconditioner == "block-jacobi" and not info.condensed
+    assert info.warmup_steps == 20 and info.thinning == 1  # 15 steps asked: two chunks of 10
+    assert info.chain_method in CHAIN_METHODS and info.chain_method != "auto"
+    assert len(info.adapted["step_size_per_chain"]) == 2
+
+    condensed = toy_target()._replace(condensed=True, preconditioner="dense")
+    info = sample_gradient(jax.random.key(1), condensed, x0, jnp.zeros((1, 3)), warmup_steps=0,
+                           **{**kw, "elastic_moves": 3}).info
+    assert info.solves_per_step == 4.0 and info.preconditioner == "dense" and info.condensed
+    assert info.warmup_steps == 0
+
+    no_free = gaussian_target(3)._replace(condensed=True, preconditioner="spectral")
+    info = sample_gradient(jax.random.key(1), no_free, x0[:, :3], jnp.zeros((1, 3)), warmup_steps=0, **kw).info
+    assert info.blocks == ("u_b",) and info.solves_per_step is None and info.preconditioner == "spectral"

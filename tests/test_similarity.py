@@ -5,24 +5,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.images import Image, interpolate_numpy
-from bayesreg.interpolation import interpolate
-from bayesreg.similarity import GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, ssd, ssd_residuals
+from bayesreg.images import Image
+from bayesreg.similarity import (GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, reach_box, ssd,
+                                 ssd_residuals)
 from conftest import box_mesh
-
-
-def _grid_image(fn, shape=(40, 40, 40), spacing=1.0, origin=-5.0):
-    affine = np.diag([spacing, spacing, spacing, 1.0])
-    affine[:3, 3] = origin
-    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
-    x = ijk * spacing + origin
-    return Image(fn(x), affine)
+from helpers import grid_image
 
 
 @pytest.mark.parametrize("level", [0, 1])
 def test_quadrature_of_linear_image_is_exact(level):
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
-    lin = _grid_image(lambda x: 0.5 + 0.01 * x[..., 0] - 0.02 * x[..., 1] + 0.03 * x[..., 2])
+    lin = grid_image(lambda x: 0.5 + 0.01 * x[..., 0] - 0.02 * x[..., 1] + 0.03 * x[..., 2])
     zero = Image(np.zeros_like(lin.data), lin.affine)
     term = build_ssd(m.nodes, m.tets, lin, zero, quadrature_level=level)
     # E_s with m = 0 is the integral of f^2 (a quadratic: the 4-point rule is exact)
@@ -69,7 +62,7 @@ def test_composite_rule_partitions_the_element_and_converges():
 def test_identical_images_zero_displacement_give_zero():
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
     rng = np.random.default_rng(0)
-    img = _grid_image(lambda x: rng.random(x.shape[:-1]))
+    img = grid_image(lambda x: rng.random(x.shape[:-1]))
     term = build_ssd(m.nodes, m.tets, img, img)
     # f_q and m are the same trilinear interpolant evaluated by two routines (round-off apart):
     # residuals of about 1e-16 on intensities of about 0.5, E_s of about 1e-29
@@ -80,8 +73,8 @@ def test_identical_images_zero_displacement_give_zero():
 def test_translation_of_moving_image_is_recovered():
     # m(x) = f(x - t): the SSD vanishes at u = t (trilinear of a linear field is exact)
     t = np.array([1.5, -2.0, 0.5])
-    f = _grid_image(lambda x: 0.01 * x[..., 0] + 0.02 * x[..., 1] ** 1 - 0.005 * x[..., 2])
-    mimg = _grid_image(lambda x: 0.01 * (x[..., 0] - t[0]) + 0.02 * (x[..., 1] - t[1])
+    f = grid_image(lambda x: 0.01 * x[..., 0] + 0.02 * x[..., 1] ** 1 - 0.005 * x[..., 2])
+    mimg = grid_image(lambda x: 0.01 * (x[..., 0] - t[0]) + 0.02 * (x[..., 1] - t[1])
                        - 0.005 * (x[..., 2] - t[2]))
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
     term = build_ssd(m.nodes, m.tets, f, mimg)
@@ -89,86 +82,14 @@ def test_translation_of_moving_image_is_recovered():
     assert float(ssd(term, u)) == pytest.approx(0.0, abs=1e-20)
 
 
-def test_trilinear_matches_scipy_and_outside_is_cval():
-    rng = np.random.default_rng(1)
-    img = _grid_image(lambda x: rng.random(x.shape[:-1]), shape=(8, 9, 10))
-    pts = rng.uniform(-4.0, 2.0, size=(200, 3))
-    inv = jnp.asarray(np.linalg.inv(img.affine))
-    np.testing.assert_allclose(np.asarray(interpolate(jnp.asarray(img.data), inv, jnp.asarray(pts))),
-                               interpolate_numpy(img, pts), atol=1e-12)
-    far = jnp.asarray([[100.0, 0.0, 0.0]])
-    assert float(interpolate(jnp.asarray(img.data), inv, far, 0.25)[0]) == 0.25
-
-
-def test_trilinear_derivatives_match_finite_differences_in_every_argument():
-    """The hand-written JVP of ``interpolate`` (points, volume, affine and cval; forward
-    and reverse mode) against central differences, at points inside the grid and within
-    one voxel of its border (where the value blends toward ``cval``)."""
-    from jax.test_util import check_grads
-
-    rng = np.random.default_rng(3)
-    img = _grid_image(lambda x: rng.random(x.shape[:-1]), shape=(8, 9, 10))
-    inv = jnp.asarray(np.linalg.inv(img.affine))
-    # cell offsets kept away from 0 and 1 so that a difference step stays in one cell
-    c = np.concatenate([rng.integers(0, 7, size=(30, 3)) + rng.uniform(0.2, 0.8, size=(30, 3)),
-                        [[-0.5, 3.3, 4.6], [7.4, 8.3, 9.6]]])
-    pts = jnp.asarray(c @ np.asarray(img.affine)[:3, :3].T + np.asarray(img.affine)[:3, 3])
-    vol = jnp.asarray(img.data)
-    check_grads(lambda p: interpolate(vol, inv, p, 0.3), (pts,), order=1, modes=("fwd", "rev"),
-                eps=1e-6)
-    check_grads(lambda v, a, cv: interpolate(v, a, pts, cv), (vol, inv, jnp.asarray(0.3)),
-                order=1, modes=("fwd", "rev"), eps=1e-6)
-    # the gradient in the points is the slope of the cell's trilinear polynomial: exact
-    # for a linear image
-    lin = _grid_image(lambda x: x @ np.array([0.5, -1.5, 2.0]) + 1.0, shape=(8, 9, 10))
-    g = jax.grad(lambda p: jnp.sum(interpolate(jnp.asarray(lin.data), inv, p)))(pts[:30])
-    np.testing.assert_allclose(np.asarray(g), np.tile([0.5, -1.5, 2.0], (30, 1)), atol=1e-10)
-
-
-def test_clamped_trilinear_with_a_cval_border_equals_interpolate_everywhere():
-    """``trilinear_clamped`` on a volume with one voxel of ``cval`` around it is
-    ``interpolate`` with that ``cval``: inside, in the band where it blends toward ``cval``
-    and far outside; its JVP (coordinates and volume, forward and reverse) against
-    central differences; a NaN coordinate gives NaN (its gather is clamped, not out of
-    bounds)."""
-    from jax.test_util import check_grads
-
-    from bayesreg.interpolation import trilinear_clamped
-
-    rng = np.random.default_rng(4)
-    img = _grid_image(lambda x: rng.random(x.shape[:-1]), shape=(8, 9, 10))
-    inv = np.linalg.inv(img.affine)
-    padded = jnp.asarray(np.pad(img.data, 1, constant_values=0.25))
-    c = rng.uniform(-3.0, 12.0, size=(400, 3))  # inside, in the border band and beyond
-    pts = c @ np.asarray(img.affine)[:3, :3].T + np.asarray(img.affine)[:3, 3]
-    ref = interpolate(jnp.asarray(img.data), jnp.asarray(inv), jnp.asarray(pts), 0.25)
-    out = trilinear_clamped(padded, jnp.asarray(c + 1.0))
-    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=0, atol=1e-14)
-    assert float(trilinear_clamped(padded, jnp.asarray([[-50.0, 3.0, 200.0]]))[0]) == 0.25
-    inside = jnp.asarray(rng.integers(0, 8, size=(30, 3)) + rng.uniform(0.2, 0.8, size=(30, 3)))
-    check_grads(lambda x: trilinear_clamped(padded, x), (inside,), order=1, modes=("fwd", "rev"),
-                eps=1e-6)
-    check_grads(lambda v: trilinear_clamped(v, inside), (padded,), order=1, modes=("fwd", "rev"),
-                eps=1e-6)
-    lin = _grid_image(lambda x: x @ np.array([0.5, -1.5, 2.0]) + 1.0, shape=(8, 9, 10))
-    g = jax.grad(lambda x: jnp.sum(trilinear_clamped(jnp.asarray(lin.data), x)))(inside * 0.85)
-    np.testing.assert_allclose(np.asarray(g), np.tile([0.5, -1.5, 2.0], (30, 1)), atol=1e-10)
-    nan = trilinear_clamped(padded, jnp.asarray([[np.nan, 1.0, 1.0], [1.0, 1.0, 1.0]]))
-    assert np.isnan(float(nan[0])) and np.isfinite(float(nan[1]))
-    with pytest.raises(ValueError, match="at least 2 voxels"):
-        trilinear_clamped(jnp.zeros((1, 4, 4)), inside)
-
-
 def test_moving_image_kept_over_the_reachable_box_gives_the_same_ssd():
     """``build_ssd(reach=...)`` stores ``m`` over the box that allowed nodes can reach: at
     displacements that keep every node allowed, ``E_s`` and its gradient equal those of the
     whole image, from a smaller array; without ``reach`` the whole grid is kept."""
-    from bayesreg.similarity import reach_box
-
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
     rng = np.random.default_rng(5)
-    f = _grid_image(lambda x: rng.random(x.shape[:-1]))
-    mov = _grid_image(lambda x: rng.random(x.shape[:-1]))
+    f = grid_image(lambda x: rng.random(x.shape[:-1]))
+    mov = grid_image(lambda x: rng.random(x.shape[:-1]))
     allowed = np.zeros(f.data.shape, np.uint8)
     allowed[3:30, 4:31, 2:29] = 1  # grid from -5 mm: voxel centres [-2, 24] x [-1, 25] x [-3, 23]
     reach = Image(allowed, f.affine)
@@ -193,8 +114,8 @@ def test_moving_image_in_float32_is_the_rounded_image_sampled_in_float64():
     ``2^-24`` of the values); the sums and the interpolation stay float64."""
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
     rng = np.random.default_rng(6)
-    f = _grid_image(lambda x: rng.random(x.shape[:-1]))
-    mov = _grid_image(lambda x: rng.random(x.shape[:-1]))
+    f = grid_image(lambda x: rng.random(x.shape[:-1]))
+    mov = grid_image(lambda x: rng.random(x.shape[:-1]))
     rounded = Image(mov.data.astype(np.float32).astype(np.float64), mov.affine)
     assert not np.array_equal(rounded.data, mov.data)  # the rounding is real
     t32 = build_ssd(m.nodes, m.tets, f, mov, moving_dtype="float32")
@@ -222,7 +143,7 @@ def test_moving_image_in_float32_is_the_rounded_image_sampled_in_float64():
 
 
 def _bad_image_cases():
-    good = _grid_image(lambda x: x[..., 0] * 0.0 + 0.5, shape=(24, 24, 24))
+    good = grid_image(lambda x: x[..., 0] * 0.0 + 0.5, shape=(24, 24, 24))
     nan = good.data.copy()
     nan[10, 10, 10] = np.nan
     return [
@@ -246,12 +167,12 @@ def test_build_ssd_rejects_bad_images(case):
 
 
 def test_build_ssd_rejects_a_mesh_outside_the_images_and_warns_on_little_overlap():
-    img = _grid_image(lambda x: x[..., 0] * 0.0 + 0.5, shape=(24, 24, 24))  # world -5.5 .. 18.5
+    img = grid_image(lambda x: x[..., 0] * 0.0 + 0.5, shape=(24, 24, 24))  # world -5.5 .. 18.5
     far_affine = img.affine.copy()
     far_affine[:3, 3] += 500.0
     far = Image(img.data, far_affine)
     mesh = box_mesh((1, 1, 1), size=(10.0, 10.0, 10.0))
-    # before: f_q all zero (cval), silently
+    # a mesh outside an image would see only its cval: refused
     with pytest.raises(ValueError, match="no quadrature point of the mesh lies inside f's grid"):
         build_ssd(mesh.nodes, mesh.tets, far, img)
     with pytest.raises(ValueError, match="no quadrature point of the mesh lies inside m's grid"):

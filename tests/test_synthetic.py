@@ -1,214 +1,37 @@
-"""Synthetic truth: the constrained minimiser of paper Sec. 4.1, and the inverse warp."""
-
-from __future__ import annotations
-
-import json
+"""Synthetic brain shift without the skull (bayesreg.synthetic): the pushed nodes, the falloff
+over the rest of the boundary, and the interior in equilibrium."""
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
-from conftest import box_mesh
 
 from bayesreg.fem import stiffness_matrix
-from bayesreg.images import Image
-from bayesreg.mesh import boundary_nodes
-from bayesreg.contact import constrained_shift
-from bayesreg.warp import warp_image
-
-PAPER_LAM = np.array([1e-6, 10.0, 30.0])  # CSF, GM, WM (paper Sec. 4.1)
-PAPER_MU = np.array([1e-6, 1.0, 1.0])
+from bayesreg.synthetic import brain_shift, centre_of_gravity, top_boundary
+from conftest import box_mesh
 
 
-def grid(lo, hi, h):
-    """Boolean grid (all False) with isotropic spacing ``h`` covering ``[lo, hi]^3`` mm,
-    and the world coordinates of its voxel centres."""
-    n = int(round((hi - lo) / h)) + 1
-    aff = np.diag([h, h, h, 1.0])
-    aff[:3, 3] = lo
-    ijk = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1)
-    return np.zeros((n, n, n), bool), aff, ijk * h + lo
-
-
-def slab_case():
-    """30 mm box, top face pushed, forbidden slab with voxel faces at z = -1.5 mm."""
-    mesh = box_mesh(n=(3, 3, 3), size=(30, 30, 30))
-    forb, aff, xyz = grid(-10.0, 40.0, 1.0)
-    forb[xyz[..., 2] <= -2.0] = True
-    pushed = np.flatnonzero(mesh.nodes[:, 2] == 30.0)
-    return mesh, Image(forb.astype(np.uint8), aff), pushed
-
-
-def direct_solve(mesh, lam, mu, fixed, u_fixed):
-    """``K_ff u_f = -K_fc u_c`` with SciPy's sparse direct solver."""
-    k = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, lam, mu))
-    n = len(mesh.nodes)
-    dc = (3 * np.asarray(fixed)[:, None] + np.arange(3)).ravel()
-    df = np.setdiff1d(np.arange(3 * n), dc)
-    u = np.zeros(3 * n)
-    u[dc] = u_fixed.ravel()
-    u[df] = spla.spsolve(sp.csc_matrix(k[df][:, df]), -(k[df][:, dc] @ u[dc]))
-    return u.reshape(n, 3), k
-
-
-def test_no_active_constraint_equals_direct_solve():
-    mesh = box_mesh(n=(3, 3, 3), size=(30, 30, 30))
-    lam = np.array([2.0, 10.0, 30.0])[mesh.tissue]
-    mu = np.ones(len(mesh.tets))
-    forb, aff, xyz = grid(-20.0, 50.0, 2.0)
-    forb[np.all(xyz < -14.0, axis=-1)] = True  # a corner far from the mesh
-    truth, info = constrained_shift(mesh, lam, mu, Image(forb, aff), shift_mm=3.0)
-
-    # default pushed nodes: the 20 boundary nodes of largest z (16 on the top face)
-    z = mesh.nodes[info["pushed"], 2]
-    assert len(info["pushed"]) == 20 and np.sum(z == 30.0) == 16 and np.all(z >= 20.0)
-    cog = np.array([15.0, 15.0, 15.0])
-    p = np.asarray(info["pushed"])
-    dirs = (cog - mesh.nodes[p]) / np.linalg.norm(cog - mesh.nodes[p], axis=1, keepdims=True)
-    u_ref, k = direct_solve(mesh, lam, mu, p, 3.0 * dirs)
-    np.testing.assert_allclose(truth.u[p], 3.0 * dirs, rtol=0, atol=1e-14)
-    assert np.abs(truth.u - u_ref).max() <= 1e-8 * np.abs(u_ref).max()
-    assert info["converged"] and info["n_active"] == 0 and info["n_forbidden_nodes"] == 0
-    assert info["energy"] == pytest.approx(info["energy_unconstrained"], rel=1e-10)
-    assert info["energy"] == pytest.approx(0.5 * u_ref.ravel() @ (k @ u_ref.ravel()), rel=1e-10)
-    assert info["max_violation_mm"] < -5.0 and info["n_inverted"] == 0
-    json.dumps(info)
-
-
-def test_active_constraint_slides_and_satisfies_kkt():
-    mesh, forb, pushed = slab_case()
-    lam = np.array([2.0, 10.0, 30.0])[mesh.tissue]
-    mu = np.ones(len(mesh.tets))
-    truth, info = constrained_shift(mesh, lam, mu, forb, shift_mm=5.0, pushed=pushed)
-    u = truth.u
-    y = mesh.nodes + u
-    tol, c = info["tol_mm"], info["clearance_mm"]
-    assert c == pytest.approx(0.5 * np.sqrt(3.0))
-    assert info["converged"] and info["n_forbidden_nodes"] == 0 and info["n_inverted"] == 0
-    assert info["max_violation_mm"] <= -c + tol
-    assert info["energy"] >= info["energy_unconstrained"]
-    # the unconstrained minimiser would put bottom nodes into the slab
-    u_free, k = direct_solve(mesh, lam, mu, pushed, truth.u[pushed])
-    assert (mesh.nodes + u_free)[:, 2].min() < -2.0
-    assert info["energy_unconstrained"] == pytest.approx(
-        0.5 * u_free.ravel() @ (k @ u_free.ravel()), rel=1e-10)
-
-    # active nodes: on the level set z = -1.5 + c (d is exact for a face-aligned wall)
-    active = np.flatnonzero(np.abs(y[:, 2] - (-1.5 + c)) <= tol)
-    assert info["n_active"] == len(active) >= 4
-    assert np.all(mesh.nodes[active, 2] == 0.0) and np.all(y[:, 2] >= -1.5 + c - tol)
-    assert np.linalg.norm(u[active, :2], axis=1).max() > 0.5  # they slide along the wall
-
-    # KKT: no force on free inactive nodes, frictionless contact (normal force only,
-    # pointing out of the wall) on active ones
-    f = (k @ u.ravel()).reshape(-1, 3)
-    scale = np.abs(f[pushed]).max()
-    free = np.setdiff1d(np.arange(len(mesh.nodes)), np.concatenate([pushed, active]))
-    assert np.abs(f[free]).max() <= 1e-7 * scale
-    assert np.abs(f[active, :2]).max() <= 1e-7 * scale
-    assert np.all(f[active, 2] >= -1e-7 * scale) and f[active, 2].sum() > 1e-2 * scale
-
-
-def test_paper_stiffness_ratio_converges():
-    mesh, forb, pushed = slab_case()  # tissue by x thirds: CSF, GM, WM
-    lam, mu = PAPER_LAM[mesh.tissue], PAPER_MU[mesh.tissue]
-    truth, info = constrained_shift(mesh, lam, mu, forb, shift_mm=5.0, pushed=pushed)
-    assert info["converged"] and info["n_inverted"] == 0 and info["n_forbidden_nodes"] == 0
-    # every constrained node keeps its clearance (the full one, or its smaller rest distance)
-    assert info["max_constraint_mm"] <= info["tol_mm"]
-    assert info["max_violation_mm"] < 0
-    assert info["n_active"] > 0 and info["energy"] >= info["energy_unconstrained"]
-    f = stiffness_matrix(mesh.nodes, mesh.tets, lam, mu) @ truth.u.ravel()
-    interior = np.setdiff1d(np.arange(len(mesh.nodes)), boundary_nodes(mesh.tets))
-    assert np.abs(f.reshape(-1, 3)[interior]).max() <= 1e-9 * np.abs(f).max()
-
-
-def test_constrained_shift_bad_arguments():
-    mesh, forb, pushed = slab_case()
-    lam = mu = np.ones(len(mesh.tets))
-    with pytest.raises(ValueError, match="shift_mm"):
-        constrained_shift(mesh, lam, mu, forb, shift_mm=0.0)
-    with pytest.raises(ValueError, match="n_pushed"):
-        constrained_shift(mesh, lam, mu, forb, n_pushed=0)
-    centre = int(np.flatnonzero(np.all(mesh.nodes == 10.0, axis=1))[0])
-    with pytest.raises(ValueError, match=rf"\[{centre}\] are not boundary"):
-        constrained_shift(mesh, lam, mu, forb, pushed=[pushed[0], centre])
-    with pytest.raises(ValueError, match="shape"):
-        constrained_shift(mesh, lam[:-1], mu, forb)
-    block, aff, xyz = grid(-10.0, 40.0, 1.0)
-    block[np.linalg.norm(xyz - 15.0, axis=-1) < 5.0] = True  # around the centre of gravity
-    with pytest.raises(ValueError, match="target of pushed node"):
-        constrained_shift(mesh, lam, mu, Image(block, aff), shift_mm=15.0, pushed=pushed)
-
-
-def test_warp_image_inverts_an_affine_map():
-    mesh = box_mesh(n=(3, 3, 3), size=(30, 30, 30))
-    a = np.array([[1.05, 0.03, -0.02], [-0.04, 0.97, 0.05], [0.02, -0.03, 1.02]])
-    b = np.array([1.5, -2.0, 0.8])
-    assert np.linalg.det(a) > 0
-    u = mesh.nodes @ a.T + b - mesh.nodes
-    _, aff, xyz = grid(-6.0, 36.0, 1.5)
-    coef, c0 = np.array([0.7, -1.3, 2.1]), 4.0
-    f = Image(xyz @ coef + c0, aff)
-    m = warp_image(f, mesh, u, background=-99.0)
-    x = (xyz - b) @ np.linalg.inv(a).T  # exact preimage of every voxel centre
-    inside = np.all((x > 0.5) & (x < 29.5), axis=-1)
-    outside = np.any((x < -0.5) | (x > 30.5), axis=-1)
-    assert inside.sum() > 1000 and outside.sum() > 1000
-    np.testing.assert_allclose(m.data[inside], x[inside] @ coef + c0, rtol=0, atol=1e-10)
-    assert np.all(m.data[outside] == -99.0)
-    # extended: the covered voxels are unchanged, the others take f at a finite preimage
-    ext = warp_image(f, mesh, u, background=-99.0, outside="extend")
-    np.testing.assert_array_equal(ext.data[inside], m.data[inside])
-    assert np.all(np.isfinite(ext.data)) and np.sum(ext.data[outside] != -99.0) > 1000
-    with pytest.raises(ValueError, match="outside"):
-        warp_image(f, mesh, u, outside="zero")
-
-
-def test_warp_image_extended_translation_is_exact_everywhere():
-    """A rigid translation continued outside the mesh is the same translation, so the
-    extended ``m`` is ``f(y - t)`` on every voxel whose preimage is inside ``f``'s grid."""
-    mesh = box_mesh(n=(3, 3, 3), size=(30, 30, 30))
-    t = np.array([1.3, -2.1, 0.6])
-    _, aff, xyz = grid(-6.0, 36.0, 1.5)
-    coef, c0 = np.array([0.7, -1.3, 2.1]), 4.0
-    f = Image(xyz @ coef + c0, aff)
-    m = warp_image(f, mesh, np.broadcast_to(t, mesh.nodes.shape), background=-99.0, outside="extend")
-    pre = xyz - t
-    ok = np.all((pre > -6.0) & (pre < 36.0 - 1.5), axis=-1)
-    assert ok.mean() > 0.7
-    np.testing.assert_allclose(m.data[ok], pre[ok] @ coef + c0, rtol=0, atol=1e-9)
-
-
-def test_brain_paper_truth(brain):
-    _, labels, mesh = brain
-    lam, mu = PAPER_LAM[mesh.tissue], PAPER_MU[mesh.tissue]
-    skull = Image(labels.data == 4, labels.affine)
-    truth, info = constrained_shift(mesh, lam, mu, skull, shift_mm=15.0)
-    json.dumps(info)
-    assert info["converged"] and info["n_forbidden_nodes"] == 0 and info["n_inverted"] == 0
-    # every constrained node keeps its clearance (the full one, or its smaller rest distance)
-    assert info["max_constraint_mm"] <= info["tol_mm"]
-    assert info["max_violation_mm"] < 0
-    assert info["n_active"] > 0 and info["energy"] > info["energy_unconstrained"]
-    np.testing.assert_allclose(np.linalg.norm(truth.u[truth.pushed], axis=1), 15.0)
-
-
-def test_locate_voxels_equals_locate_at_the_voxel_centres():
-    """The grid search gives ``locate``'s elements and barycentric coordinates (bit for bit)
-    on an oblique, flipped grid whose voxels overhang the mesh."""
-    from bayesreg.images import Image
-    from bayesreg.images import grid_points
-    from bayesreg.warp import locate, locate_voxels
-
+def test_brain_shift_pushes_the_top_nodes_to_the_centre_and_the_interior_follows():
+    """The ``n_pushed`` boundary nodes of largest z move ``shift_mm`` toward the volume
+    centroid, the other boundary nodes toward it by the Gaussian falloff of their distance
+    to the nearest pushed node, and the interior nodes carry no force (``K u = 0`` there)."""
     mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
-    rot = np.linalg.qr(np.random.default_rng(2).normal(size=(3, 3)))[0]
-    affine = np.eye(4)
-    affine[:3, :3] = rot @ np.diag([2.0, -1.5, 2.5])
-    affine[:3, 3] = [15.0, 15.0, 15.0] - affine[:3, :3] @ [10.0, 12.0, 8.0]
-    grid = Image(np.zeros((21, 25, 17)), affine)
-    expect = locate(mesh.nodes, mesh.tets, grid_points(grid))
-    got = locate_voxels(mesh.nodes, mesh.tets, grid.data.shape, grid.affine)
-    assert 0 < np.sum(expect[0] >= 0) < len(expect[0])  # some centres inside, some outside
-    np.testing.assert_array_equal(got[0], expect[0])
-    np.testing.assert_array_equal(got[1], expect[1])
+    lam = np.array([2.0, 10.0, 30.0])[mesh.tissue]
+    mu = np.ones(len(mesh.tets))
+    cog = centre_of_gravity(mesh)
+    np.testing.assert_allclose(cog, [15.0, 15.0, 15.0], atol=1e-12)  # a uniform box
+    truth = brain_shift(mesh, lam, mu, shift_mm=4.0, n_pushed=16, falloff_mm=12.0)
+    top = top_boundary(mesh, 16)
+    np.testing.assert_array_equal(np.sort(mesh.boundary[top]), np.sort(truth.pushed))
+    assert np.all(mesh.nodes[truth.pushed, 2] == 30.0)  # the 16 nodes of the top face
+    pb = mesh.nodes[mesh.boundary]
+    d = np.min(np.linalg.norm(pb[:, None] - pb[None, top], axis=2), axis=1)
+    direction = (cog - pb) / np.linalg.norm(cog - pb, axis=1, keepdims=True)
+    np.testing.assert_allclose(truth.u[mesh.boundary], 4.0 * np.exp(-0.5 * (d / 12.0) ** 2)[:, None] * direction,
+                               rtol=0, atol=1e-12)
+    f = (stiffness_matrix(mesh.nodes, mesh.tets, lam, mu) @ truth.u.ravel()).reshape(-1, 3)
+    assert np.abs(f[mesh.interior]).max() <= 1e-9 * np.abs(f).max()
+    np.testing.assert_array_equal(truth.lam_e, lam)
+    for kwargs, match in (({"shift_mm": 0.0}, "shift_mm and falloff_mm must be > 0"),
+                          ({"falloff_mm": -1.0}, "shift_mm and falloff_mm must be > 0"),
+                          ({"n_pushed": 0}, r"n_pushed must lie in \[1, 56\], got 0")):
+        with pytest.raises(ValueError, match=match):
+            brain_shift(mesh, lam, mu, **kwargs)

@@ -54,9 +54,11 @@ class _Strict(BaseModel):
 
 
 class TissueValues(_Strict):
-    csf: Float = Field(gt=0)
-    gm: Float = Field(gt=0)
-    wm: Float = Field(gt=0)
+    """One positive value per tissue (a partial mapping keeps the default's other tissues)."""
+
+    csf: Float = Field(gt=0, description="cerebrospinal fluid")
+    gm: Float = Field(gt=0, description="grey matter")
+    wm: Float = Field(gt=0, description="white matter")
 
 
 def _fill_from_defaults(cls, data):
@@ -78,17 +80,37 @@ def _fill_from_defaults(cls, data):
 
 
 class DataConfig(_Strict):
-    source: Literal["mni152", "nifti"] = "mni152"
-    resolution_mm: Float | None = Field(2.0, gt=0, description="resample to isotropic voxels")
-    skull_margin_mm: Float = Field(5.0, gt=0)
-    fixed: Path | None = Field(None, description="pre-operative T1 f (nifti source)")
-    moving: Path | None = Field(None, description="intra-operative image m (nifti, optional)")
-    labels: Path | None = Field(None, description="label map on f's world frame (nifti)")
-    label_coding: dict[str, Int | list[Int]] | None = None
-    intensity_percentile: Float = Field(99.5, gt=0, le=100)
+    """The images and the label map (paper Sec. 4.1)."""
+
+    source: Literal["mni152", "nifti"] = Field(
+        "mni152", description="mni152: the MNI ICBM152 2009a template that ships with nilearn "
+        "(T1 and GM/WM probability maps; labels derived from them); nifti: your own images "
+        "(data.fixed, data.labels, data.label_coding and, without a synthetic case, data.moving)")
+    resolution_mm: Float | None = Field(
+        2.0, gt=0, description="resample the images to isotropic voxels of this size (mm; "
+        "linear for images, nearest for labels, anti-aliased when downsampling); null keeps "
+        "the fixed image's grid")
+    skull_margin_mm: Float = Field(
+        5.0, gt=0, description="mni152: width (mm) of the free shell between the brain mask and "
+        "the skull region; every source: the images are padded by four times this on every "
+        "side so that the mesh and its surroundings lie inside the grid")
+    fixed: Path | None = Field(None, description="nifti: the pre-operative image f (NIfTI), "
+                               "relative to the config file's folder")
+    moving: Path | None = Field(None, description="nifti: the intra-operative image m, any grid "
+                                "in f's world frame (resampled onto f's grid); required without "
+                                "a synthetic case")
+    labels: Path | None = Field(None, description="nifti: the label map, any grid in f's world "
+                                "frame (resampled onto f's grid, nearest neighbour)")
+    label_coding: dict[str, Int | list[Int]] | None = Field(
+        None, description="nifti: the label values of each tissue in data.labels, e.g. {csf: 1, "
+        "gm: 2, wm: 3, skull: [4, 5]}; every other value is background (free space)")
+    intensity_percentile: Float = Field(
+        99.5, gt=0, le=100, description="f and m are divided by this percentile of f inside "
+        "the intracranial volume (intensities about [0, 1], so that T_s has image-independent "
+        "units)")
     smoothing_mm: Float = Field(
-        0.0, ge=0, description="Gaussian sigma (mm) applied to f and m before the SSD; smooths "
-        "the likelihood surface sampled at the Gauss points")
+        0.0, ge=0, description="Gaussian sigma (mm) applied to the posterior's copies of f and "
+        "m before the SSD; smooths the likelihood surface sampled at the Gauss points")
 
     @model_validator(mode="after")
     def _nifti_paths(self):
@@ -107,14 +129,21 @@ class DataConfig(_Strict):
 
 
 class MeshConfig(_Strict):
+    """The tetrahedral mesh of the intracranial volume (fTetWild; paper Sec. 2.1)."""
+
     edge_length_mm: Float = Field(16.0, gt=0, description="fTetWild's target edge length (mm); "
                                   "with target_nodes, that of the first attempt")
-    smoothing_sigma_mm: Float = Field(4.0, ge=0)
-    epsilon: Float = Field(2e-2, gt=0)
+    smoothing_sigma_mm: Float = Field(
+        4.0, ge=0, description="Gaussian sigma (mm) applied to the intracranial mask before its "
+        "surface is extracted (marching cubes)")
+    epsilon: Float = Field(2e-2, gt=0, description="fTetWild's envelope, relative to the "
+                           "surface's bounding-box diagonal: how far the mesh surface may depart "
+                           "from the extracted one")
     target_nodes: Int | None = Field(
         None, ge=20, description="re-mesh, scaling the edge length, until the node count is within "
-        "target_tolerance of this (fTetWild's count at one edge length scatters by about 7% between "
-        "runs); None: one mesh at edge_length_mm (bayesreg.mesh.mesh_brain_sized)")
+        "target_tolerance of this (fTetWild's count at one edge length scatters by several "
+        "percent between runs); null: one mesh at edge_length_mm "
+        "(bayesreg.meshing.mesh_brain_sized)")
     target_tolerance: Float = Field(0.05, gt=0, lt=1, description="relative tolerance on target_nodes")
     max_attempts: Int = Field(12, ge=1, description="meshes tried at most for target_nodes (the "
                               "closest is kept, with a warning, when none is within the tolerance)")
@@ -122,7 +151,7 @@ class MeshConfig(_Strict):
         None, description="a tetrahedral mesh to use instead of meshing: any format meshio reads "
         "(e.g. a run's mesh.vtu, to run again on that very mesh: fTetWild is not reproducible), "
         "points in world mm in the images' frame; relative to the config's folder; the element "
-        "tissues come from the label map (bayesreg.mesh.read_mesh)")
+        "tissues come from the label map (bayesreg.mesh.read_mesh); excludes target_nodes")
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -135,7 +164,8 @@ class MeshConfig(_Strict):
 class SyntheticConfig(_Strict):
     """A synthetic case: ``m`` is ``f`` warped exactly by a known FE deformation (Sec. 4.1)."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="make m from f and a known deformation (the paper's "
+                          "experiment); false: register data.moving")
     truth: Literal["constrained", "smooth"] = Field(
         "constrained", description="constrained: the pushed nodes fixed, every other boundary node "
         "at the minimum elastic energy subject to the skull constraint (paper Sec. 4.1); smooth: "
@@ -145,7 +175,9 @@ class SyntheticConfig(_Strict):
     n_pushed: Int = Field(20, ge=1, description="pushed nodes: the n_pushed boundary nodes with the "
                           "largest world z (top of the head)")
     pushed_nodes: list[Int] | None = Field(None, description="explicit mesh node indices instead")
-    falloff_mm: Float = Field(30.0, gt=0, description="smooth truth only")
+    falloff_mm: Float = Field(30.0, gt=0, description="smooth truth: the push of the other "
+                              "boundary nodes fades as exp(-d^2 / (2 falloff^2)) with their "
+                              "distance d to the nearest pushed node")
     clearance_mm: Float | None = Field(
         None, ge=0, description="constrained truth: distance kept from the skull region (default "
         "half a voxel diagonal, so no node's nearest voxel is skull)")
@@ -154,17 +186,21 @@ class SyntheticConfig(_Strict):
         "extend", description="voxels of m that no deformed element covers: extend, f shifted by "
         "the displacement continued from the nearest boundary nodes (so that trilinear samples "
         "of m near the deformed surface are not blended with a constant); background, 0")
-    lam: TissueValues = TissueValues(csf=1e-6, gm=10.0, wm=30.0)
-    mu: TissueValues = TissueValues(csf=1e-6, gm=1.0, wm=1.0)
+    lam: TissueValues = Field(TissueValues(csf=1e-6, gm=10.0, wm=30.0),
+                              description="the truth's Lamé lambda per tissue (paper Sec. 4.1)")
+    mu: TissueValues = Field(TissueValues(csf=1e-6, gm=1.0, wm=1.0),
+                             description="the truth's Lamé mu per tissue (paper Sec. 4.1)")
 
     _partial = model_validator(mode="before")(classmethod(_fill_from_defaults))
 
 
 class BetaPrior(_Strict):
-    a: Float = Field(1.0, gt=0)
-    b: Float = Field(1.0, gt=0)
-    r1: Float = Field(0.0, ge=0)
-    r2: Float = Field(gt=0)
+    """A Beta(a, b) prior scaled to [r1, r2] (paper Sec. 3.1)."""
+
+    a: Float = Field(1.0, gt=0, description="first shape parameter")
+    b: Float = Field(1.0, gt=0, description="second shape parameter")
+    r1: Float = Field(0.0, ge=0, description="lower end of the support")
+    r2: Float = Field(gt=0, description="upper end of the support (> r1)")
 
     @model_validator(mode="after")
     def _range(self):
@@ -176,9 +212,9 @@ class BetaPrior(_Strict):
 class TissuePriors(_Strict):
     """A separate scaled Beta prior per tissue (paper Sec. 3.1: priors per compartment)."""
 
-    csf: BetaPrior
-    gm: BetaPrior
-    wm: BetaPrior
+    csf: BetaPrior = Field(description="the prior of the CSF group's parameter")
+    gm: BetaPrior = Field(description="the prior of the GM group's parameter")
+    wm: BetaPrior = Field(description="the prior of the WM group's parameter")
 
 
 def _prior_kind(v):
@@ -201,66 +237,78 @@ Prior = Annotated[
 
 
 class FixedParam(_Strict):
-    param: Literal["lam", "mu"] = "mu"
-    group: str = "gm"
-    value: Float = Field(1.0, gt=0)
+    """An elastic parameter held fixed (paper Sec. 3.3: one fixed value pins the scale)."""
+
+    param: Literal["lam", "mu"] = Field("mu", description="which Lamé parameter")
+    group: str = Field("gm", description="its group: csf, gm or wm (elastic: tissue), all "
+                       "(uniform), eK (element K)")
+    value: Float = Field(1.0, gt=0, description="its value")
 
 
 class ModelConfig(_Strict):
-    elastic: Literal["uniform", "tissue", "element"] = "tissue"
-    t_s: Float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11)")
-    t_r: Float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12)")
-    prior_lam: Prior = BetaPrior(r2=100.0)
-    prior_mu: Prior = BetaPrior(r2=10.0)
+    """The posterior (paper Eqs. 8-12): elastic parameterisation, temperatures, priors."""
+
+    elastic: Literal["uniform", "tissue", "element"] = Field(
+        "tissue", description="groups of elements sharing Lamé parameters: uniform (one pair), "
+        "tissue (one pair per tissue: CSF, GM, WM, the paper's three-compartment model), "
+        "element (one pair per element)")
+    t_s: Float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11), in "
+                       "intensity^2 mm^3")
+    t_r: Float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12), in [lam] mm^3")
+    prior_lam: Prior = Field(BetaPrior(r2=100.0), description="prior of every free lambda: "
+                             "{a, b, r1, r2}, or one per tissue {csf: {...}, gm: {...}, wm: {...}} "
+                             "(elastic: tissue)")
+    prior_mu: Prior = Field(BetaPrior(r2=10.0), description="prior of every free mu, as "
+                            "prior_lam")
     skull_barrier_mm: Float = Field(
         1.0, ge=0, description="width w (mm) of a smooth barrier -sum (w/d - 1)^2 over nodes at "
-        "distance d < w from the skull's voxel cubes (a soft minimum, never positive inside "
-        "the forbidden voxels), added to the log-density (a change of the model that "
-        "helps gradient kernels turn before the hard constraint: at 1 mm NUTS diverged in 12% "
-        "of transitions against 85% on the wall alone, benchmarks/barrier.py); 0: off, the "
-        "paper's hard constraint alone (which stays in place either way), as the paper's "
-        "configs say")
+        "distance d < w from the skull's voxel cubes, added to the log-density: gradient "
+        "trajectories turn before the hard constraint, which stays in place either way; 0: "
+        "off, the paper's hard constraint alone (the paper's configs)")
     quadrature_level: Int = Field(
         1, ge=0, le=3, description="quadrature of E_s (Eq. 1): 0, the paper's 4 Gauss points per "
         "tetrahedron; k, the same rule in each of the 8^k children of k red refinements "
-        "(4 * 8^k points, up to 8^k times the cost of E_s), against the aliasing of 4 points "
-        "per element on an image of finer voxels, which makes local modes of the boundary "
-        "nodes.  Default 1 for new configs (NUTS on the 24 mm paper problem: median bulk ESS "
-        "1031-1442 against 200 at level 0, benchmarks/barrier.py) and the quickstart; the "
-        "paper's RW-MH configs say 0, the paper's rule")
+        "(4 * 8^k points, up to 8^k times the cost of E_s).  Four points per element alias an "
+        "image of finer voxels into local modes of the boundary nodes; level 1 removes most "
+        "of them (the paper's configs keep 0, the paper's rule)")
     moving_dtype: Literal["float32", "float64"] = Field(
         "float32", description="storage precision of the moving image m that E_s (Eq. 1) "
         "samples: float32 rounds its values once (relative 2^-24) and halves the bytes that "
-        "each evaluation gathers from (the paper's random walk, 3 chains on 2 CPU cores: about "
-        "1.1x the MH steps/s); the interpolation and E_s stay float64, and log p moved by 7e-5 "
-        "on the paper-size problem (6e-6 between proposals), the size of the CG tolerance's "
-        "effect.  float64: m exactly as given (runs checkpointed before the key existed resume "
-        "with it)")
-    fixed: FixedParam | None = FixedParam()
+        "each evaluation gathers from; the interpolation and E_s stay float64.  float64: m "
+        "exactly as given")
+    fixed: FixedParam | None = Field(FixedParam(), description="a parameter held fixed (paper "
+                                     "Sec. 3.3: mu of GM = 1 pins the scale); null: every "
+                                     "parameter free (with prior_normaliser: exact)")
     prior_normaliser: Literal["paper", "exact"] = Field(
         "exact", description="exact: the elastic prior on u_b carries its normaliser "
         "(1/2) log pdet S(lam, mu) (S the Schur complement on the boundary DOFs; one dense "
         "Cholesky factorisation per change of lam, mu), which removes the paper's drift of the "
         "parameters toward zero and lets every parameter be free; paper: Eq. 12 as published, "
         "without it (then fix one parameter, Sec. 3.3)")
-    initial_lam: TissueValues = TissueValues(csf=1.0, gm=5.0, wm=5.0)
-    initial_mu: TissueValues = TissueValues(csf=1.0, gm=1.0, wm=1.0)
+    initial_lam: TissueValues = Field(TissueValues(csf=1.0, gm=5.0, wm=5.0),
+                                      description="the chains' central start of lambda per tissue "
+                                      "(uniform: their volume-weighted mean)")
+    initial_mu: TissueValues = Field(TissueValues(csf=1.0, gm=1.0, wm=1.0),
+                                     description="the chains' central start of mu per tissue")
 
     _partial = model_validator(mode="before")(classmethod(_fill_from_defaults))
 
 
 class SolverConfig(_Strict):
-    rtol: Float = Field(1e-8, gt=0, lt=1)
-    maxiter: Int = Field(1000, ge=1)
+    """The interior FE solve K_ii u_i = -K_ib u_b (preconditioned CG, float64)."""
+
+    rtol: Float = Field(1e-8, gt=0, lt=1, description="relative residual at which CG stops; a "
+                        "solve that does not reach it rejects its proposal (counted in run.json)")
+    maxiter: Int = Field(1000, ge=1, description="CG iterations at most per solve")
     preconditioner: Literal["auto", "dense", "spectral", "block-jacobi"] = Field(
         "auto", description="CG preconditioner of the interior solves (the random walks', "
         "the gradient kernels' elastic moves', the mode search's): spectral (one parameter "
         "group only, model.elastic: uniform: the generalised eigenvectors of the unit "
         "stiffness blocks, K_ii^-1 exact at every lam, mu, one float32 basis for all chains: "
         "one or two CG iterations per solve; where 3 n_i > 4096 block-jacobi instead, as run.json "
-        "reports), dense (K_ii^-1 in float32 at each chain's parameters, "
-        "rebuilt at every chunk start: 2-3 CG iterations instead of 40-180 at the paper's "
-        "size), block-jacobi (3x3 blocks, no memory), or auto: spectral for one group and "
+        "reports), dense (K_ii^-1 in float32 at each chain's parameters, rebuilt at every "
+        "chunk start: a few CG iterations instead of a hundred), block-jacobi (3x3 blocks, no "
+        "memory), or auto: spectral for one group and "
         "dense for more where 3 n_i <= 4096 (and, for dense, the chains' inverses, 4 (3 n_i)^2 "
         "bytes each, take at most 2 GiB on a CPU, a sixteenth of an accelerator's memory, "
         "at least 2 GiB), else block-jacobi.  Any choice meets the same "
@@ -268,13 +316,15 @@ class SolverConfig(_Strict):
 
 
 class SamplerConfig(_Strict):
+    """The chains: kernel, warm-up, draws, stopping rule (paper Sec. 3.2)."""
+
     kind: Literal["rwmh", "mala", "hmc", "nuts"] = Field(
         "nuts", description="kernel of u_b: rwmh (the paper's random walk; blocked or joint), or a "
         "gradient kernel in Gibbs with a random walk of the elastic parameters in their "
-        "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up).  Default "
-        "nuts, the kernel that mixed best in benchmarks/samplers.py (the quickstart's too); "
-        "the paper's configs say rwmh")
-    chains: Int = Field(3, ge=2)
+        "unconstrained (logit) space: mala, hmc, nuts (BlackJAX; windowed warm-up); the "
+        "paper's configs say rwmh")
+    chains: Int = Field(3, ge=2, description="parallel chains (dispersed starts; at least 2 "
+                        "for R-hat)")
     chain_method: Literal["auto", "vectorized", "sequential", "threads", "pieces"] = Field(
         "auto", description="how the chains run (bayesreg.chains; the draws do not depend on "
         "it): vectorized (vmap, the default on an accelerator), sequential, threads (groups of "
@@ -284,13 +334,18 @@ class SamplerConfig(_Strict):
                                  "1 (gradient kernels)")
     warmup_steps: Int | None = Field(None, ge=0, description="steps per chain before the stored "
                                      "draws; default 2000 (rwmh), 500 (gradient kernels)")
-    max_draws: Int = Field(2000, ge=1)
-    min_draws: Int = Field(100, ge=2)
-    chunk_draws: Int = Field(50, ge=2)
+    max_draws: Int = Field(2000, ge=1, description="stored draws per chain at most (after the "
+                           "warm-up and thinning), counted in whole chunks")
+    min_draws: Int = Field(100, ge=2, description="stored draws per chain before the R-hat "
+                           "stop may apply")
+    chunk_draws: Int = Field(50, ge=2, description="draws per compiled chunk: the interval of "
+                             "the R-hat check, the progress bar and the checkpoint")
     target_acceptance: Float | None = Field(
         None, gt=0, lt=1, description="warm-up target of the u_b kernel's acceptance; default 0.25 "
         "(rwmh), 0.57 (mala), 0.8 (hmc, nuts)")
-    rhat_threshold: Float = Field(1.2, gt=1)
+    rhat_threshold: Float = Field(1.2, gt=1, description="stop once the classic Gelman-Rubin "
+                                  "R-hat of every estimand (each boundary coordinate, free "
+                                  "parameter and lam/mu ratio) is below this (paper: 1.2)")
     rhat_split: bool = Field(
         False, description="monitor the split-chain Gelman-Rubin R-hat (catches a common drift) "
         "instead of the paper's whole-chain one")
@@ -305,10 +360,16 @@ class SamplerConfig(_Strict):
     u_moves: Int = Field(
         1, ge=1, description="condensed only: updates of u_b per step (the cheap moves that "
         "amortise one rebuild of the condensation)")
-    proposal: Literal["laplace", "isotropic"] = "laplace"
-    sigma_u: Float = Field(0.008, gt=0, description="mm, isotropic jumping kernel (Eq. 14)")
-    sigma_lam: Float = Field(0.5, gt=0)
-    sigma_mu: Float = Field(0.05, gt=0)
+    proposal: Literal["laplace", "isotropic"] = Field(
+        "laplace", description="shape of u_b's proposal (rwmh) or coordinates (gradient "
+        "kernels): laplace, whitened by the Gauss-Newton precision of u_b at the central start "
+        "(or the mode); isotropic, the paper's sigma_u (rwmh) or 1 mm")
+    sigma_u: Float = Field(0.008, gt=0, description="rwmh, isotropic: initial jumping-kernel "
+                           "sd of each boundary coordinate, mm (Eq. 14; adapted in the warm-up)")
+    sigma_lam: Float = Field(0.5, gt=0, description="rwmh: initial jumping-kernel sd of each "
+                             "free lambda (adapted)")
+    sigma_mu: Float = Field(0.05, gt=0, description="rwmh: initial jumping-kernel sd of each "
+                            "free mu (adapted)")
     step_size: Float = Field(0.1, gt=0, description="gradient kernels: initial leapfrog step in the "
                              "preconditioned coordinates (adapted in the warm-up)")
     hmc_steps: Int = Field(16, ge=1, description="hmc: leapfrog steps per transition (the mean "
@@ -359,6 +420,8 @@ class SamplerConfig(_Strict):
 
 
 class InitConfig(_Strict):
+    """Where the chains start (paper Sec. 4.2) and the mode search."""
+
     start: Literal["between", "registration"] = Field(
         "between",
         description="central start of u_b: between: fraction * truth (paper Sec. 4.2, synthetic "
@@ -377,16 +440,21 @@ class InitConfig(_Strict):
     overdispersion: Float = Field(
         2.0, ge=0, description="mode: chains start at mode + overdispersion * Laplace draw"
     )
-    optimizer_iterations: Int = Field(1000, ge=1)
+    optimizer_iterations: Int = Field(1000, ge=1, description="mode: L-BFGS iterations of "
+                                      "the mode search in all")
     optimize_parameters: bool = Field(
         True, description="mode: optimise the free elastic parameters jointly with u_b")
     param_jitter: Float = Field(0.2, ge=0, description="log-normal sd of start parameters")
 
 
 class OutputConfig(_Strict):
-    dir: Path = Path("runs/run")
-    overwrite: bool = False
-    progress: bool = True
+    """The run directory."""
+
+    dir: Path = Field(Path("runs/run"), description="the run directory (the CLI's --out "
+                      "overrides it)")
+    overwrite: bool = Field(False, description="replace an existing run directory that "
+                            "bayesreg wrote (the CLI's --overwrite)")
+    progress: bool = Field(True, description="show progress bars (tqdm)")
     checkpoint: bool = Field(
         True, description="write the draws chunk by chunk and the sampler state after each chunk "
         "(checkpoint/ in the run directory), so that a killed run keeps its draws and "
@@ -394,19 +462,29 @@ class OutputConfig(_Strict):
 
 
 class Config(_Strict):
-    """A whole run.  Each key's default and meaning are in the field declarations of this
-    module; ``configs/quickstart.yaml`` is a commented example of the common ones."""
+    """A whole run: every key's default, meaning and checks (the documentation's configuration
+    reference lists them); ``configs/quickstart.yaml`` is a commented example of the common
+    ones.
 
-    name: str = "run"
+    Examples
+    --------
+    >>> from bayesreg import Config
+    >>> cfg = Config.model_validate({"sampler": {"kind": "rwmh"}})
+    >>> cfg.sampler.thinning, cfg.sampler.warmup_steps  # the random walk's defaults
+    (10, 2000)
+    """
+
+    name: str = Field("run", description="a name recorded in run.json and posterior.nc")
     seed: Int = Field(0, ge=0, lt=2**32, description="seed of NumPy's and JAX's generators")
-    data: DataConfig = DataConfig()
-    mesh: MeshConfig = MeshConfig()
-    synthetic: SyntheticConfig = SyntheticConfig()
-    model: ModelConfig = ModelConfig()
-    solver: SolverConfig = SolverConfig()
-    sampler: SamplerConfig = SamplerConfig()
-    init: InitConfig = InitConfig()
-    output: OutputConfig = OutputConfig()
+    data: DataConfig = Field(DataConfig(), description="images and labels")
+    mesh: MeshConfig = Field(MeshConfig(), description="the FE mesh")
+    synthetic: SyntheticConfig = Field(SyntheticConfig(), description="a synthetic case with "
+                                       "known truth")
+    model: ModelConfig = Field(ModelConfig(), description="the posterior")
+    solver: SolverConfig = Field(SolverConfig(), description="the interior FE solve")
+    sampler: SamplerConfig = Field(SamplerConfig(), description="the chains")
+    init: InitConfig = Field(InitConfig(), description="the starts")
+    output: OutputConfig = Field(OutputConfig(), description="the run directory")
 
     @model_validator(mode="after")
     def _consistent(self):

@@ -58,7 +58,7 @@ def schedule(num_steps: int) -> np.ndarray:
 
 def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: bool = False,
                       adapt_mass: bool = True):
-    """``(init, step, final)`` of the windowed warm-up of :func:`build_kernel`'s kernel.
+    """``(init, step, final)`` of the windowed warm-up of :func:`bayesreg.kernels.gibbs.build_kernel`'s kernel.
 
     ``adapt_mass=False`` keeps the identity inverse mass matrix (the preconditioned
     coordinates ``w`` already have about unit scale) and adapts the step size alone, by
@@ -123,7 +123,7 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
     def final(ws: WarmupState) -> GibbsParams:
         # the dual average, once it has averaged anything: BlackJAX's initial state holds
         # log_step_size_avg = 0, so with no warm-up step (or none since a window's restart)
-        # the step in use is kept (before: step size 1 for warmup_steps = 0)
+        # the step in use is kept
         step_size = jnp.where(ws.da.step > 1, jnp.exp(ws.da.log_step_size_avg), ws.step_size)
         return GibbsParams(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale))
 

@@ -58,11 +58,16 @@ class GibbsState(NamedTuple):
 
     Attributes
     ----------
-    position : (dim,)  ``[u_b.ravel() (mm), phi]`` (natural parameters, what is stored)
-    logdensity : ()  log posterior at ``position`` in the natural parameters
-    interior : (n_i, 3)  interior FE solution at ``position`` (mm)
-    u : blackjax HMCState  ``w`` (``(3 n_b,)``), its conditional log-density and gradient
-    eta : (n_free,)  unconstrained elastic parameters
+    position : (dim,)
+        ``[u_b.ravel() (mm), phi]`` (natural parameters, what is stored)
+    logdensity : ()
+        log posterior at ``position`` in the natural parameters
+    interior : (n_i, 3)
+        interior FE solution at ``position`` (mm)
+    u : blackjax HMCState
+        ``w`` (``(3 n_b,)``), its conditional log-density and gradient
+    eta : (n_free,)
+        unconstrained elastic parameters
     """
 
     position: jax.Array
@@ -77,14 +82,20 @@ class GibbsInfo(NamedTuple):
 
     Attributes
     ----------
-    acceptance_rate : (B,)  u_b kernel's (NUTS: mean over the trajectory), elastic move's
-    is_accepted : (B,) bool  (NUTS: whether the chain moved)
-    cg_iterations : ()  CG iterations of the transition's solves
-    solve_failed : ()  solves that did not converge (their moves are rejected)
-    grad_evals : ()  gradient evaluations (leapfrog steps, plus one after an accepted
+    acceptance_rate : (B,)
+        u_b kernel's (NUTS: mean over the trajectory), elastic move's
+    is_accepted : (B,) bool
+        (NUTS: whether the chain moved)
+    cg_iterations : ()
+        CG iterations of the transition's solves
+    solve_failed : ()
+        solves that did not converge (their moves are rejected)
+    grad_evals : ()
+        gradient evaluations (leapfrog steps, plus one after an accepted
         elastic move)
     divergent : () bool
-    tree_depth : ()  NUTS trajectory doublings (0 for MALA, HMC)
+    tree_depth : ()
+        NUTS trajectory doublings (0 for MALA, HMC)
     """
 
     acceptance_rate: jax.Array

@@ -56,10 +56,13 @@ class RWMHInfo(NamedTuple):
 
     Attributes
     ----------
-    acceptance_rate : (B,)   ``min(1, p(theta*) / p(theta^n))`` (Eq. 13) per block
+    acceptance_rate : (B,)
+        ``min(1, p(theta*) / p(theta^n))`` (Eq. 13) per block
     is_accepted : (B,) bool
-    cg_iterations : ()  CG iterations of the proposals' solves, summed over blocks
-    solve_failed : ()  number of proposals whose solve did not converge (rejected)
+    cg_iterations : ()
+        CG iterations of the proposals' solves, summed over blocks
+    solve_failed : ()
+        number of proposals whose solve did not converge (rejected)
     """
 
     acceptance_rate: jax.Array
@@ -69,8 +72,11 @@ class RWMHInfo(NamedTuple):
 
 
 def init(position, logdensity_fn: Callable, interior0) -> RWMHState:
-    """Initial state at ``position`` ``(dim,)``; ``logdensity_fn(position, interior_guess) ->
-    (logp, aux)``, ``interior0`` ``(n_i, 3)`` the warm start of the first solve."""
+    """Initial state of a chain.
+
+    ``position`` is ``(dim,)``; ``logdensity_fn(position, interior_guess) -> (logp, aux)``;
+    ``interior0`` ``(n_i, 3)`` is the warm start of the first solve.
+    """
     logp, aux = logdensity_fn(position, interior0)
     return RWMHState(position, logp, aux.interior)
 

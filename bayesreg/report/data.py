@@ -76,23 +76,39 @@ class RunData(NamedTuple):
     Attributes
     ----------
     path : Path
-    info : dict  ``run.json``
-    u_b : (C, D, B, 3) ndarray  boundary displacement draws, mm
-    boundary : (B,) int ndarray  mesh node index of each sampled boundary node
-    lam, mu, ratio : (C, D, G) ndarray  Lamé parameter draws and ``lam/mu`` per group
-    groups : tuple of str  elastic group names (``("csf", "gm", "wm")`` or ``("all",)``)
-    points : (N, 3) ndarray  undeformed mesh nodes, world mm
+    info : dict
+        ``run.json``
+    u_b : (C, D, B, 3) ndarray
+        boundary displacement draws, mm
+    boundary : (B,) int ndarray
+        mesh node index of each sampled boundary node
+    lam, mu, ratio : (C, D, G) ndarray
+        Lamé parameter draws and ``lam/mu`` per group
+    groups : tuple of str
+        elastic group names (``("csf", "gm", "wm")`` or ``("all",)``)
+    points : (N, 3) ndarray
+        undeformed mesh nodes, world mm
     tets : (M, 4) int ndarray
-    tissue : (M,) int ndarray  0 CSF, 1 GM, 2 WM
-    u_true : (N, 3) ndarray  synthetic truth, mm
-    u_init : (N, 3) ndarray or None  central starting configuration, mm
-    affine : (4, 4) ndarray  voxel-to-world of the image grid
-    f, m : (I, J, K) ndarray  fixed and moving image (``m`` None if absent)
-    labels : (I, J, K) int ndarray  0 background, 1 CSF, 2 GM, 3 WM, 4 skull
-    disp_mean, disp_true : (I, J, K, 3) ndarray  posterior mean and true field, mm
-    disp_init, disp_sd : (I, J, K, 3) ndarray or None  initial field, posterior sd, mm
-    disp_norm_iqr : (I, J, K) ndarray or None  posterior IQR of ``|u|``, mm
-    in_mesh : (I, J, K) bool ndarray or None  voxels inside the undeformed mesh
+    tissue : (M,) int ndarray
+        0 CSF, 1 GM, 2 WM
+    u_true : (N, 3) ndarray
+        synthetic truth, mm
+    u_init : (N, 3) ndarray or None
+        central starting configuration, mm
+    affine : (4, 4) ndarray
+        voxel-to-world of the image grid
+    f, m : (I, J, K) ndarray
+        fixed and moving image (``m`` None if absent)
+    labels : (I, J, K) int ndarray
+        0 background, 1 CSF, 2 GM, 3 WM, 4 skull
+    disp_mean, disp_true : (I, J, K, 3) ndarray
+        posterior mean and true field, mm
+    disp_init, disp_sd : (I, J, K, 3) ndarray or None
+        initial field, posterior sd, mm
+    disp_norm_iqr : (I, J, K) ndarray or None
+        posterior IQR of ``|u|``, mm
+    in_mesh : (I, J, K) bool ndarray or None
+        voxels inside the undeformed mesh
         (``mesh_mask.nii.gz``), where the FE field is defined
     """
 

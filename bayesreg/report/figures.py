@@ -26,8 +26,10 @@ def divergence(u, affine) -> np.ndarray:
 
     Parameters
     ----------
-    u : (I, J, K, 3) array_like  world-mm displacement (x, y, z components)
-    affine : (4, 4) array_like  voxel-to-world
+    u : (I, J, K, 3) array_like
+        world-mm displacement (x, y, z components)
+    affine : (4, 4) array_like
+        voxel-to-world
 
     Returns
     -------
@@ -106,8 +108,10 @@ def skull_limits(run: RunData, b: int, *, reach_mm: float = 30.0) -> np.ndarray:
     Parameters
     ----------
     run : RunData
-    b : int  index into ``run.boundary``
-    reach_mm : float  how far to scan
+    b : int
+        index into ``run.boundary``
+    reach_mm : float
+        how far to scan
 
     Returns
     -------
@@ -139,7 +143,8 @@ def mesh_cut(points, tets, affine, k: float):
     points : (N, 3) world mm
     tets : (M, 4) int
     affine : (4, 4) voxel-to-world of the image grid
-    k : float  plane index along the third voxel axis
+    k : float
+        plane index along the third voxel axis
 
     Returns
     -------

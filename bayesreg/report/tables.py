@@ -110,7 +110,8 @@ def coverage_table(runs, levels=LEVELS) -> pd.DataFrame:
     Parameters
     ----------
     runs : RunData or Mapping[str, RunData or path]
-    levels : sequence of float  central credible levels
+    levels : sequence of float
+        central credible levels
 
     Returns
     -------

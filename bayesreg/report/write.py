@@ -161,7 +161,7 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
         (a :class:`RunData` is accepted too).  Each needs a synthetic truth.
     out : str or Path
         Report directory.  Written in a staging folder beside it and moved in place at the
-        end (:class:`bayesreg.outputs.RunDirectory`).
+        end (:class:`bayesreg.rundir.RunDirectory`).
     overwrite : bool
         Replace an existing non-empty ``out`` that holds a report (``report.json`` or
         ``report.md``); a folder of other files is never replaced.
@@ -198,7 +198,7 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
         return rd.commit()
     except BaseException:
         # a report is all or nothing: this one's files go, and a report it was to replace
-        # (overwrite) comes back (before: only the staging went, leaving the directory empty)
+        # (overwrite) comes back
         rd.rollback()
         raise
 

@@ -1,0 +1,134 @@
+"""Gradient kernels in Gibbs with the elastic block (bayesreg.kernels.gibbs) on known targets."""
+
+import numpy as np
+import pytest
+
+import arviz as az
+import jax
+import jax.numpy as jnp
+
+from bayesreg.chains import build_chunk
+from bayesreg.kernels import gibbs as gk
+from bayesreg.kernels.target import make_target
+from bayesreg.sampler import sample_gradient
+from helpers import D, M_ETA, S, SD_ETA, assert_moments, gaussian_target, toy_moments, toy_target
+
+
+@pytest.mark.parametrize("kind,adapt_mass", [("mala", True), ("hmc", True), ("nuts", True), ("nuts", False)])
+def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
+    """Means and variances of u and eta within 5 Monte Carlo standard errors, each from
+    ArviZ's ESS of the quantity averaged (:func:`helpers.assert_moments`)."""
+    rng = np.random.default_rng(0)
+    x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
+    res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
+                          step_size=0.3, eta_scale=0.5, num_integration_steps=8, warmup_steps=600,
+                          adapt_mass=adapt_mass, elastic_moves=1 if adapt_mass else 3,
+                          max_draws=1500, min_draws=1500, chunk_draws=100, thinning=1, progress=False)
+    draws = res.positions  # (C, n, D + 1)
+    assert res.divergences.mean() < 0.01  # the toy is a mild funnel: rare divergences allowed
+    mean_true, var_true, fourth_true = toy_moments()
+    for j in range(D + 1):
+        x = draws[..., j]
+        ess = float(az.ess(x, method="bulk"))
+        assert ess > 50, (kind, j, ess)
+        assert_moments(x, mean_true[j], var_true[j], fourth_true[j], n_se=5.0, what=(kind, j))
+    acc = res.acceptance.reshape(-1, 2).mean(axis=0)
+    assert 0.25 < acc[0] < 0.99 and 0.1 < acc[1] < 0.7, acc  # targets 0.57 (MALA), 0.8; 0.3
+    step, inv_mass, eta_scale = res.sigma
+    assert step.shape == (4,) and inv_mass.shape == (4, D) and eta_scale.shape == (4, 1, 1)
+    if not adapt_mass:
+        np.testing.assert_array_equal(inv_mass, 1.0)
+    assert np.all(res.grad_evals >= 1)
+
+
+def test_a_failed_evaluation_at_the_chains_own_parameters_moves_nothing_and_is_counted():
+    """The elastic moves compare each proposal with the chain's parameters re-evaluated at
+    its new ``u_b``; if that evaluation fails (``-inf``, not ok), no proposal is accepted
+    against it (a finite proposal over ``-inf`` would be a log-ratio of ``+inf``) and the
+    failure is counted."""
+    rng = np.random.default_rng(3)
+    x0 = np.concatenate([rng.normal(size=(2, D)), np.full((2, 1), M_ETA)], axis=1)
+    target = toy_target()
+
+    starts = jnp.asarray(x0[:, :D] / S)
+
+    def evaluate(w, eta, interior, ln):
+        lp, lnat, interior, its, ok = target.evaluate(w, eta, interior, ln)
+        # fails at the chains' starting parameters once u_b has left its start (so not in
+        # the check of the starts), and nowhere else
+        bad = (eta[0] == M_ETA) & ~jnp.any(jnp.all(w[None] == starts, axis=1))
+        return jnp.where(bad, -jnp.inf, lp), jnp.where(bad, -jnp.inf, lnat), interior, its, ok & ~bad
+
+    # a small step: the first u_b moves are accepted (fixed seed), so every re-evaluation fails
+    res = sample_gradient(jax.random.key(2), target._replace(evaluate=evaluate), x0,
+                          jnp.zeros((1, 3)), kind="mala", step_size=0.05, eta_scale=0.5,
+                          warmup_steps=0, max_draws=10, min_draws=10, chunk_draws=10, thinning=1,
+                          progress=False)
+    assert np.all(res.positions[..., D] == M_ETA)  # never moved
+    assert np.all(res.solve_failures >= 1)  # one per transition at least
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_hmc_jitter_breaks_a_periodic_trajectory(jitter):
+    """On ``N(0, I)`` with ``L`` leapfrog steps of ``eps = 2 sin(pi / 2L)`` the leapfrog map
+    to the power ``L`` is exactly ``-I``: every fixed-length transition maps ``x`` to ``-x``
+    (accepted, energy conserved), so the chain never leaves ``{x0, -x0}``.  With the number
+    of steps drawn from ``1 .. 2L - 1`` the chain samples the target: mean and variance within
+    Monte Carlo error, and the drawn lengths cover that range with mean ``L``."""
+    dim, n_leap, n_steps = 8, 8, 3000
+    target = gaussian_target(dim)
+    kernel = gk.build_kernel(target, "hmc", num_integration_steps=n_leap, jitter_integration_steps=jitter)
+    x0 = jnp.linspace(0.5, 2.0, dim)
+    state, cache = gk.init(target, x0, jnp.zeros((1, 3)))
+    params = gk.GibbsParams(jnp.asarray(2 * np.sin(np.pi / (2 * n_leap))), jnp.ones(dim), jnp.zeros((0, 0)))
+
+    def step(carry, key):
+        st, ca = carry
+        st, info, ca = kernel.step(key, st, params, ca)
+        return (st, ca), (st.position, info.grad_evals)
+
+    _, (xs, n) = jax.jit(lambda k: jax.lax.scan(step, (state, cache), jax.random.split(k, n_steps)))(
+        jax.random.key(0))
+    xs, n = np.asarray(xs), np.asarray(n)
+    if not jitter:
+        np.testing.assert_array_equal(n, n_leap)
+        np.testing.assert_allclose(np.abs(xs), np.broadcast_to(np.asarray(x0), xs.shape), rtol=1e-9)
+        return
+    assert n.min() == 1 and n.max() == 2 * n_leap - 1
+    assert abs(n.mean() - n_leap) < 5 * np.sqrt((4 * n_leap**2 - 4) / 12 / n_steps)  # uniform on 1..2L-1
+    ess = min(float(az.ess(xs[None, :, j], method="bulk")) for j in range(dim))
+    assert ess > 300, ess
+    for j in range(dim):  # N(0, 1): fourth central moment 3
+        assert_moments(xs[None, :, j], 0.0, 1.0, 3.0, n_se=5.0, what=j)
+
+
+def test_preconditioned_gibbs_kernel_gives_the_draws_of_block_jacobi(small):
+    """NUTS-in-Gibbs with the dense preconditioner (built at each chunk start, kept through the
+    cache rebuilds after accepted elastic moves) takes the chains where block Jacobi takes
+    them: its solves (the elastic moves' and, without the condensation, the trajectories')
+    meet the same tolerance, in fewer iterations."""
+    condensed = False  # every solve of the kernel preconditioned
+
+    _, post, theta = small
+    nb3 = 3 * post.n_boundary
+    factor = np.full(nb3, 0.05)
+    x0 = np.tile(theta, (2, 1))
+    x0[:, :nb3] += 0.02 * np.random.default_rng(4).normal(size=(2, nb3))
+    params = gk.GibbsParams(jnp.full(2, 0.3), jnp.ones((2, nb3)), jnp.tile(0.05 * jnp.eye(post.n_free), (2, 1, 1)))
+    outs, its = [], []
+    for precondition in (False, True):
+        tg = make_target(post, center_u=np.zeros(nb3), factor=factor, exact=False, condensed=condensed,
+                         rtol=1e-12, precondition=precondition)
+        kernel = gk.build_kernel(tg, "nuts", max_num_doublings=4, elastic_moves=3)
+        states = jax.vmap(lambda x: gk.init(tg, x, jnp.zeros((post.op.n_interior, 3)))[0])(jnp.asarray(x0))
+        if precondition:
+            assert kernel.init_cache(jax.tree.map(lambda a: a[0], states)).precond is not None
+        _, out = build_chunk(kernel, 4, 1, 2, method="threads").run(
+            jax.random.split(jax.random.key(3), 2), states, params)
+        outs.append(out)
+        its.append(float(np.asarray(out[4]).mean()))
+    (plain, fast) = outs
+    np.testing.assert_allclose(np.asarray(fast[0]), np.asarray(plain[0]), rtol=1e-7, atol=1e-9)  # positions
+    np.testing.assert_allclose(np.asarray(fast[2]), np.asarray(plain[2]), rtol=1e-9)  # log p
+    assert np.asarray(plain[3])[..., 1].max() > 0  # elastic moves accepted (the cache rebuilt)
+    assert its[1] < 0.5 * its[0] and np.asarray(fast[5]).sum() == 0  # fewer iterations, no failure

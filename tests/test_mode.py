@@ -1,0 +1,44 @@
+"""The mode search (bayesreg.mode)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bayesreg.images import Image
+from bayesreg.mode import find_mode
+from bayesreg.parameters import ParamLayout
+from bayesreg.posterior import build_posterior
+from conftest import box_mesh, compilations
+from helpers import log_p
+
+
+def test_find_mode_reaches_a_stationary_point_from_a_far_start(small):
+    """``find_mode`` (u_b alone, then u_b and log(phi) jointly): from a start with
+    one ``lam`` at 97% of its prior range the returned point gains log p and its gradient
+    in the search coordinates ``(u_b, log phi)`` has fallen by four orders of magnitude."""
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    layout = ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2)),
+                         fixed=(("mu", 0, 1.0), ("mu", 1, 1.0), ("mu", 2, 1.0)))
+    phi = np.array([5.0, 10.0, 97.0])
+    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+    _, base, theta = small  # its image term and skull, with lam alone free
+    post = build_posterior(mesh, base.ssd, Image(np.asarray(base.skull.forbidden).astype(np.uint8),
+                                                  np.linalg.inv(np.asarray(base.skull.inv_affine))),
+                           t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
+                           prior=prior, phi_ref=phi)
+    theta = np.concatenate([theta[: 3 * len(mesh.boundary)], phi])
+    with compilations() as compiled:
+        res = find_mode(post, theta, iterations=600)
+    mode = res.theta
+    assert compiled.get("jit(step)") == 1  # both stages (u_b alone, then joint) share one program
+    nb3 = 3 * len(mesh.boundary)
+
+    def grad_search(th):  # gradient in (u_b, log phi): d/d log phi = phi d/d phi
+        g = np.asarray(jax.grad(lambda t: log_p(post, t)[0])(jnp.asarray(th)))
+        return np.concatenate([g[:nb3], th[nb3:] * g[nb3:]])
+
+    assert res.logp_mode > res.logp_start
+    assert float(log_p(post, mode)[0]) == pytest.approx(res.logp_mode, rel=1e-9)
+    assert np.all((mode[nb3:] > 0) & (mode[nb3:] < 100))
+    assert np.linalg.norm(grad_search(mode)) <= 1e-4 * np.linalg.norm(grad_search(theta))
