@@ -4,6 +4,7 @@ Layout inside the run directory (every file written atomically and durably: a te
 name, flushed to disk, then ``os.replace``; :mod:`bayesreg._files`)::
 
     checkpoint/config.json      the resolved config of the run
+    checkpoint/config.sha256    the SHA-256 of config.json as written (a resume refuses an edit)
     checkpoint/problem.npz      images, mesh and truth (:meth:`Checkpoint.save_problem`)
     checkpoint/init.npz         chain starts and initial jumping kernels
     checkpoint/state.npz        :class:`bayesreg.sampler.SamplerCheckpoint` after the last chunk
@@ -18,6 +19,7 @@ the config, problem and starts stay, so a finished run can be rebuilt in a noteb
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import shutil
 import zipfile
@@ -27,7 +29,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from bayesreg._files import replace_durably
+from bayesreg._files import dumps_json, replace_durably, write_text_atomic, writing
 from bayesreg.config import Config, ConfigError, format_errors
 from bayesreg.images import Image
 from bayesreg.initialisation import Initialisation
@@ -44,10 +46,21 @@ _OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iteration
 
 def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
     """``np.savez`` (or ``savez_compressed``) to a temporary name, then renamed over ``path``
-    (:func:`bayesreg._files.replace_durably`: flushed to disk, atomic)."""
+    (:func:`bayesreg._files.replace_durably`: flushed to disk, atomic).
+
+    Raises
+    ------
+    OSError
+        The file could not be written (named in the message, e.g. a full disk); the file
+        that was there before is left as it was.
+    """
     tmp = Path(path).with_name(Path(path).name + ".tmp.npz")
-    (np.savez_compressed if compressed else np.savez)(tmp, **arrays)
-    replace_durably(tmp, path)
+    try:
+        with writing(path):
+            (np.savez_compressed if compressed else np.savez)(tmp, **arrays)
+            replace_durably(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
@@ -70,6 +83,7 @@ class Checkpoint:
     def __init__(self, run_dir):
         self.dir = Path(run_dir) / "checkpoint"
         self.draws_dir = self.dir / "draws"
+        self.chunks_done: int | None = None  # sampling chunks saved by on_chunk (None: warm-up)
 
     # ---- config, problem, starts ----
     @property
@@ -80,11 +94,16 @@ class Checkpoint:
     def problem_path(self) -> Path:
         return self.dir / "problem.npz"
 
+    @property
+    def digest_path(self) -> Path:
+        return self.dir / "config.sha256"
+
     def save_config(self, cfg: Config) -> None:
+        """Write the resolved config and its digest (:meth:`load_config` checks it)."""
         self.dir.mkdir(parents=True, exist_ok=True)
-        tmp = self.config_path.with_name("config.json.tmp")
-        tmp.write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
-        replace_durably(tmp, self.config_path)
+        text = dumps_json(cfg.model_dump(mode="json"), indent=2)
+        write_text_atomic(self.config_path, text)
+        write_text_atomic(self.digest_path, hashlib.sha256(text.encode()).hexdigest() + "\n")
 
     def load_config(self) -> Config:
         """The run's saved config (``checkpoint/config.json``), validated.
@@ -94,15 +113,26 @@ class Checkpoint:
         FileNotFoundError
             If there is no saved config.
         ConfigError
-            If it is not valid JSON or not a valid config (the message names the file and key).
+            If it is not valid JSON or not a valid config (the message names the file and
+            key), or was changed after the run wrote it (its digest no longer matches: a
+            resume would mix the draws of two configs).
         """
         from pydantic import ValidationError
 
         if not self.config_path.is_file():
             raise FileNotFoundError(f"{self.config_path} not found: not a run directory written "
                                     "with output.checkpoint, or not a run directory at all")
+        text = self.config_path.read_text()
+        if self.digest_path.is_file():
+            want = self.digest_path.read_text().strip()
+            if hashlib.sha256(text.encode()).hexdigest() != want:
+                raise ConfigError(
+                    f"{self.config_path} was changed after the run started (its SHA-256 no "
+                    f"longer matches {self.digest_path.name}): resuming would mix the draws of "
+                    "two configs; put the original back, or start a new run (--overwrite, or "
+                    "another --out) with the config you want")
         try:
-            raw = json.loads(self.config_path.read_text())
+            raw = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{self.config_path}: not valid JSON: {exc}") from None
         if not isinstance(raw, dict):
@@ -129,7 +159,7 @@ class Checkpoint:
             "labels": data.labels.data, "labels_affine": data.labels.affine,
             "nodes": data.mesh.nodes, "tets": data.mesh.tets, "tissue": data.mesh.tissue,
             "boundary": data.mesh.boundary,
-            "meta": np.array(json.dumps({
+            "meta": np.array(dumps_json({
                 "intensity_scale": data.intensity_scale, "n_skull_carved": data.n_skull_carved,
                 "timings": data.timings, "truth_info": data.truth_info,
                 "mesh_info": data.mesh_info,
@@ -169,7 +199,7 @@ class Checkpoint:
     def save_init(self, init: Initialisation) -> None:
         arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}
         savez_atomic(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
-                     info=np.array(json.dumps(init.info, default=float)), **arrays)
+                     info=np.array(dumps_json(init.info, default=float)), **arrays)
 
     def load_init(self) -> Initialisation | None:
         """The run's starts and proposal scales, or ``None`` if they were never saved."""
@@ -185,6 +215,7 @@ class Checkpoint:
     # ---- sampler progress ----
     def on_chunk(self, ckpt: SamplerCheckpoint, out) -> None:
         """Callback for :func:`bayesreg.sampler.sample`: write the chunk, then the state."""
+        self.chunks_done = ckpt.chunks_done
         if out is not None:
             self.draws_dir.mkdir(parents=True, exist_ok=True)
             savez_atomic(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
@@ -195,7 +226,7 @@ class Checkpoint:
         meta = {"chunks_done": ckpt.chunks_done, "rhat_history": [list(h) for h in ckpt.rhat_history],
                 "timings": ckpt.timings}
         savez_atomic(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
-                     meta=np.array(json.dumps(meta, default=float)), **sig, **st)
+                     meta=np.array(dumps_json(meta, default=float)), **sig, **st)
 
     def load_state(self):
         """``(SamplerCheckpoint, draws or None)``, or ``None`` if the warm-up never finished."""
@@ -211,7 +242,8 @@ class Checkpoint:
             k = int(meta["chunks_done"])
             ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
                                      z["warmup_acceptance"], k,
-                                     [(int(a), float(b)) for a, b in meta["rhat_history"]],
+                                     [(int(a), float("inf") if b is None else float(b))
+                                      for a, b in meta["rhat_history"]],
                                      meta["timings"])
         if k == 0:
             return ckpt, None

@@ -11,13 +11,16 @@
 ``bayesreg --version``
     the package's version (``run.json`` records it with its dependencies' versions).
 
-Exit status 2 on bad input (the message names the problem), 0 on success.
+Exit status 0 on success; 2 on bad input or a failed stage (the message names the problem and
+what to change); 3 with ``run --strict`` when chains never moved; 130 when interrupted
+(Ctrl-C or SIGTERM; one line says what was kept).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -26,8 +29,9 @@ from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, ConfigError, load_config
 from bayesreg.jaxconfig import configure_jax
 from bayesreg.outputs import RunResult, format_report
-from bayesreg.pipeline import run
+from bayesreg.pipeline import RunInterrupted, run
 from bayesreg.report import write_report
+from bayesreg.stages import StageError
 
 __all__ = ["main", "PAPER_CONFIGS"]
 
@@ -50,6 +54,8 @@ def _parser():
     r.add_argument("--resume", metavar="RUN_DIR",
                    help="continue the unfinished run in RUN_DIR (same draws as an uninterrupted run)")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--strict", action="store_true",
+                   help="exit with status 3 when chains never moved (their draws are their start)")
 
     q = sub.add_parser("reproduce", help="the paper's two experiments and their report")
     q.add_argument("--variant", choices=("paper", "nuts"), default="paper",
@@ -164,18 +170,41 @@ def _report_runs(items) -> dict:
     return runs
 
 
+#: Exit statuses of the ``bayesreg`` command.
+EXIT_OK, EXIT_ERROR, EXIT_STUCK, EXIT_INTERRUPTED = 0, 2, 3, 130
+
+
+def _interrupt_on_sigterm():
+    """Make SIGTERM (``kill PID``) interrupt the run as Ctrl-C does, so that it leaves its
+    directory as the rules say; returns the handler to put back."""
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (an embedding application's choice)
+        return None
+
+
 def main(argv=None) -> int:
-    """The ``bayesreg`` command; returns the exit status (0 success, 2 bad input)."""
+    """The ``bayesreg`` command; returns the exit status.
+
+    0 success; 2 bad input or a failed stage (the message names the stage and what to
+    change); 3 with ``--strict``, a run whose chains never moved; 130 interrupted (Ctrl-C,
+    SIGTERM: one line says what was kept, and how to continue).
+    """
     args = _parser().parse_args(argv)
     configure_jax()
 
-    # bad input and file-system errors (a path that is a file, a missing or damaged file,
-    # no permission) end with their message and exit status 2, not a traceback
-    errors = (ConfigError, OSError, ValueError)
+    # bad input, a failed stage and file-system errors (a path that is a file, a missing or
+    # damaged file, no permission, a full disk) end with their message and exit status 2,
+    # not a traceback
+    errors = (ConfigError, OSError, ValueError, StageError)
     progress = False if getattr(args, "no_progress", False) else None
+    previous = _interrupt_on_sigterm()
+    status = EXIT_OK
     try:
         if args.command == "run":
-
             if (args.config is None) == (args.resume is None):
                 raise ValueError("give either CONFIG or --resume RUN_DIR")
             if args.resume is not None:
@@ -189,8 +218,9 @@ def main(argv=None) -> int:
             t = res.info["timings_s"]
             print(f"wall time before outputs {t.get('total_before_outputs_s', float('nan')):.1f} s; "
                   f"outputs in {res.dir}")
+            if args.strict and res.info["sampler"].get("stuck_chains"):
+                status = EXIT_STUCK
         elif args.command == "reproduce":
-
             cdir = _configs_dir(args.configs)
             out = Path(args.out or ("runs/paper" if args.variant == "paper" else f"runs/paper_{args.variant}"))
             runs = {}
@@ -204,13 +234,19 @@ def main(argv=None) -> int:
             path = write_report(runs, out / "report", overwrite=True)
             print(f"report in {path / 'report.md'}")
         elif args.command == "report":
-
             path = write_report(_report_runs(args.runs), args.out, overwrite=args.overwrite)
             print(f"report in {path / 'report.md'}")
     except errors as exc:
         print(f"bayesreg: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+        return EXIT_ERROR
+    except KeyboardInterrupt as exc:
+        detail = str(exc) if isinstance(exc, RunInterrupted) else "interrupted"
+        print(f"bayesreg: {detail}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return status
 
 
 if __name__ == "__main__":  # pragma: no cover

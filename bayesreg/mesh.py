@@ -21,6 +21,7 @@ from bayesreg.images import Image, check_image, interpolate_numpy
 __all__ = [
     "Mesh", "MeshError", "read_mesh", "boundary_faces", "boundary_nodes", "signed_volumes",
     "orient_tets", "dihedral_angles", "mesh_quality", "label_elements", "compact_nodes",
+    "tangle_report",
 ]
 
 
@@ -134,6 +135,61 @@ def compact_nodes(nodes, tets):
     return np.asarray(nodes, np.float64)[used], remap[tets]
 
 
+#: Outward faces of a positively oriented tetrahedron ``(0, 1, 2, 3)``: the vertex order of
+#: each face whose right-hand normal points away from the opposite vertex.
+_OUTWARD_FACES = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+
+
+def tangle_report(nodes, tets) -> dict:
+    """How far a mesh of positively oriented tetrahedra is from a valid (untangled) one.
+
+    In a valid mesh every interior face is shared by exactly two elements that see it with
+    opposite orientations (they lie on its two sides), and the elements fill the volume
+    their surface encloses exactly once.  A folded mesh (an element turned inside out, then
+    re-oriented by :func:`orient_tets`) has faces seen with the same orientation twice, or
+    by more than two elements, and elements whose volumes add up to more than the enclosed
+    volume.
+
+    Parameters
+    ----------
+    nodes : (N, 3) array
+        World mm.
+    tets : (M, 4) int array
+        Positively oriented (:func:`orient_tets`).
+
+    Returns
+    -------
+    dict
+        ``same_side_faces`` (faces seen with one orientation by two elements),
+        ``crowded_faces`` (faces of more than two elements), ``volume_mm3`` (the elements'
+        total), ``enclosed_mm3`` (the volume the boundary faces enclose, by the divergence
+        theorem), ``tangled`` (any of the above, or a total volume above the enclosed one
+        by more than 1e-6 relative).
+    """
+    nodes = np.asarray(nodes, np.float64)
+    tets = np.asarray(tets)
+    faces = tets[:, _OUTWARD_FACES].reshape(-1, 3)  # (4M, 3) outward
+    key = np.sort(faces, axis=1)
+    # the orientation of each face relative to its sorted vertex order: +1 even, -1 odd
+    order = np.argsort(faces, axis=1)
+    parity = np.where((order == [0, 1, 2]).all(1) | (order == [1, 2, 0]).all(1)
+                      | (order == [2, 0, 1]).all(1), 1, -1)
+    uniq, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    sums = np.bincount(inverse, weights=parity, minlength=len(uniq))
+    two = counts == 2
+    same_side = int(np.sum(two & (sums != 0)))
+    crowded = int(np.sum(counts > 2))
+    once = counts[inverse] == 1
+    b = faces[once]
+    x0, x1, x2 = nodes[b[:, 0]], nodes[b[:, 1]], nodes[b[:, 2]]
+    enclosed = float(np.sum(np.einsum("ij,ij->i", x0, np.cross(x1, x2))) / 6.0)
+    volume = float(np.sum(signed_volumes(nodes, tets)))
+    tangled = bool(same_side or crowded or volume > enclosed * (1 + 1e-6))
+    return {"same_side_faces": same_side, "crowded_faces": crowded, "volume_mm3": volume,
+            "enclosed_mm3": enclosed, "tangled": tangled}
+
+
 _OTHER_VOLUME_CELLS = ("tetra10", "hexahedron", "hexahedron20", "hexahedron24", "hexahedron27",
                        "wedge", "wedge12", "wedge15", "pyramid", "pyramid13", "pyramid14")
 
@@ -177,7 +233,10 @@ def read_mesh(path, labels: Image) -> Mesh:
         that does not exist; an element is degenerate (volume at most 1e-9 of the largest); or
         fewer than :data:`MIN_INSIDE_FRACTION` of the element centroids lie in the
         intracranial tissues of ``labels`` (a mesh in voxel coordinates, or of another
-        subject or space: the message gives both extents).
+        subject or space: the message gives both extents); the mesh is tangled (folded
+        elements, :func:`tangle_report`: the counts and volumes are named); or its volume
+        or extent is not the brain's of ``labels`` (:data:`VOLUME_RANGE`,
+        :data:`EXTENT_RANGE`: both named).
     """
     import meshio
 
@@ -216,6 +275,14 @@ def read_mesh(path, labels: Image) -> Mesh:
         bad = np.flatnonzero(vol <= 1e-9 * vol.max())
         raise MeshError(f"mesh file {path}: {len(bad)} degenerate (flat or repeated-node) "
                         f"element(s), the first {bad[:5].tolist()}")
+    tangle = tangle_report(nodes, tets)
+    if tangle["tangled"]:
+        raise MeshError(
+            f"mesh file {path} is tangled (folded elements): {tangle['same_side_faces']} "
+            f"interior face(s) have both their elements on one side, "
+            f"{tangle['crowded_faces']} belong to more than two elements, and its elements "
+            f"fill {tangle['volume_mm3'] / 1e3:.1f} ml where its surface encloses "
+            f"{tangle['enclosed_mm3'] / 1e3:.1f} ml; untangle it (or remesh) before use")
     centroids = nodes[tets].mean(axis=1)
     at = interpolate_numpy(labels, centroids, order=0, cval=L.BACKGROUND)
     inside = float(np.mean(np.isin(at, L.TISSUE_LABELS)))
@@ -228,8 +295,41 @@ def read_mesh(path, labels: Image) -> Mesh:
             f"intracranial tissues of the label map (at least {MIN_INSIDE_FRACTION:.0%} "
             f"needed).  Its points must be world coordinates in mm, in the images' frame: the "
             f"mesh spans {span(nodes)} mm, the intracranial region {span(brain)} mm")
+    _check_matches_brain(path, nodes, tangle["volume_mm3"], labels)
     tissue = label_elements(labels, nodes, tets)
     return Mesh(nodes, tets, tissue, boundary_nodes(tets))
+
+
+#: The volume of a given mesh over that of the label map's intracranial tissues must lie in
+#: this range, and each of its bounding box's extents over the tissues' in ``EXTENT_RANGE``.
+VOLUME_RANGE = (1 / 3, 3.0)
+EXTENT_RANGE = (0.5, 2.0)
+
+
+def _check_matches_brain(path, nodes, volume_mm3: float, labels: Image) -> None:
+    """:class:`MeshError` unless the mesh's volume and extent are those of the brain of
+    ``labels`` within :data:`VOLUME_RANGE` and :data:`EXTENT_RANGE` (a mesh in voxel units,
+    or of another subject, can still have most of its elements inside the tissues)."""
+    mask = np.isin(np.asarray(labels.data), L.TISSUE_LABELS)
+    if not mask.any():
+        return
+    voxel = abs(float(np.linalg.det(np.asarray(labels.affine, np.float64)[:3, :3])))
+    brain_ml = float(mask.sum()) * voxel / 1e3
+    ijk = np.argwhere(mask).astype(np.float64)
+    world = ijk @ labels.affine[:3, :3].T + labels.affine[:3, 3]
+    brain_extent = np.ptp(world, axis=0) + np.linalg.norm(labels.affine[:3, :3], axis=0)
+    extent = np.ptp(nodes, axis=0)
+    ratio = volume_mm3 / 1e3 / brain_ml
+    extent_ratio = extent / brain_extent
+    if (VOLUME_RANGE[0] <= ratio <= VOLUME_RANGE[1]
+            and np.all((extent_ratio >= EXTENT_RANGE[0]) & (extent_ratio <= EXTENT_RANGE[1]))):
+        return
+    fmt = lambda e: " x ".join(f"{x:.0f}" for x in e)  # noqa: E731
+    raise MeshError(
+        f"mesh file {path} does not match the brain of the label map: the mesh holds "
+        f"{volume_mm3 / 1e3:.0f} ml in a box of {fmt(extent)} mm, the intracranial tissues "
+        f"{brain_ml:.0f} ml in {fmt(brain_extent)} mm.  Its points must be world coordinates in "
+        "mm of these images (a mesh in voxel units, or of another subject, does not fit)")
 
 
 # 11 sample points per element: 4 vertices pulled to the centroid, the centroid, 6 edge mids

@@ -36,7 +36,6 @@ Maps on the image grid are the FE interpolation of the nodal values (zero outsid
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import warnings
@@ -48,7 +47,7 @@ from typing import NamedTuple
 import meshio
 import numpy as np
 
-from bayesreg._files import write_text_atomic
+from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.chains import available_cores
 from bayesreg.config import Config
 from bayesreg.convergence import gelman_rubin
@@ -189,8 +188,17 @@ def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = 
         return pd.concat([head] + [f.result() for f in futures])
 
 
+def _f(x, spec: str) -> str:
+    """``format(x, spec)``, or ``n/a`` for a missing or non-finite number."""
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return "n/a"
+    return format(x, spec)
+
+
 def format_report(errors: dict | None, info: dict) -> str:
-    """The short table the run prints (error vs truth, ratio posteriors, sampler figures)."""
+    """The short table the run prints (error vs truth, ratio posteriors, sampler figures), ending
+    with a warning where chains never moved.  Missing or non-finite figures (``null`` in a
+    ``run.json`` read back) print as ``n/a``."""
     lines = []
     mesh = info.get("mesh") or {}
     if "n_nodes" in mesh:
@@ -200,29 +208,29 @@ def format_report(errors: dict | None, info: dict) -> str:
         if meshing.get("target_nodes"):
             line += (f"; target {meshing['target_nodes']} within {meshing['tolerance']:.0%}: "
                      f"{'met' if meshing['within_tolerance'] else 'NOT met (closest kept)'} in "
-                     f"{len(meshing['attempts'])} attempt(s), edge {meshing['edge_length_mm']:.3g} mm")
+                     f"{len(meshing['attempts'])} attempt(s), edge {_f(meshing['edge_length_mm'], '.3g')} mm")
         if meshing.get("file"):
             line += f"; read from {meshing['file']}"
         lines.append(line)
     s = info["sampler"]
-    acc = ", ".join(f"{b} {a:.3f}" for b, a in zip(s["blocks"], s["acceptance"]))
+    acc = ", ".join(f"{b} {_f(a, '.3f')}" for b, a in zip(s["blocks"], s["acceptance"]))
     lines.append(
         f"draws/chain {s['draws_per_chain']} (thinning {s['thinning']})  chains {s['chains']}  "
         f"acceptance {acc}"
     )
     lines.append(
-        f"R-hat max: classic {s['rhat_classic_max']:.3f}, split {s['rhat_classic_split_max']:.3f} "
+        f"R-hat max: classic {_f(s['rhat_classic_max'], '.3f')}, split {_f(s['rhat_classic_split_max'], '.3f')} "
         f"(stop below {s['rhat_threshold']} on {'split' if s['rhat_split_monitored'] else 'classic'}), "
-        f"rank-normalised {s['rhat_rank_max']:.3f}  ESS bulk min {s['ess_bulk_min']:.0f}"
+        f"rank-normalised {_f(s['rhat_rank_max'], '.3f')}  ESS bulk min {_f(s['ess_bulk_min'], '.0f')}"
     )
     per_solve = s.get("cg_iterations_per_solve_mean")
-    cg = (f"CG iterations/solve mean {per_solve:.1f}" if per_solve is not None else
-          f"CG iterations/step mean {s['cg_iterations_per_step_mean']:.1f} (outside the trajectories)")
+    cg = (f"CG iterations/solve mean {_f(per_solve, '.1f')}" if per_solve is not None else
+          f"CG iterations/step mean {_f(s['cg_iterations_per_step_mean'], '.1f')} (outside the trajectories)")
     if s.get("cg_preconditioner"):
         cg += f" ({s['cg_preconditioner']} preconditioner)"
-    lines.append(f"{cg}  failed solves {s['solve_failures']}  steps/s per chain {s['steps_per_s_per_chain']:.1f}")
+    lines.append(f"{cg}  failed solves {s['solve_failures']}  steps/s per chain {_f(s['steps_per_s_per_chain'], '.1f')}")
     if s.get("kind", "rwmh") != "rwmh":
-        lines.append(f"{s['kind']}: gradients/step {s['gradient_evaluations_per_step_mean']:.1f}  "
+        lines.append(f"{s['kind']}: gradients/step {_f(s['gradient_evaluations_per_step_mean'], '.1f')}  "
                      f"divergences {s['divergences']}  prior normaliser {s['prior_normaliser']}")
     if errors and "boundary_posterior_mean_mm" in errors:
         lines.append("error vs truth (mm)           median    95th     max")
@@ -230,13 +238,17 @@ def format_report(errors: dict | None, info: dict) -> str:
                            ("boundary_posterior_mean_mm", "boundary, posterior mean"),
                            ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")):
             e = errors[key]
-            lines.append(f"  {label:<27} {e['median']:7.3f} {e['q95']:7.3f} {e['max']:7.3f}")
-        lines.append(f"  MSE all nodes {errors['mse_all_nodes_mm2']:.4f} mm^2")
+            lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
+        lines.append(f"  MSE all nodes {_f(errors['mse_all_nodes_mm2'], '.4f')} mm^2")
     if errors:
         lines.append("lam/mu posterior        mean      sd     5%     95%   truth")
         for name, r in errors["ratio"].items():
-            tr = f"{r['true']:7.3g}" if "true" in r else "      -"
-            lines.append(f"  {name:<14} {r['mean']:9.3f} {r['sd']:7.3f} {r['q05']:7.3f} {r['q95']:7.3f} {tr}")
+            tr = f"{_f(r['true'], '7.3g')}" if "true" in r else "      -"
+            lines.append(f"  {name:<14} {_f(r['mean'], '9.3f')} {_f(r['sd'], '7.3f')} {_f(r['q05'], '7.3f')} {_f(r['q95'], '7.3f')} {tr}")
+    stuck = s.get("stuck_chains") or []
+    if stuck:
+        lines.append(f"WARNING: chains {stuck} never moved while sampling: this run's summaries do "
+                     "not describe the posterior")
     return "\n".join(lines)
 
 
@@ -392,6 +404,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
             "rhat_rank_max": float(np.nanmax(rank_rhat)),
             "ess_bulk_min": float(summary["ess_bulk"].min()),
             "converged": bool(result.converged),
+            "stuck_chains": list(s_info.stuck_chains),
             "rhat_threshold": s_info.rhat_threshold,
             "rhat_history": [[int(a), float(b)] for a, b in result.rhat_history],
             "cg_iterations_per_step_mean": float(result.cg_iterations.mean()),
@@ -406,7 +419,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
     }
-    write_text_atomic(run_dir.file("errors.json"), json.dumps(errors, indent=2))
-    write_text_atomic(run_dir.file("run.json"), json.dumps(info, indent=2))
+    write_text_atomic(run_dir.file("errors.json"), dumps_json(errors, indent=2))
+    write_text_atomic(run_dir.file("run.json"), dumps_json(info, indent=2))
     path = run_dir.commit()
     return RunResult(path, tree, summary, errors, info)

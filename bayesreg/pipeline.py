@@ -20,14 +20,15 @@ from bayesreg.initialisation import Initialisation, initialise
 from bayesreg.jaxconfig import configure_jax
 from bayesreg.outputs import RunResult, write_outputs
 from bayesreg.posterior import elastic_groups
-from bayesreg.problem import Problem, assemble, prepare
+from bayesreg.problem import Problem, assemble, make_data
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampler import SamplerResult, sample, sample_gradient
+from bayesreg.stages import Stages
 from bayesreg.targets import (
     cg_preconditioner, dense_preconditioning, gradient_target, make_logdensity, rw_condensation,
     rw_preconditioner)
 
-__all__ = ["sample_problem", "run"]
+__all__ = ["sample_problem", "run", "RunInterrupted"]
 
 
 def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = None, *,
@@ -157,9 +158,13 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         if config is not None or overrides or out is not None or overwrite:
             raise ValueError("resume continues a run with its own config and directory: give no "
                              "config, overrides, out or overwrite")
-        run_dir = RunDirectory(resume, resume=True)
+        run_dir = RunDirectory(resume, resume=True)  # locked from here on
         ckpt = Checkpoint(run_dir.path)
-        cfg = ckpt.load_config()
+        try:
+            cfg = ckpt.load_config()
+        except BaseException:
+            run_dir.release()
+            raise
         cfg.output.dir = run_dir.path
     else:
         cfg = config if isinstance(config, Config) else load_config(config, overrides=overrides)
@@ -172,39 +177,81 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite,  # fails early
                                inputs={k: v for k, v in inputs.items() if v is not None})
         ckpt = Checkpoint(run_dir.path)
-        if cfg.output.checkpoint:
-            ckpt.save_config(cfg)
     if progress is not None:
         cfg.output.progress = progress
-
+    stages = Stages(progress=cfg.output.progress)
+    resumable = False  # whether the checkpoint holds a problem and starts to resume from
     try:
+        if resume is None and cfg.output.checkpoint:
+            ckpt.save_config(cfg)
         saved = resume is not None and ckpt.problem_path.is_file()
-        problem = assemble(cfg, ckpt.load_problem()) if saved else prepare(cfg)
+        data = ckpt.load_problem() if saved else make_data(cfg, stages)
+        with stages.stage("posterior"):
+            problem = assemble(cfg, data)
         if cfg.output.checkpoint and not saved:
             ckpt.save_problem(problem.data)
         init = ckpt.load_init() if resume is not None else None
         if init is None:
-            init = initialise(problem, cfg)
+            with stages.stage("starts"):
+                init = initialise(problem, cfg)
             if cfg.output.checkpoint:
                 ckpt.save_init(init)
-    except Exception:
-        # a new run that fails before its sampling starts (bad data, a mesh that fails, no
-        # valid start) leaves nothing behind and puts back what it replaced, so the same
-        # command runs again once the input is fixed (an interrupt keeps it for --resume)
-        if resume is None:
-            run_dir.rollback()
+        resumable = cfg.output.checkpoint
+        state = ckpt.load_state() if resume is not None else None
+
+        def on_chunk(checkpoint, out):
+            if out is None:  # the warm-up ended
+                stages.switch("sampling")
+            ckpt.on_chunk(checkpoint, out)
+
+        with stages.stage("warm-up" if state is None else "sampling"):
+            result, init = sample_problem(
+                problem, cfg, init,
+                on_chunk=on_chunk if cfg.output.checkpoint else
+                (lambda c, out: stages.switch("sampling") if out is None else None),
+                resume=None if state is None else state[0],
+                resume_draws=None if state is None else state[1],
+            )
+        init_info = dict(init.info)
+        timings = {**problem.timings, "init_s": init_info.pop("init_s", float("nan")),
+                   **result.timings, "total_before_outputs_s": time.perf_counter() - t0}
+        with stages.stage("outputs"):
+            res = write_outputs(run_dir, cfg, problem, result, init, timings, init_info,
+                                resumed=resume is not None)
+        ckpt.clear_progress()
+        return res
+    except KeyboardInterrupt as exc:
+        raise RunInterrupted(_abandon(run_dir, ckpt, stages, resume, resumable)) from exc
+    except BaseException:
+        _abandon(run_dir, ckpt, stages, resume, resumable)
         raise
-    state = ckpt.load_state() if resume is not None else None
-    result, init = sample_problem(
-        problem, cfg, init,
-        on_chunk=ckpt.on_chunk if cfg.output.checkpoint else None,
-        resume=None if state is None else state[0],
-        resume_draws=None if state is None else state[1],
-    )
-    init_info = dict(init.info)
-    timings = {**problem.timings, "init_s": init_info.pop("init_s", float("nan")), **result.timings,
-               "total_before_outputs_s": time.perf_counter() - t0}
-    res = write_outputs(run_dir, cfg, problem, result, init, timings, init_info,
-                        resumed=resume is not None)
-    ckpt.clear_progress()
-    return res
+    finally:
+        run_dir.release()
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """A run stopped by an interrupt (Ctrl-C; SIGTERM under the CLI); its message says where it
+    stopped and what was kept."""
+
+
+def _abandon(run_dir: RunDirectory, ckpt: Checkpoint, stages: Stages, resume, resumable: bool) -> str:
+    """Leave the run directory of a run that stops before its end as the rules say, and say
+    how it was left: an ``--overwrite`` puts back the run it replaced (this run's partial
+    directory goes); a new run stopped before anything resumable was saved leaves nothing;
+    otherwise the checkpoint stays for ``--resume``."""
+    where = f"during the {stages.current}" if stages.current else "before it started"
+    path = run_dir.path
+    if (path / "run.json").is_file() and run_dir.replaced is None and not (path / ".outputs-partial").exists():
+        return f"interrupted after its outputs were written: the run in {path} is finished"
+    if run_dir.replaced is not None:
+        run_dir.restore()
+        return (f"interrupted {where}: the run that was in {path} is back in place (this "
+                "run's partial results were discarded)")
+    if resume is None and not resumable:
+        run_dir.rollback()
+        return f"interrupted {where}: nothing was kept"
+    if stages.current == "sampling" and ckpt.chunks_done:
+        where = f"after chunk {ckpt.chunks_done}"
+    elif stages.current == "sampling" and ckpt.chunks_done == 0:
+        where = "after the warm-up"
+    return f"interrupted {where}; continue with `bayesreg run --resume {path}`"

@@ -10,6 +10,7 @@ run reuses the mesh.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import time
 import warnings
@@ -31,6 +32,7 @@ from bayesreg.meshing import carve_skull, mesh_brain, mesh_brain_sized
 from bayesreg.parameters import ParamLayout
 from bayesreg.posterior import Posterior, build_posterior
 from bayesreg.similarity import build_ssd
+from bayesreg.stages import Stages
 from bayesreg.synthetic import Truth, brain_shift
 from bayesreg.warp import warp_image
 
@@ -240,13 +242,20 @@ def _sha256(path) -> str:
     return h.hexdigest()
 
 
-def make_data(cfg: Config) -> ProblemData:
+def make_data(cfg: Config, stages: Stages | None = None) -> ProblemData:
     """The expensive, non-reproducible part of :func:`prepare`: images, labels, mesh, truth.
 
     Intensities of ``f`` and ``m`` are divided by the ``data.intensity_percentile``-th
     percentile of ``f`` inside the intracranial volume (about [0, 1] afterwards), so that
     ``E_s`` and ``T_s`` have image-independent units (``intensity^2 mm^3``).  With a
     synthetic case, ``m`` is ``f`` warped exactly through the FE map of the truth.
+
+    Parameters
+    ----------
+    cfg : Config
+    stages : Stages, optional
+        Tracks the stages ``data``, ``mesh`` and ``truth`` (:mod:`bayesreg.stages`: their
+        errors name them).
 
     Returns
     -------
@@ -268,49 +277,53 @@ def make_data(cfg: Config) -> ProblemData:
         not need.
     """
     timings = {}
-    t = time.perf_counter()
-    f, m, labels = _load_data(cfg)
-    inside = np.isin(labels.data, L.TISSUE_LABELS)
-    scale = float(np.percentile(np.asarray(f.data)[inside], cfg.data.intensity_percentile))
-    if not scale > 0:
-        raise ValueError("the fixed image is zero inside the intracranial volume")
-    f = Image(np.asarray(f.data, np.float64) / scale, f.affine)
-    if m is not None:
-        m = Image(np.asarray(m.data, np.float64) / scale, m.affine)
-    timings["data_s"] = time.perf_counter() - t
+    stage = stages.stage if stages is not None else (lambda name: contextlib.nullcontext())
+    with stage("data"):
+        t = time.perf_counter()
+        f, m, labels = _load_data(cfg)
+        inside = np.isin(labels.data, L.TISSUE_LABELS)
+        scale = float(np.percentile(np.asarray(f.data)[inside], cfg.data.intensity_percentile))
+        if not scale > 0:
+            raise ValueError("the fixed image is zero inside the intracranial volume")
+        f = Image(np.asarray(f.data, np.float64) / scale, f.affine)
+        if m is not None:
+            m = Image(np.asarray(m.data, np.float64) / scale, m.affine)
+        timings["data_s"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    mc = cfg.mesh
-    mesh_kw = {"smoothing_sigma_mm": mc.smoothing_sigma_mm, "epsilon": mc.epsilon}
-    if mc.file is not None:
-        mesh = read_mesh(mc.file, labels)
-        mesh_info = {"file": str(mc.file), "sha256": _sha256(mc.file)}
-    elif mc.target_nodes is None:
-        mesh = mesh_brain(labels, edge_length_mm=mc.edge_length_mm, **mesh_kw)
-        mesh_info = {"edge_length_mm": mc.edge_length_mm}
-    else:
-        mesh, mesh_info = mesh_brain_sized(
-            labels, mc.target_nodes, tolerance=mc.target_tolerance, max_attempts=mc.max_attempts,
-            edge_length_mm=mc.edge_length_mm, **mesh_kw)
-    if mc.file is not None:
-        in_skull = int(np.sum(interpolate_numpy(labels, mesh.nodes, order=0, cval=L.SKULL) == L.SKULL))
-    labels, n_carved = carve_skull(labels, mesh)
-    if mc.file is not None and in_skull:
-        warnings.warn(
-            f"mesh.file {mc.file}: {in_skull} of its {len(mesh.nodes)} nodes lie in the skull "
-            f"region of the label map at rest (or outside its grid); the {n_carved} skull voxels "
-            "under and near the mesh became background, so the skull constraint only holds "
-            "beyond them.  Is the mesh of these images?", UserWarning, stacklevel=2)
-    timings["mesh_s"] = time.perf_counter() - t
-    empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
-    if cfg.model.elastic == "tissue" and empty:
-        raise ValueError(f"no mesh element is labelled {empty}: refine the mesh or use elastic: uniform")
+    with stage("mesh"):
+        t = time.perf_counter()
+        mc = cfg.mesh
+        mesh_kw = {"smoothing_sigma_mm": mc.smoothing_sigma_mm, "epsilon": mc.epsilon}
+        if mc.file is not None:
+            mesh = read_mesh(mc.file, labels)
+            mesh_info = {"file": str(mc.file), "sha256": _sha256(mc.file)}
+        elif mc.target_nodes is None:
+            mesh = mesh_brain(labels, edge_length_mm=mc.edge_length_mm, **mesh_kw)
+            mesh_info = {"edge_length_mm": mc.edge_length_mm}
+        else:
+            mesh, mesh_info = mesh_brain_sized(
+                labels, mc.target_nodes, tolerance=mc.target_tolerance, max_attempts=mc.max_attempts,
+                edge_length_mm=mc.edge_length_mm, **mesh_kw)
+        if mc.file is not None:
+            in_skull = int(np.sum(interpolate_numpy(labels, mesh.nodes, order=0, cval=L.SKULL) == L.SKULL))
+        labels, n_carved = carve_skull(labels, mesh)
+        if mc.file is not None and in_skull:
+            warnings.warn(
+                f"mesh.file {mc.file}: {in_skull} of its {len(mesh.nodes)} nodes lie in the skull "
+                f"region of the label map at rest (or outside its grid); the {n_carved} skull voxels "
+                "under and near the mesh became background, so the skull constraint only holds "
+                "beyond them.  Is the mesh of these images?", UserWarning, stacklevel=2)
+        timings["mesh_s"] = time.perf_counter() - t
+        empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
+        if cfg.model.elastic == "tissue" and empty:
+            raise ValueError(f"no mesh element is labelled {empty}: refine the mesh or use elastic: uniform")
 
     truth = truth_info = None
     t = time.perf_counter()
     if cfg.synthetic.enabled:
-        truth, truth_info = _make_truth(cfg, mesh, labels)
-        m = warp_image(f, mesh, truth.u, background=0.0, outside=cfg.synthetic.outside)
+        with stage("truth"):
+            truth, truth_info = _make_truth(cfg, mesh, labels)
+            m = warp_image(f, mesh, truth.u, background=0.0, outside=cfg.synthetic.outside)
     elif m is None:  # pragma: no cover - guarded by the config validator
         raise ValueError("no intra-operative image")
     timings["synthetic_s"] = time.perf_counter() - t

@@ -1,21 +1,83 @@
-"""A run directory: written in place while the run goes, never overwritten silently.
+"""A run directory: written in place while the run goes, never overwritten silently, one
+process at a time.
 
 Final outputs are staged in ``.outputs-partial`` and moved in by
 :meth:`RunDirectory.commit`, ``run.json`` last (its presence marks a finished run).  A run in
-progress keeps its draws in ``checkpoint/`` (:mod:`bayesreg.checkpoint`).
+progress keeps its draws in ``checkpoint/`` (:mod:`bayesreg.checkpoint`).  While a
+:class:`RunDirectory` is open its process holds an advisory lock on the directory
+(``fcntl.flock`` on a hidden sibling file ``.NAME.lock`` holding the holder's PID, removed
+when the lock is released): a second
+process, or a second :class:`RunDirectory` in the same process, is refused with the holder
+named (:class:`RunDirectoryInUse`).
 """
 
 from __future__ import annotations
 
-import glob
+import errno
+import fcntl
 import os
 import shutil
 import uuid
+import warnings
 from pathlib import Path
 
 from bayesreg._files import fsync_dir, fsync_file
 
-__all__ = ["RunDirectory"]
+__all__ = ["RunDirectory", "RunDirectoryInUse"]
+
+
+class RunDirectoryInUse(FileExistsError):
+    """Another process (or another open :class:`RunDirectory`) holds the run directory."""
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.lock")
+
+
+def _lock(path: Path):
+    """Take the advisory lock of run directory ``path``: an open file descriptor, or
+    :class:`RunDirectoryInUse` naming the holder's PID.
+
+    The lock file is removed on release (:func:`_unlock`), so a lock taken on a file that
+    was removed meanwhile is not a lock: it is taken again on the file now at the path.
+    """
+    lock = _lock_path(path)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                os.close(fd)
+                raise
+            try:
+                holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            finally:
+                os.close(fd)
+            raise RunDirectoryInUse(
+                f"run directory {path} is in use by process {holder} (it holds {lock}): one "
+                "run per directory; wait for that run to end, stop it, or choose another "
+                "--out") from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # released and removed by its holder in between: take the new one
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
+
+
+def _unlock(path: Path, fd) -> None:
+    """Release the lock of :func:`_lock`, removing its file while still holding it."""
+    try:
+        os.unlink(_lock_path(path))
+    except FileNotFoundError:  # pragma: no cover - removed by hand
+        pass
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    os.close(fd)
 
 
 class RunDirectory:
@@ -23,7 +85,9 @@ class RunDirectory:
 
     The run's checkpoint (:class:`bayesreg.checkpoint.Checkpoint`) lives in
     ``path/checkpoint``; final outputs are staged in ``path/.outputs-partial`` and moved in
-    by :meth:`commit`, ``run.json`` last (its presence marks a finished run).
+    by :meth:`commit`, ``run.json`` last (its presence marks a finished run).  The directory
+    is locked from construction to :meth:`commit`, :meth:`rollback`, :meth:`restore` or
+    :meth:`release` (also a context manager).
 
     Parameters
     ----------
@@ -31,10 +95,11 @@ class RunDirectory:
     overwrite : bool
         Replace an existing non-empty directory that holds one of ``marks`` (a folder of
         other files is never replaced): it is moved aside to a hidden sibling
-        (``.NAME.replaced-PID-XXXXXXXX``, unique per call) at once and deleted only when the new run commits;
-        :meth:`rollback` puts it back.  A run interrupted after its sampling started keeps
-        the sibling; the next run into ``path`` that commits (its ``--resume``, or another
-        ``overwrite``) deletes it.
+        (``.NAME.replaced-PID-XXXXXXXX``, unique per call) at once and deleted only when the
+        new run commits; :meth:`rollback` and :meth:`restore` put it back.  A process killed
+        outright (SIGKILL) cannot put it back: the sibling stays, and every later
+        :class:`RunDirectory` of ``path`` warns where it is (it is never deleted but by the
+        run that replaced it).
     resume : bool
         Continue the unfinished run in ``path`` (it must hold ``checkpoint/config.json`` and
         no ``run.json``).
@@ -49,10 +114,19 @@ class RunDirectory:
 
     Raises
     ------
+    RunDirectoryInUse
+        Another process, or another open :class:`RunDirectory` of this process, holds
+        ``path`` (its PID named).
     FileExistsError
         If ``path`` exists, is not empty and neither ``overwrite`` nor ``resume`` is set;
         with ``overwrite``, if it holds none of ``marks``; with ``resume``, if the run there
         is already finished.
+
+    Warns
+    -----
+    UserWarning
+        A directory replaced by an earlier ``overwrite`` whose process was killed waits in a
+        hidden sibling (named, with how to put it back).
     NotADirectoryError
         If ``path`` or one of its parents is a file.
     ValueError
@@ -66,12 +140,28 @@ class RunDirectory:
         self.path = Path(path)
         self.overwrite = overwrite
         self._old: Path | None = None
-        # directories replaced by earlier --overwrite runs into this path that were
-        # interrupted after their sampling started: deleted when this run commits
-        self._stale = sorted(self.path.parent.glob(f".{glob.escape(self.path.name)}.replaced-*"))
+        self._fd = None
         for p in (self.path, *self.path.parents):
             if p.exists() and not p.is_dir():
                 raise NotADirectoryError(f"run directory {self.path}: {p} is a file")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fd = _lock(self.path)
+        try:
+            self._open(resume, marks, inputs)
+        except BaseException:
+            self.release()
+            raise
+        # directories replaced by earlier --overwrite runs whose process was killed: never
+        # deleted here, only reported
+        self.leftovers = sorted(p for p in self.path.parent.glob(f".{self.path.name}.replaced-*")
+                                if p != self._old)
+        for p in self.leftovers:
+            warnings.warn(
+                f"run directory {self.path}: the run that an interrupted --overwrite replaced "
+                f"waits in {p}; put it back with `mv {p} {self.path}` (after moving this one "
+                "aside) or delete it: bayesreg never deletes it", UserWarning, stacklevel=2)
+
+    def _open(self, resume, marks, inputs) -> None:
         self._created = not self.path.exists()
         if resume:
             if (self.path / "run.json").is_file():
@@ -79,7 +169,7 @@ class RunDirectory:
             if not (self.path / "checkpoint" / "config.json").is_file():
                 raise FileNotFoundError(f"{self.path} holds no checkpoint/config.json: nothing to resume")
         elif self.path.exists() and any(self.path.iterdir()):
-            if not overwrite:
+            if not self.overwrite:
                 hint = (" (an unfinished run: continue it with --resume)"
                         if (self.path / "checkpoint").is_dir() and not (self.path / "run.json").exists()
                         else "")
@@ -105,8 +195,8 @@ class RunDirectory:
                     f"run directory {self.path} that --overwrite replaces: copy "
                     f"{'it' if len(inside) == 1 else 'them'} elsewhere first, or choose another "
                     "--out")
-            # unique per call: an interrupted --overwrite leaves its aside folder (deleted by
-            # the next commit), and a notebook may overwrite the same path again in one process
+            # unique per call: a killed --overwrite leaves its aside folder, and a notebook may
+            # overwrite the same path again in one process
             self._old = self.path.with_name(
                 f".{self.path.name}.replaced-{os.getpid()}-{uuid.uuid4().hex[:8]}")
             os.replace(self.path, self._old)
@@ -125,10 +215,26 @@ class RunDirectory:
         return self._staging
 
     def file(self, name) -> Path:
+        """Path of the output ``name`` in the staging folder (moved in by :meth:`commit`)."""
         return self.staging / name
 
+    def release(self) -> None:
+        """Give up the directory's lock (idempotent; :meth:`commit`, :meth:`rollback` and
+        :meth:`restore` release it too)."""
+        if self._fd is not None:
+            _unlock(self.path, self._fd)
+            self._fd = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+        return False
+
     def commit(self) -> Path:
-        """Move the staged outputs in (each file atomically, ``run.json`` last)."""
+        """Move the staged outputs in (each file atomically, ``run.json`` last), delete the
+        directory this one replaced, and release the lock."""
         names = sorted(p.name for p in self.staging.iterdir())
         for name in names:  # every file on disk before any rename (a power loss: old or new)
             if (self.staging / name).is_file():
@@ -140,16 +246,15 @@ class RunDirectory:
         if self._old is not None:
             shutil.rmtree(self._old)
             self._old = None
-        for p in self._stale:
-            shutil.rmtree(p, ignore_errors=True)
-        self._stale = []
+        self.release()
         return self.path
 
     def rollback(self) -> None:
         """Undo the directory of a run that failed before it wrote anything to resume.
 
         Deletes what this run wrote and puts back what was there before: the replaced
-        directory (``overwrite``), an empty directory, or nothing.  Not for resumed runs.
+        directory (``overwrite``), an empty directory, or nothing; releases the lock.  Not
+        for resumed runs.
         """
         shutil.rmtree(self.path, ignore_errors=True)
         if self._old is not None:
@@ -157,3 +262,20 @@ class RunDirectory:
             self._old = None
         elif not self._created:
             self.path.mkdir(parents=True, exist_ok=True)
+        self.release()
+
+    def restore(self) -> Path | None:
+        """Put back the directory an ``overwrite`` replaced, discarding this run's unfinished
+        one (a run interrupted or failed before its commit); releases the lock.
+
+        Returns
+        -------
+        Path or None
+            The run directory put back, or ``None`` when nothing was replaced (then nothing
+            changes but the lock).
+        """
+        if self._old is None:
+            self.release()
+            return None
+        self.rollback()
+        return self.path

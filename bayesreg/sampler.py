@@ -16,6 +16,7 @@ is ``fold_in(key, k)``.  The result (:class:`SamplerResult`) describes its own r
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Callable, NamedTuple
 
 import jax
@@ -61,6 +62,9 @@ class SamplerInfo(NamedTuple):
         The monitored R-hat is the split-chain one.
     adapted : dict
         The tuned values frozen after the warm-up, JSON-ready.
+    stuck_chains : tuple of int
+        Chains whose stored draws are all one position (no move accepted while sampling):
+        their draws say nothing about the posterior (a :class:`RuntimeWarning` names them).
     """
 
     kind: str
@@ -74,6 +78,7 @@ class SamplerInfo(NamedTuple):
     rhat_threshold: float
     rhat_split: bool
     adapted: dict
+    stuck_chains: tuple = ()
 
 
 class SamplerResult(NamedTuple):
@@ -507,8 +512,20 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         timings=timings,
         converged=bool(rhat < rhat_threshold),
         final_states=states,
-        info=info._replace(adapted=adapted(_as_arrays(frozen))),
+        info=info._replace(adapted=adapted(_as_arrays(frozen)), stuck_chains=_stuck(pos)),
     )
+
+
+def _stuck(positions) -> tuple:
+    """Chains whose draws ``(C, D, dim)`` never leave their first position, warned about."""
+    stuck = tuple(int(c) for c in np.flatnonzero(np.all(positions == positions[:, :1], axis=(1, 2))))
+    if stuck:
+        warnings.warn(
+            f"chains {list(stuck)} never moved while sampling (every proposal rejected): their "
+            "draws are their start repeated and the summaries of this run do not describe the "
+            "posterior; check the proposal scales (sampler.sigma_*, sampler.step_size), the "
+            "starts and the model", RuntimeWarning, stacklevel=3)
+    return stuck
 
 
 def _as_arrays(frozen) -> tuple:

@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "bayesreg"
 # lower ones, never of a higher one.  Names are relative to ``bayesreg``; a package's
 # ``__init__`` is the package's name ("bayesreg" for the top-level one).
 LAYERS = [
-    ["_checks", "_files", "jaxconfig", "config.models", "config.loading", "config"],
+    ["_checks", "_files", "jaxconfig", "stages", "config.models", "config.loading", "config"],
     ["images"],
     ["interpolation"],
     ["datasets"],

@@ -1,10 +1,12 @@
 """The run directory (bayesreg.rundir): overwrite, rollback, resume and commit."""
 
 import os
+import re
+import shutil
 
 import pytest
 
-from bayesreg.rundir import RunDirectory
+from bayesreg.rundir import RunDirectory, RunDirectoryInUse
 
 
 def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(tmp_path, monkeypatch):
@@ -43,19 +45,28 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     assert (old / "run.json").read_text() == '{"new": true}' and not rd.replaced
     assert not list(tmp_path.glob(".run.replaced-*"))
 
-    # a run interrupted after its sampling started keeps the run it replaced aside, and so
-    # does a second one in the same process (a notebook), under a name of its own; the
-    # resumed run's commit deletes them
-    for _ in range(2):
-        RunDirectory(old, overwrite=True)
-        (old / "checkpoint").mkdir()
-        (old / "checkpoint" / "config.json").write_text("{}")
-    assert len(list(tmp_path.glob(".run.replaced-*"))) == 2
-    resumed = RunDirectory(old, resume=True)
+    # an overwrite that stops before its commit (interrupted, failed) puts the old run back
+    rd = RunDirectory(old, overwrite=True)
+    (old / "checkpoint").mkdir()
+    assert rd.restore() == old
+    assert (old / "run.json").read_text() == '{"new": true}' and not list(tmp_path.glob(".run.replaced-*"))
+
+    # a process killed during an overwrite (no chance to put the old run back) leaves it
+    # aside: every later RunDirectory of the path says where, and none deletes it, not even
+    # the commit of the killed run's resume
+    killed = RunDirectory(old, overwrite=True)
+    (old / "checkpoint").mkdir()
+    (old / "checkpoint" / "config.json").write_text("{}")
+    killed.release()  # the process is gone, and its lock with it
+    aside = list(tmp_path.glob(".run.replaced-*"))
+    assert len(aside) == 1
+    with pytest.warns(UserWarning, match=rf"waits in {re.escape(str(aside[0]))}.*never deletes it"):
+        resumed = RunDirectory(old, resume=True)
     resumed.file("run.json").write_text('{"resumed": true}')
     resumed.commit()
-    assert not list(tmp_path.glob(".run.replaced-*"))
     assert (old / "run.json").read_text() == '{"resumed": true}'
+    assert aside[0].is_dir() and (aside[0] / "run.json").read_text() == '{"new": true}'
+    shutil.rmtree(aside[0])
 
     # the aside folders of another run are not this one's, whatever its name's glob says
     (tmp_path / ".exp1.replaced-1-0").mkdir()
@@ -78,3 +89,25 @@ def test_run_directory_overwrite_replaces_only_a_run_and_rollback_puts_it_back(t
     empty.mkdir()
     RunDirectory(empty).rollback()
     assert empty.is_dir() and not any(empty.iterdir())
+
+
+def test_one_open_run_directory_per_path(tmp_path):
+    """A run directory is locked while open: a second opening (another process, or this
+    one) is refused naming the holder's PID, whatever it asks (overwrite, resume); the lock
+    goes with commit, rollback, restore or release, and leaves no file behind."""
+    path = tmp_path / "run"
+    first = RunDirectory(path)
+    (path / "checkpoint").mkdir()
+    (path / "checkpoint" / "config.json").write_text("{}")
+    for kwargs in ({}, {"overwrite": True}, {"resume": True}):
+        with pytest.raises(RunDirectoryInUse, match=rf"in use by process {os.getpid()}"):
+            RunDirectory(path, **kwargs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".run.lock", "run"]
+    first.release()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    with RunDirectory(path, resume=True) as again:
+        assert again.path == path
+    second = RunDirectory(path, resume=True)
+    second.file("run.json").write_text("{}")
+    second.commit()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]

@@ -101,7 +101,7 @@ def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
     ------
     ConfigError
         If ``overrides`` is a string rather than a list, or an item is not ``key=value``
-        with a valid YAML value.
+        with a dotted key and a valid YAML value (the item is shown).
     """
     if isinstance(overrides, str):
         raise ConfigError(f"overrides must be a list of 'key=value' strings, got the string {overrides!r}")
@@ -109,6 +109,10 @@ def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
         if "=" not in item:
             raise ConfigError(f"--set expects key=value, got '{item}'")
         key, val = item.split("=", 1)
+        parts = key.strip().split(".")
+        if not all(re.fullmatch(r"[A-Za-z_]\w*", k) for k in parts):
+            raise ConfigError(f"--set {item!r}: the key must be dotted names, e.g. "
+                              f"sampler.max_draws=500; got {key.strip()!r}")
         try:
             value = _load_yaml(val)
         except _DuplicateKey as exc:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -14,24 +13,10 @@ from bayesreg.report.data import PAPER, RunData, as_runs
 from bayesreg.report.figures import (
     plot_boundary_node, plot_dataset, plot_errors, plot_ratios, plot_uncertainty, slice_index)
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
+from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.rundir import RunDirectory
 
 __all__ = ["write_report"]
-
-
-def _clean(x):
-    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
 
 
 def _fmt(v, nd=3) -> str:
@@ -173,6 +158,8 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
 
     Raises
     ------
+    NotADirectoryError
+        ``out`` is a file.
     FileExistsError
         ``out`` exists, is not empty and ``overwrite`` is false, or holds no report.
     FileNotFoundError
@@ -188,9 +175,12 @@ def write_report(runs: Mapping[str, str | Path], out: str | Path, *, overwrite: 
         rp = (p.path if isinstance(p, RunData) else Path(p)).resolve()
         if out.resolve() == rp or out.resolve() in rp.parents:
             raise ValueError(f"report directory {out} is or contains the run directory {rp}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"report directory {out} is a file: choose a folder for --out")
+    if out.exists() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"report directory {out} exists and is not empty; pass "
-                              "overwrite=True to replace it")
+                              "--overwrite (overwrite=True in Python) to replace it, or choose "
+                              "another --out")
     data = as_runs(runs)  # fails (missing file, no truth) before anything is written
     rd = RunDirectory(out, overwrite=overwrite, marks=("report.json", "report.md"))
     try:
@@ -235,5 +225,5 @@ def _write(rd: RunDirectory, runs: dict) -> None:
         "fig5": fig5,
         "paper": PAPER,
     }
-    rd.file("report.json").write_text(json.dumps(_clean(report), indent=2))
+    write_text_atomic(rd.file("report.json"), dumps_json(report, indent=2))
     rd.file("report.md").write_text(_markdown(runs, summaries, t1, t2, cov, ratios, fig5))
