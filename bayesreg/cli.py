@@ -7,31 +7,33 @@
     ``configs/paper_three_compartment.yaml``; ``--variant nuts``: their gradient-sampler
     variants ``configs/paper_*_nuts.yaml``) and their report (Tables 1-2, Figures 2-5).
 ``bayesreg report RUN_DIR ... --out DIR``
-    the report of finished runs.
+    the report of finished runs (``bayesreg report SWEEP_DIR``: a sweep's tables, rebuilt).
+``bayesreg sweep SWEEP.yaml [--scheduler ADDRESS] [--workers N]``
+    many runs over config keys on Dask distributed (:mod:`bayesreg.sweep`); running it
+    again finishes what is left.
 ``bayesreg --version``
     the package's version (``run.json`` records it with its dependencies' versions).
 
 Exit status 0 on success; 2 on bad input or a failed stage (the message names the problem and
-what to change); 3 with ``run --strict`` when chains never moved; 130 when interrupted
+what to change), and for a sweep with a run not finished; 3 with ``run --strict`` when chains never moved; 130 when interrupted
 (Ctrl-C or SIGTERM; one line says what was kept).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 from pathlib import Path
 
 from bayesreg import __version__
-from bayesreg.checkpoint import Checkpoint
-from bayesreg.config import Config, ConfigError, load_config
+from bayesreg.config import ConfigError
 from bayesreg.jaxconfig import configure_jax
-from bayesreg.outputs import RunResult, format_report
+from bayesreg.outputs import format_report
 from bayesreg.pipeline import RunInterrupted, run
 from bayesreg.report import write_report
 from bayesreg.stages import StageError
+from bayesreg.sweep import run_or_resume, run_sweep, sweep_report
 
 __all__ = ["main", "PAPER_CONFIGS"]
 
@@ -70,10 +72,21 @@ def _parser():
                    help="override a value in both configs (repeatable)")
     q.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    w = sub.add_parser("report", help="tables and figures of finished runs")
-    w.add_argument("runs", nargs="+", metavar="[LABEL=]RUN_DIR")
-    w.add_argument("--out", required=True, help="report directory")
+    w = sub.add_parser("report", help="tables and figures of finished runs, or a sweep's tables")
+    w.add_argument("runs", nargs="+", metavar="[LABEL=]RUN_DIR",
+                   help="run directories, or one sweep folder (its tables are rebuilt from its runs)")
+    w.add_argument("--out", help="report directory (required for runs; a sweep's default: its folder)")
     w.add_argument("--overwrite", action="store_true", help="replace an existing report directory")
+
+    s = sub.add_parser("sweep", help="many runs over config keys, on Dask distributed")
+    s.add_argument("sweep", help="sweep file (YAML: name, configs, set, grid, runs, dir)")
+    s.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://host:8786); default a LocalCluster")
+    s.add_argument("--workers", type=int, default=None,
+                   help="LocalCluster worker processes, one run each (default: one per core)")
+    s.add_argument("--max-start-mm", type=float, default=1.0,
+                   help="status 'bad start' for a run whose chains start further than this from "
+                        "the truth (median over boundary nodes, mm; default 1)")
     return p
 
 
@@ -85,62 +98,6 @@ def _configs_dir(arg) -> Path:
             return cand
     raise FileNotFoundError("paper configs not found: pass --configs DIR (holding "
                             + ", ".join(PAPER_CONFIGS.values()) + ")")
-
-
-def _flat(d: dict, prefix="") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
-def _check_same_config(config, out: Path, overrides) -> None:
-    """Refuse to reuse or resume the run in ``out`` if its config is not ``config`` with
-    ``overrides`` (``output.*`` aside: where and how it was written).
-
-    Raises
-    ------
-    ValueError
-        The configs differ (up to five differing keys named), or the run's saved config
-        cannot be read.
-    """
-
-    want = load_config(config, overrides=overrides)
-    ckpt = Checkpoint(out)
-    try:
-        if ckpt.config_path.is_file():
-            have = ckpt.load_config()
-        else:  # a finished run written without checkpoints: its run.json has the config
-            have = Config.model_validate(json.loads((out / "run.json").read_text())["config"])
-    except (ConfigError, ValueError, KeyError) as exc:
-        raise ValueError(f"{out}: the run's config cannot be read back to compare it with "
-                         f"{config} ({exc}); choose another --out") from None
-    a, b = (_flat({k: v for k, v in c.model_dump(mode="json").items() if k != "output"})
-            for c in (have, want))
-    diff = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
-    if diff:
-        shown = "; ".join(f"{k}: {a.get(k)!r} there, {b.get(k)!r} asked" for k in diff[:5])
-        raise ValueError(f"{out} holds a run of another config ({shown}"
-                         f"{'; ...' if len(diff) > 5 else ''}): choose another --out, or remove "
-                         "that run to make this one")
-
-
-def _run_or_resume(config, out: Path, overrides, progress):
-    """Run ``config`` into ``out``; resume it if unfinished; reuse it if finished (either
-    only if it was made with ``config`` and ``overrides``: :func:`_check_same_config`)."""
-
-    if (out / "run.json").is_file() or (out / "checkpoint" / "config.json").is_file():
-        _check_same_config(config, out, overrides)
-    if (out / "run.json").is_file():
-        print(f"{out}: finished run found, reused")
-        return RunResult(out, None, None, None, json.loads((out / "run.json").read_text()))
-    if (out / "checkpoint" / "config.json").is_file():
-        print(f"{out}: unfinished run found, resumed")
-        return run(resume=out, progress=progress)
-    return run(config, out=out, overrides=overrides, progress=progress)
 
 
 def _report_runs(items) -> dict:
@@ -228,14 +185,30 @@ def main(argv=None) -> int:
                 if args.variant != "paper":
                     fname = fname.replace(".yaml", f"_{args.variant}.yaml")
                 print(f"== {label}: {cdir / fname}")
-                res = _run_or_resume(cdir / fname, out / label, args.set, progress)
+                res, _ = run_or_resume(cdir / fname, out / label, args.set, progress)
                 print(format_report(res.info.get("errors"), res.info))
                 runs[label] = res.dir
             path = write_report(runs, out / "report", overwrite=True)
             print(f"report in {path / 'report.md'}")
         elif args.command == "report":
-            path = write_report(_report_runs(args.runs), args.out, overwrite=args.overwrite)
-            print(f"report in {path / 'report.md'}")
+            if len(args.runs) == 1 and (Path(args.runs[0]) / "sweep.json").is_file():
+                path = sweep_report(args.runs[0], args.out)
+                print(f"sweep tables in {path / 'sweep.md'} and {path / 'sweep.csv'}")
+            else:
+                if args.out is None:
+                    raise ValueError("report: give --out DIR for the report of runs")
+                path = write_report(_report_runs(args.runs), args.out, overwrite=args.overwrite)
+                print(f"report in {path / 'report.md'}")
+        elif args.command == "sweep":
+            if args.workers is not None and args.workers < 1:
+                raise ValueError(f"sweep: --workers must be >= 1, got {args.workers}")
+            folder, rows = run_sweep(args.sweep, scheduler=args.scheduler, workers=args.workers,
+                                     max_start_mm=args.max_start_mm)
+            failed = [k for k, r in rows.items() if r.get("status") != "finished"]
+            print(f"sweep: {len(rows) - len(failed)} of {len(rows)} runs finished; tables in "
+                  f"{folder / 'sweep.md'}")
+            if failed:
+                status = EXIT_ERROR
     except errors as exc:
         print(f"bayesreg: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -119,7 +119,7 @@ class _SignedDistance:
 
 
 def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.0, n_pushed=20,
-                      pushed=None, clearance_mm=None, tol_mm=1e-3,
+                      pushed=None, clearance_mm=None, tol_mm=1e-3, min_volume_ratio=0.05,
                       max_iter=100) -> tuple[Truth, dict]:
     """Synthetic brain shift of paper Sec. 4.1: elastic-energy minimiser under the skull.
 
@@ -233,6 +233,8 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         raise ValueError(f"shift_mm must be > 0, got {shift_mm}")
     if not tol_mm > 0:
         raise ValueError(f"tol_mm must be > 0, got {tol_mm}")
+    if not 0 <= min_volume_ratio < 1:
+        raise ValueError(f"min_volume_ratio must be in [0, 1), got {min_volume_ratio}")
     if int(max_iter) < 1:
         raise ValueError(f"max_iter must be >= 1, got {max_iter}")
     mask = np.asarray(forbidden.data) > 0
@@ -331,22 +333,47 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     def positions(uf):
         return x_c + u0_c + t3 @ uf
 
-    def merit(uf, lmb, r):
+    # no element may shrink below min_volume_ratio of its rest volume: g_e = h_e (q - V_e / V0_e)
+    # <= 0 with h_e = V0_e^(1/3), in mm like the skull constraint
+    v_rest = signed_volumes(nodes, tets)
+    h_e = np.cbrt(v_rest)
+    t_nodes = t_mat.reshape(n, 3, nf)
+    u0_n = u0.reshape(n, 3)
+
+    def volume_g(uf):
+        return h_e * (float(min_volume_ratio) - signed_volumes(nodes + u0_n + t_nodes @ uf, tets) / v_rest)
+
+    def volume_jac(uf, act):
+        """``d g_e / d u_f`` of the elements ``act``, ``(len(act), nf)``."""
+        tt = tets[act]
+        x = nodes[tt] + u0_n[tt] + t_nodes[tt] @ uf  # (A, 4, 3)
+        a, b, c = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
+        dv = np.stack([np.zeros_like(a), np.cross(b, c), np.cross(c, a), np.cross(a, b)], 1) / 6.0
+        dv[:, 0] = -dv[:, 1:].sum(1)
+        jac = np.einsum("eai,eaif->ef", dv, t_nodes[tt])
+        return -(h_e[act] / v_rest[act])[:, None] * jac
+
+    def merit(uf, lmb, lmb_v, r):
         d, grad = sdf(positions(uf))
         z = np.maximum(0.0, lmb + r * (d + clear))
-        return energy(uf) + (z @ z - lmb @ lmb) / (2 * r), z, grad, d
+        gv = volume_g(uf)
+        zv = np.maximum(0.0, lmb_v + r * gv)
+        return (energy(uf) + (z @ z - lmb @ lmb + zv @ zv - lmb_v @ lmb_v) / (2 * r),
+                z, grad, d, zv, gv)
 
-    def newton_factor(uf, act, grad, z, r):
-        # S + sum_active T_n^T (r grad grad^T + z_n Hess d) T_n, Cholesky-factorised; where
-        # that is not positive definite, each Hess d is replaced by its PSD part
+    def newton_factor(uf, act, grad, z, r, jac_v):
+        # S + sum_active T_n^T (r grad grad^T + z_n Hess d) T_n + r J_v^T J_v (Gauss-Newton for
+        # the element volumes), Cholesky-factorised; where that is not positive definite,
+        # each Hess d is replaced by its PSD part
         _, _, hess = sdf(positions(uf)[act], hessian=True)
         ta = t3[act]
+        base = s_mat + r * (jac_v.T @ jac_v)
         for psd in (False, True):
             if psd:
                 ev, vec = np.linalg.eigh(hess)
                 hess = np.einsum("nij,nj,nkj->nik", vec, np.maximum(ev, 0.0), vec)
             blocks = r * grad[act, :, None] * grad[act, None, :] + z[act, None, None] * hess
-            h = s_mat + ta.reshape(-1, nf).T @ np.matmul(blocks, ta).reshape(-1, nf)
+            h = base + ta.reshape(-1, nf).T @ np.matmul(blocks, ta).reshape(-1, nf)
             try:
                 return cho(h)
             except np.linalg.LinAlgError:
@@ -355,6 +382,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
 
     uf = uf_free.copy()
     lmb = np.zeros(cons.size)
+    lmb_v = np.zeros(m)
     rho = 10.0
     viol_prev = np.inf
     converged = False
@@ -363,31 +391,34 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     it = 0
     for it in range(1, int(max_iter) + 1):
         r = rho * scale
-        phi, z, grad, d = merit(uf, lmb, r)
+        phi, z, grad, d, zv, gv = merit(uf, lmb, lmb_v, r)
         for _ in range(100):
             act = np.flatnonzero(z > 0)
+            act_v = np.flatnonzero(zv > 0)
             jac = np.matmul(grad[act, None, :], t3[act])[:, 0]
-            gphi = s_mat @ uf + load + jac.T @ z[act]
+            jac_v = volume_jac(uf, act_v)
+            gphi = s_mat @ uf + load + jac.T @ z[act] + jac_v.T @ zv[act_v]
             if gphi.size == 0 or np.abs(gphi).max() <= gtol:
                 break
-            step = -sla.cho_solve(newton_factor(uf, act, grad, z, r), gphi)
+            step = -sla.cho_solve(newton_factor(uf, act, grad, z, r, jac_v), gphi)
             n_newton += 1
             slope = gphi @ step
             a = 1.0
             while True:
-                phi_new, z_new, grad_new, d_new = merit(uf + a * step, lmb, r)
+                phi_new, *rest = merit(uf + a * step, lmb, lmb_v, r)
                 # Armijo; a decrease below round-off of phi is taken as is
                 if (phi_new <= phi + 1e-4 * a * slope or a < 1e-12
                         or -slope < 1e-13 * abs(phi)):
                     break
                 a *= 0.5
             uf = uf + a * step
-            phi, z, grad, d = phi_new, z_new, grad_new, d_new
+            phi, (z, grad, d, zv, gv) = phi_new, rest
             if a < 1e-12:
                 break
         g = d + clear
         lmb = np.maximum(0.0, lmb + r * g)
-        viol = float(g.max()) if g.size else -np.inf
+        lmb_v = np.maximum(0.0, lmb_v + r * gv)
+        viol = max(float(g.max()) if g.size else -np.inf, float(gv.max()))
         if viol <= tol_mm:
             u_all = (u0 + t_mat @ uf).reshape(n, 3)
             bad = _nearest_forbidden(~admissible, inv_affine, x_c + u_all[cons])
@@ -419,6 +450,8 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         "penalty": float(rho),
         "converged": bool(converged),
         "n_inverted": int(np.sum(signed_volumes(nodes + u, tets) <= 0)),
+        "min_volume_ratio": float(np.min(signed_volumes(nodes + u, tets) / v_rest)),
+        "n_volume_active": int(np.sum(volume_g(uf) >= -tol_mm)),
         "clearance_mm": float(clearance_mm),
         "n_clearance_raises": int(n_raise),
         "tol_mm": float(tol_mm),

@@ -29,6 +29,7 @@ __all__ = [
     "labels_from_probabilities",
     "remap_labels",
     "check_labels",
+    "free_shell",
 ]
 
 BACKGROUND, CSF, GM, WM, SKULL = 0, 1, 2, 3, 4
@@ -90,8 +91,8 @@ def remap_labels(labels: Image, coding: dict) -> Image:
         Integer label map.
     coding : dict
         ``{"csf": int | list[int], "gm": ..., "wm": ..., "skull": ...}``; values not listed
-        become background; every listed value must occur.  ``skull`` may be omitted (no
-        skull constraint inside the image; leaving the image is still forbidden).
+        become background; every listed value must occur.  ``skull`` may be omitted (a run
+        then takes its skull region from :func:`free_shell` alone).
 
     Raises
     ------
@@ -152,3 +153,44 @@ def check_labels(labels: Image) -> None:
     for name, code in zip(TISSUES, TISSUE_LABELS):
         if not np.any(data == code):
             raise ValueError(f"tissue '{name}' is empty in the label map")
+
+
+def free_shell(labels: Image, margin_mm: float) -> tuple[Image, int]:
+    """The free space of the skull constraint: every voxel outside the intracranial tissues
+    within ``margin_mm`` of them becomes background (free), every one beyond it skull.
+
+    This is the MNI152 recipe's rule (:func:`labels_from_probabilities`, where it changes
+    nothing), applied to any label map: whatever the labels say around the brain (a skull
+    that touches it, as in BrainWeb's models and most atlases; scalp; air outside the head
+    or in a sinus), the brain may move into a shell of ``margin_mm`` and slide in it, and
+    never beyond.  Without the second half, free space beyond the skull (the air around the
+    head) would let a node that jumps across the skull in one solver step land outside it.
+
+    Parameters
+    ----------
+    labels : Image
+        Internal coding.
+    margin_mm : float
+        Width of the shell, mm (> 0).
+
+    Returns
+    -------
+    labels : Image
+        uint8, internal coding.
+    n_changed : int
+        Voxels whose label changed (skull or scalp made free, free space made skull).
+
+    Raises
+    ------
+    ValueError
+        A non-positive margin, or no tissue voxel.
+    """
+    if not margin_mm > 0:
+        raise ValueError(f"skull_margin_mm must be > 0, got {margin_mm}")
+    data = np.asarray(labels.data)
+    tissue = np.isin(data, TISSUE_LABELS)
+    if not tissue.any():
+        raise ValueError("the label map has no CSF, GM or WM voxel")
+    dist = ndi.distance_transform_edt(~tissue, sampling=labels.spacing)
+    out = np.where(tissue, data, np.where(dist > margin_mm, SKULL, BACKGROUND)).astype(np.uint8)
+    return Image(out, labels.affine), int(np.sum(out != data))

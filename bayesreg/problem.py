@@ -14,6 +14,7 @@ import contextlib
 import hashlib
 import time
 import warnings
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -22,7 +23,7 @@ import scipy.ndimage as ndi
 from bayesreg import labels as L
 from bayesreg.config import Config
 from bayesreg.contact import constrained_shift
-from bayesreg.datasets import mni152
+from bayesreg.datasets import brainweb, brainweb_model, mni152
 from bayesreg.images import (
     Image, check_same_frame, interpolate_numpy, load_nifti, pad, resample_to_spacing,
     to_reference_grid)
@@ -118,10 +119,27 @@ class Problem(NamedTuple):
 
 
 def _load_data(cfg: Config):
+    """``f``, ``m`` (or None) and the labels of ``cfg.data``, padded by ``4 skull_margin_mm``
+    (images with 0, labels with skull), whose free space is the shell of ``skull_margin_mm``
+    around the intracranial tissues for every source (:func:`bayesreg.labels.free_shell`)."""
+    f, m, labels = _read_data(cfg)
+    labels, _ = L.free_shell(labels, cfg.data.skull_margin_mm)
+    L.check_labels(labels)
+    return f, m, labels
+
+
+def _read_data(cfg: Config):
     d = cfg.data
+    margin = 4 * d.skull_margin_mm
     if d.source == "mni152":
-        t1, gm, wm, mask = mni152(d.resolution_mm or 1.0, margin_mm=4 * d.skull_margin_mm)
+        t1, gm, wm, mask = mni152(d.resolution_mm or 1.0, margin_mm=margin)
         labels = L.labels_from_probabilities(gm, wm, mask, skull_margin_mm=d.skull_margin_mm)
+        return t1, None, labels
+    if d.source == "brainweb":
+        which = {"path": d.subject} if isinstance(d.subject, Path) else {"subject": d.subject}
+        model = brainweb_model(**which, directory=d.brainweb_dir)
+        t1, labels = brainweb(model, resolution_mm=d.resolution_mm or 0.5,
+                              noise_percent=d.noise_percent, seed=cfg.seed, margin_mm=margin)
         return t1, None, labels
     f = load_nifti(d.fixed)
     lab = load_nifti(d.labels)
@@ -140,8 +158,9 @@ def _load_data(cfg: Config):
         f = resample_to_spacing(f, d.resolution_mm, order=1)
         lab = resample_to_spacing(lab, d.resolution_mm, order=0)
         m = resample_to_spacing(m, d.resolution_mm, order=1) if m is not None else None
-    margin = 4 * d.skull_margin_mm
-    labels = L.remap_labels(pad(lab, margin), d.label_coding)
+    # leaving the image is forbidden: the padding is skull, so that a brainstem cut by the
+    # image's edge stays closed
+    labels = pad(L.remap_labels(lab, d.label_coding), margin, value=L.SKULL)
     f = pad(f, margin)
     m = pad(m, margin) if m is not None else None
     return f, m, labels
@@ -206,13 +225,16 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
         forbidden = Image((labels.data == L.SKULL).astype(np.uint8), labels.affine)
         truth, info = constrained_shift(
             mesh, lam_t, mu_t, forbidden, shift_mm=s.shift_mm, n_pushed=s.n_pushed, pushed=pushed,
-            clearance_mm=s.clearance_mm, tol_mm=s.tol_mm,
+            clearance_mm=s.clearance_mm, tol_mm=s.tol_mm, min_volume_ratio=s.min_volume_ratio,
         )
         if not info["converged"] or info["n_forbidden_nodes"] or info["n_inverted"]:
             raise ValueError(
-                "the constrained ground truth failed: converged {converged}, max violation "
-                "{max_violation_mm:.3g} mm (tol {tol_mm}), nodes in the skull {n_forbidden_nodes}, "
-                "inverted elements {n_inverted}".format(**info)
+                "the constrained ground truth failed on {data}: converged {converged}, max "
+                "violation {max_violation_mm:.3g} mm (tol {tol_mm}), nodes in the skull "
+                "{n_forbidden_nodes}, inverted elements {n_inverted}, smallest volume ratio "
+                "{min_volume_ratio:.3g}; try another mesh (mesh.file, or meshing again), a "
+                "larger data.skull_margin_mm or a smaller synthetic.shift_mm".format(
+                    data=_data_name(cfg), **info)
             )
     else:
         if pushed is not None:
@@ -231,6 +253,14 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
     info["lam"] = s.lam.model_dump()
     info["mu"] = s.mu.model_dump()
     return truth, info
+
+
+def _data_name(cfg: Config) -> str:
+    """The data of ``cfg`` in a few words (for messages)."""
+    d = cfg.data
+    if d.source == "brainweb":
+        return f"BrainWeb {'subject ' + str(d.subject) if isinstance(d.subject, int) else d.subject}"
+    return "the MNI152 brain" if d.source == "mni152" else str(d.fixed)
 
 
 def _sha256(path) -> str:

@@ -293,3 +293,20 @@ def test_mesh_file_is_read_from_the_configs_folder_and_excludes_a_node_target(tm
     assert load_config(p, overrides=["mesh.file=/abs/m.vtu"]).mesh.file.as_posix() == "/abs/m.vtu"
     with pytest.raises(ConfigError, match="mesh.file and mesh.target_nodes exclude each other"):
         load_config(p, overrides=["mesh.target_nodes=800"])
+
+
+def test_brainweb_source_keys(tmp_path):
+    cfg = load_config(None, overrides=["data.source=brainweb", "data.subject=5"])
+    assert cfg.data.resolution_mm == 1.0 and cfg.data.subject == 5  # the paper's 1 mm by default
+    cfg = load_config(None, overrides=["data.source=brainweb", "data.subject=5", "data.resolution_mm=2"])
+    assert cfg.data.resolution_mm == 2.0
+    assert "data.source 'brainweb' needs data.subject" in _error(["data.source=brainweb"], None)
+    assert "multiple of 0.5 mm" in _error(["data.source=brainweb", "data.subject=5",
+                                           "data.resolution_mm=1.2"], None)
+    assert "data.subject is only used with data.source: brainweb" in _error(["data.subject=5"])
+    assert "data.noise_percent is only used with data.source: brainweb" in _error(["data.noise_percent=3"])
+    # a path (relative to the config's folder) instead of a subject number
+    (tmp_path / "c.yaml").write_text("data: {source: brainweb, subject: models/s.mnc.gz, brainweb_dir: bw}\n")
+    cfg = load_config(tmp_path / "c.yaml")
+    assert cfg.data.subject == (tmp_path / "models/s.mnc.gz").resolve()
+    assert cfg.data.brainweb_dir == (tmp_path / "bw").resolve()

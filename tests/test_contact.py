@@ -147,3 +147,40 @@ def test_brain_paper_truth(brain):
     assert info["max_violation_mm"] < 0
     assert info["n_active"] > 0 and info["energy"] > info["energy_unconstrained"]
     np.testing.assert_allclose(np.linalg.norm(truth.u[truth.pushed], axis=1), 15.0)
+
+
+def crush_case():
+    """A 60 mm column, its top 10 mm soft (CSF), squeezed 15 mm from both ends toward its
+    centre (top and bottom faces pushed): the stiff part resists, the soft layer (1e-6)
+    resists nothing, so without the volume constraint it is crushed through zero volume."""
+    base = box_mesh(n=(3, 3, 6), size=(30, 30, 60))
+    cent = base.nodes[base.tets].mean(1)
+    mesh = box_mesh(n=(3, 3, 6), size=(30, 30, 60), tissue=np.where(cent[:, 2] > 50.0, 0, 1))
+    forb, aff, xyz = world_grid(-20.0, 80.0, 2.0)
+    forb[np.all(xyz < -15.0, axis=-1)] = True  # a corner far from the mesh
+    pushed = np.flatnonzero((mesh.nodes[:, 2] == 60.0) | (mesh.nodes[:, 2] == 0.0))
+    return mesh, Image(forb.astype(np.uint8), aff), pushed
+
+
+def test_no_element_shrinks_below_its_minimum_volume_ratio():
+    mesh, forb, pushed = crush_case()
+    lam, mu = PAPER_LAM[mesh.tissue], PAPER_MU[mesh.tissue]
+    from bayesreg.mesh import signed_volumes
+
+    v0 = signed_volumes(mesh.nodes, mesh.tets)
+    # the bound is active: the crushed layer would go through zero volume without it
+    _, loose = constrained_shift(mesh, lam, mu, forb, shift_mm=15.0, pushed=pushed, min_volume_ratio=0.0)
+    assert abs(loose["min_volume_ratio"]) <= 1e-3 and loose["n_volume_active"] > 0
+    energy = loose["energy"]
+    for q in (0.05, 0.2):
+        truth, info = constrained_shift(mesh, lam, mu, forb, shift_mm=15.0, pushed=pushed, min_volume_ratio=q)
+        ratio = signed_volumes(mesh.nodes + truth.u, mesh.tets) / v0
+        assert info["converged"] and info["n_inverted"] == 0 and info["n_forbidden_nodes"] == 0
+        assert info["min_volume_ratio"] == pytest.approx(ratio.min())
+        # the bound holds to the tolerance (g_e = h_e (q - ratio) <= tol_mm, h_e = V0^(1/3))
+        assert ratio.min() >= q - info["tol_mm"] / np.cbrt(v0).min()
+        assert info["n_volume_active"] > 0 and np.all(mesh.tissue[ratio < q + 0.01] == 0)
+        assert info["energy"] >= energy * (1 - 1e-9)  # a tighter bound costs energy
+        energy = info["energy"]
+    with pytest.raises(ValueError, match="min_volume_ratio"):
+        constrained_shift(mesh, lam, mu, forb, min_volume_ratio=1.0)

@@ -48,3 +48,35 @@ def test_labels_from_probabilities_recipe():
     assert d[15, 15, 20] == L.CSF  # inside the brain, neither GM nor WM
     assert d[15, 15, 25] == L.BACKGROUND  # within the 4 mm shell
     assert d[0, 0, 0] == L.SKULL
+
+
+def test_free_shell_frees_a_shell_of_the_margin_and_forbids_beyond():
+    """A skull touching the brain, scalp beyond it and air around the head: within the
+    margin everything is free, beyond it everything is skull; the tissues are kept."""
+    shape = (40, 40, 40)
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in shape], indexing="ij"), -1)
+    r = np.linalg.norm(ijk - 19.5, axis=-1)
+    data = np.zeros(shape, np.uint8)  # air around the head
+    data[r < 17] = 5  # scalp (here: skull region after a coding), to be kept beyond the shell
+    data[r < 14] = L.SKULL
+    data[r < 10] = L.GM  # skull touching the brain
+    data[r < 5] = L.WM
+    data[(r < 3)] = L.CSF
+    lab = Image(data, np.diag([1.5, 1.5, 1.5, 1.0]))
+    out, n = L.free_shell(lab, 3.0)
+    d = out.data
+    tissue = np.isin(data, L.TISSUE_LABELS)
+    np.testing.assert_array_equal(d[tissue], data[tissue])
+    from scipy import ndimage as ndi
+    dist = ndi.distance_transform_edt(~tissue, sampling=lab.spacing)
+    assert np.all(d[~tissue & (dist <= 3.0)] == L.BACKGROUND)
+    assert np.all(d[~tissue & (dist > 3.0)] == L.SKULL)  # skull, scalp and air alike
+    assert n == int(np.sum(d != data)) > 0
+    # the MNI152 recipe's labels already have the shell: nothing changes
+    same, n0 = L.free_shell(out, 3.0)
+    np.testing.assert_array_equal(same.data, d)
+    assert n0 == 0
+    with pytest.raises(ValueError, match="skull_margin_mm"):
+        L.free_shell(lab, 0.0)
+    with pytest.raises(ValueError, match="no CSF, GM or WM"):
+        L.free_shell(Image(np.zeros(shape, np.uint8), np.eye(4)), 3.0)

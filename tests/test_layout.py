@@ -18,8 +18,8 @@ LAYERS = [
     ["_checks", "_files", "jaxconfig", "stages", "config.models", "config.loading", "config"],
     ["images"],
     ["interpolation"],
-    ["datasets"],
     ["labels"],
+    ["datasets"],
     ["mesh"],
     ["warp"],
     ["meshing"],
@@ -58,6 +58,7 @@ LAYERS = [
     ["report.tables", "report.figures"],
     ["report.write"],
     ["report"],
+    ["sweep"],  # many runs on Dask distributed
     ["bayesreg"],  # the public API: configure_jax, Config, run, prepare, ...
     ["cli"],  # the command line, on top of the public API
 ]

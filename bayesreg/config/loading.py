@@ -214,8 +214,9 @@ def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None)
     except ValidationError as exc:
         raise ConfigError(format_errors(exc, source)) from None
     if base_dir is not None:
-        for part, k in (("data", "fixed"), ("data", "moving"), ("data", "labels"), ("mesh", "file")):
+        for part, k in (("data", "fixed"), ("data", "moving"), ("data", "labels"), ("data", "subject"),
+                        ("data", "brainweb_dir"), ("mesh", "file")):
             p = getattr(getattr(cfg, part), k)
-            if p is not None and not p.is_absolute():
+            if isinstance(p, Path) and not p.is_absolute():
                 setattr(getattr(cfg, part), k, (Path(base_dir) / p).resolve())
     return cfg

@@ -82,18 +82,35 @@ def _fill_from_defaults(cls, data):
 class DataConfig(_Strict):
     """The images and the label map (paper Sec. 4.1)."""
 
-    source: Literal["mni152", "nifti"] = Field(
+    source: Literal["mni152", "brainweb", "nifti"] = Field(
         "mni152", description="mni152: the MNI ICBM152 2009a template that ships with nilearn "
-        "(T1 and GM/WM probability maps; labels derived from them); nifti: your own images "
-        "(data.fixed, data.labels, data.label_coding and, without a synthetic case, data.moving)")
+        "(T1 and GM/WM probability maps; labels derived from them); brainweb: a BrainWeb "
+        "anatomical model (data.subject) and a T1-weighted image made from its labels "
+        "(bayesreg.datasets.brainweb); nifti: your own images (data.fixed, data.labels, "
+        "data.label_coding and, without a synthetic case, data.moving)")
     resolution_mm: Float | None = Field(
         2.0, gt=0, description="resample the images to isotropic voxels of this size (mm; "
         "linear for images, nearest for labels, anti-aliased when downsampling); null keeps "
-        "the fixed image's grid")
+        "the fixed image's grid.  Default 2 mm; 1 mm (the paper's) for brainweb, where it "
+        "must be a multiple of the models' 0.5 mm")
     skull_margin_mm: Float = Field(
-        5.0, gt=0, description="mni152: width (mm) of the free shell between the brain mask and "
-        "the skull region; every source: the images are padded by four times this on every "
-        "side so that the mesh and its surroundings lie inside the grid")
+        5.0, gt=0, description="width (mm) of the free space around the intracranial tissues, "
+        "for every source: every other voxel within it is free (whatever its label: a skull "
+        "that touches the brain, scalp, air), every one beyond it is the skull region "
+        "(bayesreg.labels.free_shell), so the brain can leave the skull and slide along it, "
+        "never further.  The images are also padded by four times this on every side, the "
+        "labels with skull, so an image edge that cuts the brainstem keeps the constraint")
+    subject: Int | Path | None = Field(
+        None, description="brainweb: the subject number of a BrainWeb normal model (04, 05, "
+        "06, 18, 20, 38, 41-54), found in data.brainweb_dir, or the path of a crisp model file "
+        "(MINC or NIfTI, BrainWeb's class labels), relative to the config file's folder")
+    brainweb_dir: Path | None = Field(
+        None, description="brainweb: the folder holding subjectNN_crisp_v.mnc(.gz); default the "
+        "environment variable BAYESREG_BRAINWEB_DIR (the models are not bundled: "
+        "https://brainweb.bic.mni.mcgill.ca/brainweb/anatomic_normal_20.html)")
+    noise_percent: Float = Field(
+        0.0, ge=0, description="brainweb: Rician noise of the T1-weighted image, % of the white "
+        "matter's signal (BrainWeb offers 0, 1, 3, 5, 7, 9); seeded by the run's seed")
     fixed: Path | None = Field(None, description="nifti: the pre-operative image f (NIfTI), "
                                "relative to the config file's folder")
     moving: Path | None = Field(None, description="nifti: the intra-operative image m, any grid "
@@ -103,7 +120,8 @@ class DataConfig(_Strict):
                                 "frame (resampled onto f's grid, nearest neighbour)")
     label_coding: dict[str, Int | list[Int]] | None = Field(
         None, description="nifti: the label values of each tissue in data.labels, e.g. {csf: 1, "
-        "gm: 2, wm: 3, skull: [4, 5]}; every other value is background (free space)")
+        "gm: 2, wm: 3, skull: [4, 5]}; the free space and the skull region then follow "
+        "data.skull_margin_mm")
     intensity_percentile: Float = Field(
         99.5, gt=0, le=100, description="f and m are divided by this percentile of f inside "
         "the intracranial volume (intensities about [0, 1], so that T_s has image-independent "
@@ -112,19 +130,36 @@ class DataConfig(_Strict):
         0.0, ge=0, description="Gaussian sigma (mm) applied to the posterior's copies of f and "
         "m before the SSD; smooths the likelihood surface sampled at the Gauss points")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _source_resolution(cls, data):
+        # BrainWeb's default grid is the paper's 1 mm (its models are 0.5 mm)
+        if isinstance(data, dict) and data.get("source") == "brainweb" and "resolution_mm" not in data:
+            data = {**data, "resolution_mm": 1.0}
+        return data
+
     @model_validator(mode="after")
-    def _nifti_paths(self):
-        if self.source == "nifti":
-            missing = [k for k in ("fixed", "labels", "label_coding") if getattr(self, k) is None]
-            if missing:
-                raise ValueError(f"data.source 'nifti' needs data.{', data.'.join(missing)}")
-        else:  # the template brings its own image and labels: these would be ignored
-            given = [k for k in ("fixed", "moving", "labels", "label_coding")
-                     if getattr(self, k) is not None]
+    def _source_keys(self):
+        own = {"nifti": ("fixed", "moving", "labels", "label_coding"),
+               "brainweb": ("subject", "brainweb_dir", "noise_percent")}
+        needed = {"nifti": ("fixed", "labels", "label_coding"), "brainweb": ("subject",)}
+        missing = [k for k in needed.get(self.source, ()) if getattr(self, k) is None]
+        if missing:
+            raise ValueError(f"data.source '{self.source}' needs data.{', data.'.join(missing)}")
+        for source, keys in own.items():
+            if source == self.source:
+                continue
+            given = [k for k in keys if k in self.model_fields_set and getattr(self, k) is not None
+                     and getattr(self, k) != self.model_fields[k].default]
             if given:
                 raise ValueError(f"data.{', data.'.join(given)} {'is' if len(given) == 1 else 'are'} "
-                                 f"only used with data.source: nifti (data.source is "
+                                 f"only used with data.source: {source} (data.source is "
                                  f"'{self.source}', which brings its own image and labels)")
+        if self.source == "brainweb":
+            k = (self.resolution_mm or 0.5) / 0.5
+            if abs(k - round(k)) > 1e-9:
+                raise ValueError(f"data.resolution_mm must be a multiple of 0.5 mm with data.source: "
+                                 f"brainweb (its models are 0.5 mm), got {self.resolution_mm}")
         return self
 
 
@@ -182,6 +217,10 @@ class SyntheticConfig(_Strict):
         None, ge=0, description="constrained truth: distance kept from the skull region (default "
         "half a voxel diagonal, so no node's nearest voxel is skull)")
     tol_mm: Float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
+    min_volume_ratio: Float = Field(
+        0.05, ge=0, lt=1, description="constrained truth: no element may shrink below this "
+        "fraction of its rest volume (a CSF element of the paper's stiffness, 1e-6, resists "
+        "nothing and would otherwise be crushed through zero volume: an inverted element)")
     outside: Literal["extend", "background"] = Field(
         "extend", description="voxels of m that no deformed element covers: extend, f shifted by "
         "the displacement continued from the nearest boundary nodes (so that trilinear samples "

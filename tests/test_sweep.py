@@ -1,0 +1,128 @@
+"""bayesreg.sweep: the grid of a sweep file, and a sweep on a Dask LocalCluster (one run
+failing, isolated; a second pass reusing the finished runs; the aggregate tables)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from bayesreg.cli import main
+from bayesreg.config import ConfigError
+from bayesreg.sweep import expand, load_sweep, run_sweep
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+# the quickstart's problem on tiny settings (as bayesreg.run's example)
+TINY = {"data.resolution_mm": 3.0, "mesh.edge_length_mm": 26, "sampler.kind": "rwmh",
+        "sampler.chains": 2, "sampler.proposal": "isotropic", "init.method": "perturb",
+        "sampler.warmup_steps": 20, "sampler.thinning": 1, "sampler.chunk_draws": 10,
+        "sampler.max_draws": 10, "sampler.min_draws": 10, "output.progress": False}
+
+
+def _write(path: Path, spec: dict) -> Path:
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+def test_expand_gives_every_combination_with_readable_ids(tmp_path):
+    spec = _write(tmp_path / "s.yaml", {
+        "name": "s", "configs": [str(CONFIGS / "paper_uniform.yaml"), str(CONFIGS / "paper_three_compartment.yaml")],
+        "set": {"data.source": "brainweb"}, "grid": {"data.subject": [5, 43], "seed": [1, 2]},
+        "dir": str(tmp_path / "out")})
+    runs = expand(load_sweep(spec))
+    assert len(runs) == 8
+    assert runs[0].id == "paper_uniform--subject=5--seed=1"
+    assert runs[0].overrides == ('data.source="brainweb"', "data.subject=5", "seed=1")
+    assert runs[-1].id == "paper_three_compartment--subject=43--seed=2"
+    assert runs[-1].dir == tmp_path / "out" / runs[-1].id
+    assert len({r.id for r in runs}) == 8
+
+
+def test_a_list_combines_with_the_grid_and_clashing_names_stay_apart(tmp_path):
+    spec = _write(tmp_path / "s.yaml", {
+        "name": "s", "configs": [str(CONFIGS / "quickstart.yaml")],
+        "runs": [{"model.prior_lam.r2": 50}, {"model.prior_mu.r2": 5}], "grid": {"seed": [0, 1]}})
+    runs = expand(load_sweep(spec))
+    assert [r.id for r in runs] == [
+        "quickstart--model.prior_lam.r2=50--seed=0", "quickstart--model.prior_lam.r2=50--seed=1",
+        "quickstart--model.prior_mu.r2=5--seed=0", "quickstart--model.prior_mu.r2=5--seed=1"]
+    assert runs[0].dir == Path("runs/sweeps/s") / runs[0].id
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"name": "s", "configs": ["nope.yaml"]}, "not found"),
+    ({"name": "s", "configs": [str(CONFIGS / "quickstart.yaml")], "grids": {}}, "grids"),
+    ({"name": "s", "configs": [str(CONFIGS / "quickstart.yaml")], "grid": {"seed": []}}, "no values"),
+    ({"name": "s", "configs": [str(CONFIGS / "quickstart.yaml")], "runs": [{"seed": 1}, {"seed": 1}]},
+     "twice"),
+])
+def test_bad_sweep_files_are_refused_naming_the_problem(tmp_path, spec, message):
+    path = _write(tmp_path / "s.yaml", spec)
+    with pytest.raises((ConfigError, FileNotFoundError), match=message):
+        expand(load_sweep(path))
+
+
+def test_a_run_whose_config_does_not_validate_stops_the_sweep_before_any_run(tmp_path):
+    path = _write(tmp_path / "s.yaml", {"name": "s", "configs": [str(CONFIGS / "quickstart.yaml")],
+                                         "runs": [{"seed": 1}, {"sampler.chains": 0}],
+                                         "dir": str(tmp_path / "out")})
+    with pytest.raises(ConfigError, match=r"(?s)sweep run quickstart--chains=0:.*sampler\.chains"):
+        run_sweep(path)
+    assert not (tmp_path / "out").exists()
+
+
+def _rows(folder: Path) -> dict:
+    with open(folder / "sweep.csv") as fh:
+        return {r["id"]: r for r in csv.DictReader(fh)}
+
+
+@pytest.mark.slow
+def test_a_sweep_on_a_local_cluster_isolates_a_failure_and_resumes(tmp_path, capsys):
+    """Four tiny runs on a two-worker LocalCluster, one with a truth pushed into the skull:
+    that run fails in its truth stage and the others finish; a second pass reuses the three
+    finished runs and tries the failed one again; the tables hold every run."""
+    out = tmp_path / "sweep"
+    path = _write(tmp_path / "tiny.yaml", {
+        "name": "tiny", "configs": [str(CONFIGS / "quickstart.yaml")], "set": TINY,
+        "runs": [{"seed": 1}, {"seed": 2}, {"seed": 3}, {"seed": 4, "synthetic.shift_mm": 60}],
+        "dir": str(out)})
+    folder, rows = run_sweep(path, workers=2)
+    assert folder == out
+    bad = "quickstart--seed=4--shift_mm=60"
+    assert rows[bad]["status"] == "failed"
+    assert rows[bad]["error"].startswith("ValueError: truth:") and "skull" in rows[bad]["error"]
+    good = [k for k in rows if k != bad]
+    for k in good:
+        assert rows[k]["status"] in ("finished", "unconverged"), rows[k]
+        assert rows[k]["action"] == "new"
+        assert (out / k / "run.json").is_file() and (out / k / "posterior.nc").is_file()
+    assert not (out / bad).exists()  # a run failed before sampling leaves no directory
+    table = _rows(out)
+    assert set(table) == set(rows)
+    assert table[bad]["status"] == "failed" and table[bad]["t1_median"] == ""
+    for k in good:
+        info = json.loads((out / k / "run.json").read_text())
+        assert float(table[k]["rhat_rank_max"]) == pytest.approx(info["sampler"]["rhat_rank_max"])
+        assert float(table[k]["t1_median"]) > 0 and float(table[k]["t2_brain"]) > 0
+        assert table[k]["ratio_gm_inside"] in ("True", "False")
+    md = (out / "sweep.md").read_text()
+    assert "1 failed" in md and "Table 1 median (mm)" in md and "| 0.160 |" in md
+    err = capsys.readouterr().err
+    assert "[4/4 done, 1 failed" in err
+
+    mtimes = {k: (out / k / "run.json").stat().st_mtime_ns for k in good}
+    _, again = run_sweep(path, workers=2)
+    assert {k: again[k]["action"] for k in good} == dict.fromkeys(good, "reused")
+    assert {k: (out / k / "run.json").stat().st_mtime_ns for k in good} == mtimes
+    assert again[bad]["status"] == "failed"
+    for k in good:
+        assert again[k]["t1_median"] == pytest.approx(rows[k]["t1_median"])
+
+    # the tables, rebuilt from the run directories by `bayesreg report SWEEP_DIR`
+    (out / "sweep.csv").unlink()
+    assert main(["report", str(out)]) == 0
+    assert set(_rows(out)) == set(rows)
