@@ -285,20 +285,26 @@ def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: i
 
 
 def _info_extras(info):
-    """``(gradient evaluations, divergent)`` of a transition (zero for random walks)."""
-    grads = getattr(info, "grad_evals", jnp.zeros((), jnp.int32))
-    div = getattr(info, "divergent", jnp.zeros((), bool))
-    return grads, div
+    """``(gradient evaluations, divergent, tree depth, energy)`` of the transitions of
+    ``info`` (zero, or NaN for the energy, for random walks)."""
+    shape = jnp.shape(info.cg_iterations)
+    grads = getattr(info, "grad_evals", jnp.zeros(shape, jnp.int32))
+    div = getattr(info, "divergent", jnp.zeros(shape, bool))
+    depth = getattr(info, "tree_depth", jnp.zeros(shape, jnp.int32))
+    energy = getattr(info, "energy", jnp.full(shape, jnp.nan))
+    return grads, div, depth, energy
 
 
 def _draw_out(state, info):
     """A draw's stored outputs from the state after its ``thin`` transitions and their infos
     (stacked): ``(position, interior, logdensity, acceptance (B,), CG iterations per step,
-    failed solves, gradient evaluations per step, divergences)``."""
-    grads, div = _info_extras(info)
+    failed solves, gradient evaluations per step, divergences, tree depth, energy)``: the
+    last two of the interval's last transition (the one that made the stored draw)."""
+    grads, div, depth, energy = _info_extras(info)
     return (state.position, state.interior, state.logdensity, jnp.mean(info.acceptance_rate, axis=0),
             jnp.mean(info.cg_iterations.astype(jnp.float64)), jnp.sum(info.solve_failed),
-            jnp.mean(grads.astype(jnp.float64)), jnp.sum(div.astype(jnp.int32)))
+            jnp.mean(grads.astype(jnp.float64)), jnp.sum(div.astype(jnp.int32)),
+            jnp.asarray(depth)[-1].astype(jnp.int32), jnp.asarray(energy)[-1].astype(jnp.float64))
 
 
 def build_chunk(kernel: Kernel, n_draws: int, thin: int, n_chains: int, *,
@@ -310,7 +316,8 @@ def build_chunk(kernel: Kernel, n_draws: int, thin: int, n_chains: int, *,
     through the chunk; with ``"pieces"`` it passes from one piece to the next, so the
     pieces repeat the arithmetic of the whole chunk.  ``out`` is ``(positions, interior,
     logdensity, acceptance (B,), CG iterations per step, failed solves, gradient
-    evaluations per step, divergences)`` per draw, each with leading axes ``(C, n_draws)``.
+    evaluations per step, divergences, tree depth, energy)`` per draw, each with leading
+    axes ``(C, n_draws)``.
 
     Raises
     ------
@@ -372,7 +379,7 @@ def build_adaptive_chunk(kernel: Kernel, ws_step: Callable, n_draws: int, thin: 
 
         def draw(carry, xs):
             carry, info = jax.lax.scan(step, carry, xs)
-            grads, div = _info_extras(info)
+            grads, div, _, _ = _info_extras(info)
             return carry, (_draw_out(carry[0], info), (info.acceptance_rate, div, grads))
 
         carry = (state, ws, kernel.init_cache(state))

@@ -41,7 +41,7 @@ from bayesreg.synthetic import Truth
 __all__ = ["Checkpoint", "savez_atomic"]
 
 _OUT_NAMES = ("positions", "interior", "logdensity", "acceptance", "cg_iterations", "solve_failures",
-              "grad_evals", "divergences")
+              "grad_evals", "divergences", "tree_depth", "energy")
 
 
 def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
@@ -254,7 +254,10 @@ class Checkpoint:
                 raise FileNotFoundError(f"{p} is missing: the checkpoint is incomplete")
             with _reading(p):
                 c = np.load(p, allow_pickle=False)
-                chunks.append([c[n] for n in _OUT_NAMES])
+                # chunks written before the NUTS stats were stored: depth 0, energy NaN
+                fill = {"tree_depth": 0, "energy": np.nan}
+                chunks.append([c[n] if n in c.files or n not in fill
+                               else np.full(c["logdensity"].shape, fill[n]) for n in _OUT_NAMES])
         draws = tuple(np.concatenate([c[j] for c in chunks], axis=1) for j in range(len(_OUT_NAMES)))
         return ckpt, draws
 

@@ -11,6 +11,13 @@
 ``bayesreg sweep SWEEP.yaml [--scheduler ADDRESS] [--workers N]``
     many runs over config keys on Dask distributed (:mod:`bayesreg.sweep`); running it
     again finishes what is left.
+``bayesreg export RUN_DIR --format itk|ants|slicer|nifti [--draws K] [--out DIR]``
+    the posterior mean (and K draws) as transforms ITK, ANTs and 3D Slicer apply
+    (:func:`bayesreg.apply.export`).
+``bayesreg apply RUN_DIR INPUT --out OUT [--as image|labels|points] [--draws K]``
+    an image through the posterior mean, a label map through posterior draws (per-label
+    probability, most probable label), points with their posterior and 95% ellipsoids
+    (:mod:`bayesreg.apply`).
 ``bayesreg --version``
     the package's version (``run.json`` records it with its dependencies' versions).
 
@@ -25,6 +32,8 @@ import argparse
 import signal
 import sys
 from pathlib import Path
+
+import numpy as np
 
 from bayesreg import __version__
 from bayesreg.config import ConfigError
@@ -87,7 +96,78 @@ def _parser():
     s.add_argument("--max-start-mm", type=float, default=1.0,
                    help="status 'bad start' for a run whose chains start further than this from "
                         "the truth (median over boundary nodes, mm; default 1)")
+    e = sub.add_parser("export", help="a run's posterior as ITK/ANTs/Slicer/NIfTI transforms")
+    e.add_argument("run_dir", help="a finished run directory")
+    e.add_argument("--format", default="itk", choices=["itk", "ants", "slicer", "nifti"])
+    e.add_argument("--draws", type=int, default=0, help="also write K posterior draws (default 0)")
+    e.add_argument("--out", help="folder (default RUN_DIR/export/FORMAT)")
+    e.add_argument("--no-inverse", action="store_true", help="skip the moving-to-fixed fields")
+
+    a = sub.add_parser("apply", help="carry an image, a label map or points through the posterior")
+    a.add_argument("run_dir", help="a finished run directory")
+    a.add_argument("input", help="NIfTI image or label map; points as .csv (x,y,z RAS mm), "
+                                 ".mrk.json or .fcsv (3D Slicer)")
+    a.add_argument("--out", required=True, help="output file (.nii.gz, or .csv / .mrk.json for points)")
+    a.add_argument("--as", dest="kind", choices=["auto", "image", "labels", "points"], default="auto",
+                   help="what INPUT is (auto: points by extension, labels for an integer NIfTI)")
+    a.add_argument("--direction", choices=["to-moving", "to-fixed"], default=None,
+                   help="images and labels: from the fixed (pre-operative) frame to the moving "
+                        "grid, or back (default: to-moving for labels, to-fixed for images)")
+    a.add_argument("--draws", type=int, default=100,
+                   help="posterior draws for labels and points (default 100; 0: every draw)")
+    a.add_argument("--order", type=int, default=1, help="image interpolation order (0-5; default 1)")
+    a.add_argument("--truth", metavar="POINTS|synthetic",
+                   help="points: their true moving-frame positions (same order), or 'synthetic' "
+                        "for the run's synthetic truth; adds the target registration error")
     return p
+
+
+def _input_kind(path: Path, kind: str) -> str:
+    if kind != "auto":
+        return kind
+    name = path.name.lower()
+    if name.endswith((".csv", ".fcsv", ".json")):
+        return "points"
+    import nibabel as nib
+
+    return "labels" if np.issubdtype(nib.load(str(path)).get_data_dtype(), np.integer) else "image"
+
+
+def _apply(args) -> str:
+    from bayesreg import apply as A
+    from bayesreg.images import Image, load_nifti, save_nifti
+    from bayesreg.transforms import displace_points
+
+    rp = A.load_posterior(args.run_dir)
+    path, out = Path(args.input), Path(args.out)
+    kind = _input_kind(path, args.kind)
+    draws = None if args.draws == 0 else args.draws
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if kind == "points":
+        names, pts = A.read_points(path)
+        pp = A.map_points(rp, pts, names, draws=draws)
+        errors = None
+        if args.truth == "synthetic":
+            if rp.u_true is None:
+                raise ValueError("apply: --truth synthetic needs a synthetic run")
+            errors = A.target_errors(pp, displace_points(rp.mesh, rp.u_true, pts)[0])
+        elif args.truth:
+            errors = A.target_errors(pp, A.read_points(args.truth)[1])
+        A.write_points(out, pp, errors)
+        msg = f"{len(pts)} points ({int(pp.inside.sum())} inside the mesh) -> {out}"
+        if errors is not None:
+            msg += (f"; TRE median {errors['tre_median_mm']:.3f} mm, max {errors['tre_max_mm']:.3f} mm,"
+                    f" truth inside its 95% ellipsoid for {errors['coverage_95']:.0%}")
+        return msg
+    img = load_nifti(path)
+    if kind == "labels":
+        lp = A.warp_labels(rp, img, direction=args.direction or "to-moving", draws=draws)
+        p1, p2 = A.save_label_posterior(lp, out)
+        return f"labels {list(map(int, lp.values))} through {lp.n_draws} draws -> {p1}, {p2}"
+    res = A.warp_image(rp, Image(np.asarray(img.data, np.float64), img.affine),
+                       direction=args.direction or "to-fixed", order=args.order)
+    save_nifti(Image(res.data.astype(np.float32), res.affine), out)
+    return f"image -> {out}"
 
 
 def _configs_dir(arg) -> Path:
@@ -199,6 +279,16 @@ def main(argv=None) -> int:
                     raise ValueError("report: give --out DIR for the report of runs")
                 path = write_report(_report_runs(args.runs), args.out, overwrite=args.overwrite)
                 print(f"report in {path / 'report.md'}")
+        elif args.command == "export":
+            from bayesreg.apply import export
+
+            man = export(args.run_dir, args.format, draws=args.draws, out=args.out,
+                         inverse=not args.no_inverse)
+            folder = Path(args.out) if args.out else Path(args.run_dir) / "export" / args.format
+            print(f"{len(man['files'])} transform(s) ({args.format}) in {folder}; "
+                  f"directions in {folder / 'transforms.json'}")
+        elif args.command == "apply":
+            print(_apply(args))
         elif args.command == "sweep":
             if args.workers is not None and args.workers < 1:
                 raise ValueError(f"sweep: --workers must be >= 1, got {args.workers}")

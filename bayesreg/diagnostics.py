@@ -15,7 +15,7 @@ import contextlib
 
 import numpy as np
 
-__all__ = ["coverage", "to_datatree", "geyer_ess", "arviz_fast_ess"]
+__all__ = ["coverage", "to_datatree", "group_draws", "geyer_ess", "arviz_fast_ess"]
 
 
 def coverage(draws, truth, levels=(0.5, 0.9, 0.95), *, block: int = 64) -> dict[float, float]:
@@ -77,17 +77,41 @@ def coverage(draws, truth, levels=(0.5, 0.9, 0.95), *, block: int = 64) -> dict[
 
 
 def to_datatree(posterior: dict, *, sample_stats: dict | None = None, dims=None, coords=None,
-                attrs=None):
-    """ArviZ ``DataTree`` from ``{name: (chain, draw, ...)}`` arrays (``az.from_dict``)."""
+                attrs=None, constant_data: dict | None = None):
+    """ArviZ ``DataTree`` from ``{name: (chain, draw, ...)}`` arrays (``az.from_dict``);
+    ``constant_data``: arrays without chain and draw axes (fixed parameters)."""
     import arviz as az
 
     groups = {"posterior": posterior}
     if sample_stats:
         groups["sample_stats"] = sample_stats
+    if constant_data:
+        groups["constant_data"] = constant_data
     tree = az.from_dict(groups, dims=dims or {}, coords=coords or {})
     if attrs:
         tree.attrs.update(attrs)
     return tree
+
+
+def group_draws(tree, var: str) -> np.ndarray:
+    """Draws ``(chain, draw, G)`` of ``lam`` or ``mu`` over every parameter group of a run's
+    ``posterior.nc``, the fixed ones (stored as ``constant_data[var + "_fixed"]``, not as
+    sampled variables) filled in at their value; groups in the order of the ``group``
+    coordinate.  Files that stored every group as a sampled variable read as they are."""
+    post = tree.posterior
+    if var in post and "group" in post[var].dims:
+        return np.asarray(post[var].transpose("chain", "draw", "group").values, np.float64)
+    groups = [str(g) for g in post["group"].values]
+    out = np.empty((post.sizes["chain"], post.sizes["draw"], len(groups)))
+    if var in post:  # the free groups (none: every group fixed, only constant data)
+        x = post[var]
+        vals = np.asarray(x.transpose("chain", "draw", f"{var}_group").values, np.float64)
+        for k, g in enumerate(str(g) for g in x[f"{var}_group"].values):
+            out[..., groups.index(g)] = vals[..., k]
+    fixed = tree.constant_data[f"{var}_fixed"]
+    for g, v in zip(fixed[f"{var}_fixed_group"].values, np.asarray(fixed.values)):
+        out[..., groups.index(str(g))] = float(v)
+    return out
 
 
 def geyer_ess(rho, n_chain: int, n_draw: int, *, relative: bool = False) -> float:

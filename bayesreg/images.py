@@ -23,6 +23,7 @@ __all__ = [
     "Image",
     "load_nifti",
     "save_nifti",
+    "write_nifti_atomic",
     "nifti_frame",
     "check_same_frame",
     "to_reference_grid",
@@ -260,6 +261,14 @@ def save_nifti(img: Image, path) -> None:
     """Write ``img`` as NIfTI atomically (temporary file in the same folder, then rename)."""
     import nibabel as nib
 
+    write_nifti_atomic(nib.Nifti1Image(np.asarray(img.data), np.asarray(img.affine)), path)
+
+
+def write_nifti_atomic(nii, path) -> None:
+    """Write the nibabel image ``nii`` to ``path`` atomically: a temporary file in the same
+    folder, flushed, then renamed (a reader never sees half a file)."""
+    import nibabel as nib
+
     path = Path(path)
     suffix = ".nii.gz" if path.name.endswith(".nii.gz") else path.suffix
     # a unique name that nibabel creates, so the file gets the umask's mode as every other
@@ -267,7 +276,7 @@ def save_nifti(img: Image, path) -> None:
     tmp = str(path.with_name(f".{path.name[:-len(suffix)] if suffix else path.name}-"
                              f"{uuid.uuid4().hex[:12]}.tmp{suffix}"))
     try:
-        nib.save(nib.Nifti1Image(np.asarray(img.data), np.asarray(img.affine)), tmp)
+        nib.save(nii, tmp)
         replace_durably(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -30,12 +30,19 @@ __all__ = [
     "remap_labels",
     "check_labels",
     "free_shell",
+    "tissue_label",
 ]
 
 BACKGROUND, CSF, GM, WM, SKULL = 0, 1, 2, 3, 4
 TISSUES = ("csf", "gm", "wm")
 """Tissue names in the order of tissue indices 0, 1, 2 (element ``tissue`` arrays)."""
 TISSUE_LABELS = (CSF, GM, WM)
+
+
+def tissue_label(tissue):
+    """Label-map codes (1 CSF, 2 GM, 3 WM) of element tissue indices (0, 1, 2): the one
+    coding of every output file.  Returns an int32 array of the same shape."""
+    return np.asarray(TISSUE_LABELS, np.int32)[np.asarray(tissue)]
 
 
 def labels_from_probabilities(gm: Image, wm: Image, brain_mask: Image, *, skull_margin_mm=5.0):

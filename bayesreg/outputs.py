@@ -10,16 +10,20 @@ run in progress keeps its draws in ``checkpoint/``, see :mod:`bayesreg.checkpoin
                                 ``cg_iterations``, ``solve_failures``
 ``summary.csv``                 mean, sd, 90% central credible interval (``eti90_lb``,
                                 ``eti90_ub``), ESS, rank R-hat (ArviZ), classic R-hat
-``displacement_mean.nii.gz``    posterior mean of ``u`` on the image grid, (I, J, K, 3) mm
-``displacement_sd.nii.gz``      posterior sd of each component of ``u``, (I, J, K, 3) mm
+``displacement_mean.nii.gz``    posterior mean of ``u`` on the image grid as an ITK/ANTs
+                                displacement field (:mod:`bayesreg.transforms`: 5-D
+                                (I, J, K, 1, 3), intent VECTOR, LPS mm, fixed to moving)
+``displacement_sd.nii.gz``      posterior sd of each RAS component of ``u``, (I, J, K, 3) mm
 ``displacement_norm_sd.nii.gz``   posterior sd of ``|u|``, (I, J, K) mm
 ``displacement_norm_iqr.nii.gz``  posterior inter-quartile range of ``|u|``, (I, J, K) mm
-``displacement_init.nii.gz``    the chains' central start, (I, J, K, 3) mm
-``displacement_true.nii.gz``    the synthetic truth (synthetic runs), (I, J, K, 3) mm
+``displacement_init.nii.gz``    the chains' central start (ITK/ANTs field)
+``displacement_true.nii.gz``    the synthetic truth (synthetic runs; ITK/ANTs field)
 ``mesh_mask.nii.gz``            voxels inside the undeformed mesh (where the maps are defined)
 ``mesh.vtu``                    mesh with point data ``u_mean``, ``u_sd``, ``u_norm_sd``,
                                 ``u_norm_iqr``, ``u_init``, ``u_true``, ``u_error``; cell
-                                data ``tissue``
+                                data ``label``: the element's tissue in the label map's
+                                coding (1 CSF, 2 GM, 3 WM); world RAS mm (``bayesreg export --format slicer``
+                                writes it in LPS for 3D Slicer)
 ``f.nii.gz``, ``m.nii.gz``, ``labels.nii.gz``  the (scaled) images and label map used
 ``trace.png``, ``marginals.png``  trace and marginal plots of the elastic parameters
 ``uncertainty.png``             IQR of ``|u|`` over ``f`` on three orthogonal slices
@@ -55,12 +59,14 @@ from bayesreg.diagnostics import arviz_fast_ess, coverage, to_datatree
 from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
 from bayesreg.initialisation import Initialisation
+from bayesreg.labels import tissue_label
 from bayesreg.mesh import mesh_quality
 from bayesreg.plots import plot_parameters, plot_uncertainty
 from bayesreg.posterior import elastic_groups, solve_position
 from bayesreg.problem import Problem
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampler import SamplerResult
+from bayesreg.transforms import FIXED_TO_MOVING, save_displacement
 from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
 __all__ = ["RunResult", "write_outputs", "error_table", "format_report", "summary_table"]
@@ -288,29 +294,54 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, pos[..., 3 * nb:]))
     names = list(layout.group_names)
     block_names = list(s_info.blocks)
+    posterior = {"u_b": ub, "ratio": lam_g / mu_g}
+    dims = {"u_b": ["node", "axis"], "ratio": ["group"], "block_acceptance_rate": ["block"]}
+    coords = {"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names,
+              "block": block_names}
+    constant = {}
+    fixed = {(p, g): v for p, g, v in layout.fixed}
+    for p, arr in (("lam", lam_g), ("mu", mu_g)):
+        free_g = [g for g in range(len(names)) if (p, g) not in fixed]
+        if len(free_g) == len(names):
+            posterior[p], dims[p] = arr, ["group"]
+            continue
+        # a fixed parameter is data, not a sampled variable (no constant chains, no NaN R-hat)
+        if free_g:
+            posterior[p], dims[p] = arr[..., free_g], [f"{p}_group"]
+            coords[f"{p}_group"] = [names[g] for g in free_g]
+        fg = [g for g in range(len(names)) if (p, g) in fixed]
+        constant[f"{p}_fixed"] = np.array([fixed[(p, g)] for g in fg], np.float64)
+        dims[f"{p}_fixed"] = [f"{p}_fixed_group"]
+        coords[f"{p}_fixed_group"] = [names[g] for g in fg]
+    # sample stats under ArviZ's names and types (az.bfmi, az.plot_energy read them)
+    stats = {
+        "lp": result.logdensity,
+        "acceptance_rate": result.acceptance[..., 0],
+        "block_acceptance_rate": result.acceptance,
+        "diverging": np.asarray(result.divergences) > 0,
+        "cg_iterations": result.cg_iterations,
+        "solve_failures": result.solve_failures,
+    }
+    gradient = s_info.kind != "rwmh"
+    if gradient:
+        stats["n_steps"] = result.grad_evals
+        stats["step_size"] = np.broadcast_to(np.asarray(result.sigma[0], np.float64)[:, None], (c, d))
+        if np.all(np.isfinite(result.energy)):
+            stats["energy"] = result.energy
+        if s_info.kind == "nuts":
+            stats["tree_depth"] = result.tree_depth
     tree = to_datatree(
-        {"u_b": ub, "lam": lam_g, "mu": mu_g, "ratio": lam_g / mu_g},
-        sample_stats={
-            "acceptance_rate": result.acceptance,
-            "lp": result.logdensity,
-            "cg_iterations": result.cg_iterations,
-            "solve_failures": result.solve_failures,
-            "n_grad": result.grad_evals,
-            "diverging": result.divergences,
-        },
-        dims={"u_b": ["node", "axis"], "lam": ["group"], "mu": ["group"], "ratio": ["group"],
-              "acceptance_rate": ["block"]},
-        coords={"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names,
-                "block": block_names},
-        attrs={"units_u_b": "mm (world)", "name": cfg.name},
+        posterior, sample_stats=stats, dims=dims, coords=coords, constant_data=constant,
+        attrs={"units_u_b": "mm (world RAS)", "name": cfg.name,
+               "tissue_coding": "label map: 1 CSF, 2 GM, 3 WM"},
     )
     tree.to_netcdf(run_dir.file("posterior.nc"))
 
-    var_names = ["lam", "mu", "ratio", "u_b"]
+    var_names = [v for v in ("lam", "mu", "ratio", "u_b") if v in posterior]
     with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
         with arviz_fast_ess():  # ArviZ's numbers, without its Python loop over lags
-            summary = summary_table(tree, ["lam", "mu", "ratio"], "u_b", "node")
+            summary = summary_table(tree, var_names[:-1], "u_b", "node")
         classic, split = [], []
         for v in var_names:
             x = np.asarray(tree.posterior[v].values)
@@ -318,8 +349,6 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
             split.append(gelman_rubin(x.reshape(c, d, -1), split=True))
     summary["rhat_classic"] = np.concatenate(classic)
     summary["rhat_classic_split"] = np.concatenate(split)
-    fixed_rows = [f"{p}[{names[g]}]" for p, g, _ in layout.fixed]
-    summary = summary.drop(index=[r for r in fixed_rows if r in summary.index])
     tmp = run_dir.file("summary.csv.tmp")
     summary.to_csv(tmp)
     os.replace(tmp, run_dir.file("summary.csv"))
@@ -338,7 +367,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     meshio.write(
         run_dir.file("mesh.vtu"),
         meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)], point_data=point_data,
-                    cell_data={"tissue": [mesh.tissue.astype(np.int32)]}),
+                    cell_data={"label": [tissue_label(mesh.tissue)]}),
     )
     located = locate_grid(mesh, problem.f)
     w, in_mesh = interpolation_matrix(mesh, problem.f, located=located)
@@ -355,7 +384,11 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     if problem.truth is not None:
         vol["displacement_true"] = (w @ problem.truth.u).reshape(*grid, 3)
     for name, arr in vol.items():
-        save_nifti(Image(arr.astype(np.float32), aff), run_dir.file(f"{name}.nii.gz"))
+        if name == "displacement_sd" or arr.ndim == 3:
+            save_nifti(Image(arr.astype(np.float32), aff), run_dir.file(f"{name}.nii.gz"))
+        else:
+            save_displacement(arr, aff, run_dir.file(f"{name}.nii.gz"),
+                              description=f"{name}: {FIXED_TO_MOVING}")
     save_nifti(Image(in_mesh.astype(np.uint8), aff), run_dir.file("mesh_mask.nii.gz"))
     plot_uncertainty(run_dir, problem.f, norm_iqr.reshape(grid), problem.labels)
     save_nifti(Image(problem.f.data.astype(np.float32), aff), run_dir.file("f.nii.gz"))

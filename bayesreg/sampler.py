@@ -101,6 +101,10 @@ class SamplerResult(NamedTuple):
         mean gradient evaluations per step over each interval (0: RW-MH)
     divergences : (C, D)
         divergent transitions per interval (gradient kernels)
+    tree_depth : (C, D)
+        NUTS doublings of the transition that made each draw (0 otherwise)
+    energy : (C, D)
+        Hamiltonian at the end of that transition's u_b trajectory (NaN for random walks)
     rhat_history : list of (draws per chain, max monitored R-hat)
     sigma : tuple
         the frozen tuned values: the proposal scale of each block (RW-MH), or
@@ -125,6 +129,8 @@ class SamplerResult(NamedTuple):
     solve_failures: np.ndarray
     grad_evals: np.ndarray
     divergences: np.ndarray
+    tree_depth: np.ndarray
+    energy: np.ndarray
     rhat_history: list
     sigma: tuple
     warmup_acceptance: np.ndarray
@@ -244,14 +250,15 @@ def sample(
         ``on_chunk(checkpoint, out)`` after the warm-up (``out=None``) and after every
         sampling chunk; ``out`` is the chunk's ``(positions (C, n, dim), interior
         (C, n, n_i, 3), logdensity (C, n), acceptance (C, n, B), cg_iterations (C, n),
-        solve_failures (C, n), grad_evals (C, n), divergences (C, n))`` with
+        solve_failures (C, n), grad_evals (C, n), divergences (C, n), tree_depth (C, n),
+        energy (C, n))`` with
         ``n = chunk_draws``.  Persisting both lets a killed
         run continue (``resume``).
     resume : SamplerCheckpoint, optional
         Continue from a checkpoint (warm-up skipped).  Chunk ``k`` always uses the key
         ``fold_in(split(rng_key)[1], k)``, so a resumed run gives the same draws as an
         uninterrupted one with the same ``rng_key``.
-    resume_draws : tuple of 8 arrays, optional
+    resume_draws : tuple of 10 arrays, optional
         The draws of the finished chunks (as ``out``, concatenated along axis 1); required
         with ``resume``.
     condensation : Condensation, optional
@@ -413,7 +420,8 @@ def _check_finite(states):
         )
 
 
-N_OUT = 8  # positions, interior, logdensity, acceptance, CG, failed solves, gradients, divergences
+N_OUT = 10  # positions, interior, logdensity, acceptance, CG, failed solves, gradients,
+# divergences, tree depth, energy
 
 
 def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_draws, min_draws,
@@ -496,7 +504,8 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
                                        list(history), dict(timings)), out)
     bar.close()
     timings["sampling_s"] = spent + time.perf_counter() - t1
-    pos, interior, lp, acc, cg, fail, grads, div = (np.concatenate(p_, axis=1) for p_ in parts)
+    pos, interior, lp, acc, cg, fail, grads, div, depth, energy = (np.concatenate(p_, axis=1)
+                                                                   for p_ in parts)
     return SamplerResult(
         positions=pos,
         interior=interior,
@@ -506,6 +515,8 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         solve_failures=fail,
         grad_evals=grads,
         divergences=div,
+        tree_depth=depth,
+        energy=energy,
         rhat_history=history,
         sigma=_as_arrays(frozen),
         warmup_acceptance=warm_acc,

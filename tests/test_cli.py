@@ -123,6 +123,106 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     # one test, not two: each pytest-xdist worker that ran one of them would build the
     # module's fixture (the tiny run) again
     _killed_run_resumes_to_the_uninterrupted_result(tiny_run)
+    _arviz_reads_the_posterior_as_its_own(out)
+    _exported_transforms_and_applied_posterior(out, capsys)
+
+
+def _arviz_reads_the_posterior_as_its_own(out):
+    """NUTS sample stats under ArviZ's names and types; the fixed mu[gm] as constant data."""
+    import warnings
+
+    import arviz as az
+    import matplotlib
+
+    matplotlib.use("Agg")
+    tree = az.from_netcdf(out / "posterior.nc")
+    ss = tree.sample_stats
+    for name in ("energy", "tree_depth", "step_size", "n_steps", "lp", "acceptance_rate"):
+        assert name in ss and np.all(np.isfinite(ss[name].values)), name
+    assert ss["diverging"].dtype == bool
+    assert np.all(ss["tree_depth"].values >= 1) and np.all(ss["step_size"].values > 0)
+    assert list(tree.posterior["mu"]["mu_group"].values) == ["csf", "wm"]
+    assert float(tree.constant_data["mu_fixed"].sel(mu_fixed_group="gm")) == 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no NaN R-hat of a constant "draw"
+        summary = az.summary(tree, var_names=["lam", "mu"])
+    assert np.all(np.isfinite(summary["r_hat"]))
+    bfmi = np.asarray(az.bfmi(tree)["energy"].values)  # one E-BFMI per chain
+    assert bfmi.shape == (3,) and np.all(bfmi > 0)
+    az.plot_energy(tree)
+    az.plot_rank(tree, var_names=["lam"])
+    matplotlib.pyplot.close("all")
+
+
+def _exported_transforms_and_applied_posterior(out, capsys):
+    """The posterior as ITK/ANTs/Slicer transforms that SimpleITK applies as the project's own
+    warp; label maps and points carried through the draws."""
+    import meshio
+    import nibabel as nib
+
+    from bayesreg import apply as A
+    from bayesreg.images import Image, load_nifti
+
+    sitk = pytest.importorskip("SimpleITK")
+    vtu = meshio.read(out / "mesh.vtu")
+    assert set(np.unique(vtu.cell_data["label"][0])) <= {1, 2, 3}  # the label map's coding
+
+    for fmt in ("itk", "ants", "slicer", "nifti"):
+        assert main(["export", str(out), "--format", fmt, "--draws", "2"]) == 0
+        man = json.loads((out / "export" / fmt / "transforms.json").read_text())
+        assert [f["what"] for f in man["files"]][0] == "mean" and len(man["files"]) == 3
+        for f in man["files"]:
+            assert (out / "export" / fmt / f["fixed_to_moving"]).is_file()
+            assert (out / "export" / fmt / f["moving_to_fixed"]).is_file()
+    assert (out / "export" / "ants" / "mean_1Warp.nii.gz").is_file()
+    slicer_mesh = meshio.read(out / "export" / "slicer" / "mesh.vtk")
+    np.testing.assert_allclose(slicer_mesh.points[:, :2], -vtu.points[:, :2])  # LPS
+
+    # SimpleITK resamples m through the exported mean as the project's own warp does
+    rp = A.load_posterior(out)
+    np.testing.assert_allclose(rp.u_mean, vtu.point_data["u_mean"], atol=1e-6)
+    m = sitk.ReadImage(str(out / "m.nii.gz"), sitk.sitkFloat64)
+    f = sitk.ReadImage(str(out / "f.nii.gz"), sitk.sitkFloat64)
+    field = sitk.ReadImage(str(out / "export" / "itk" / "fixed_to_moving_mean.nii.gz"),
+                           sitk.sitkVectorFloat64)
+    got = sitk.GetArrayFromImage(sitk.Resample(m, f, sitk.DisplacementFieldTransform(field),
+                                               sitk.sitkLinear, 0.0)).transpose(2, 1, 0)
+    m_img = load_nifti(out / "m.nii.gz")
+    own = A.warp_image(rp, Image(np.asarray(m_img.data, np.float64), m_img.affine)).data
+    in_mesh = np.asarray(nib.load(out / "mesh_mask.nii.gz").dataobj) > 0
+    assert np.abs(got - own)[in_mesh].max() < 1e-4 * np.abs(own[in_mesh]).max()
+
+    # a label map through the draws: probabilities per voxel sum to 1; where every draw
+    # agrees the most probable label is the nearest-neighbour warp of the mean
+    labels = load_nifti(out / "labels.nii.gz")
+    lp = A.warp_labels(rp, labels, draws=8)
+    prob = lp.probability.data
+    assert prob.min() >= 0 and prob.max() <= 1
+    np.testing.assert_allclose(prob.sum(axis=-1), 1.0, atol=1e-6)
+    nn_mean = A.warp_image(rp, Image(labels.data.astype(float), labels.affine),
+                           direction="to_moving", order=0).data
+    sure = prob.max(axis=-1) == 1.0
+    assert np.mean(lp.most_probable.data[sure] == nn_mean[sure]) > 0.999
+    assert np.mean(prob.max(axis=-1) < 1.0) > 0  # the draws differ somewhere
+
+    # points: posterior positions, 95% ellipsoids and their coverage of the synthetic truth
+    nodes = rp.mesh.nodes[rp.mesh.interior[::5]]
+    csv = out / "targets.csv"
+    csv.write_text("name,x,y,z\n" + "".join(f"t{k},{a},{b},{c}\n" for k, (a, b, c) in enumerate(nodes)))
+    capsys.readouterr()
+    assert main(["apply", str(out), str(csv), "--out", str(out / "targets_moved.csv"),
+                 "--truth", "synthetic"]) == 0
+    said = capsys.readouterr().out
+    assert "TRE median" in said and "95% ellipsoid" in said
+    rows = (out / "targets_moved.csv").read_text().splitlines()
+    assert len(rows) == len(nodes) + 1 and "semi_axis_1" in rows[0] and "inside_95" in rows[0]
+    pp = A.map_points(rp, nodes)
+    err = A.target_errors(pp, nodes + rp.u_true[rp.mesh.interior[::5]])
+    assert 0.0 <= err["coverage_95"] <= 1.0 and np.all(pp.semi_axes > 0)
+    assert err["tre_median_mm"] < np.median(err["tre_start_mm"])  # better than not moving them
+    assert main(["apply", str(out), str(out / "labels.nii.gz"), "--out", str(out / "seg"),
+                 "--draws", "4"]) == 0
+    assert (out / "seg_probability.nii.gz").is_file() and (out / "seg_most_probable.nii.gz").is_file()
 
 
 def test_version_prints_the_package_version(capsys):
@@ -397,5 +497,5 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
     import arviz as az
 
     tree = az.from_netcdf(out / "posterior.nc")
-    assert {"n_grad", "diverging", "acceptance_rate"} <= set(tree.sample_stats.data_vars)
+    assert {"n_steps", "diverging", "acceptance_rate", "step_size"} <= set(tree.sample_stats.data_vars)
     assert np.all(np.isfinite(tree.posterior["lam"].values)) and np.all(tree.posterior["mu"].values > 0)

@@ -80,7 +80,7 @@ def make_run(path, *, elastic="tissue", scale=1.0, init_scale=1.0, truth=True, s
     if truth:
         pd_ |= {"u_true": u_true, "u_error": u_mean - u_true}
     meshio.write(path / "mesh.vtu", meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)], point_data=pd_,
-                                                cell_data={"tissue": [mesh.tissue.astype(np.int32)]}))
+                                                cell_data={"label": [mesh.tissue.astype(np.int32) + 1]}))
 
     x, lab = _grid(), _labels()
     inside = np.all((x >= 0) & (x <= 30), axis=-1)[..., None]

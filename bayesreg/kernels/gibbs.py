@@ -96,6 +96,9 @@ class GibbsInfo(NamedTuple):
     divergent : () bool
     tree_depth : ()
         NUTS trajectory doublings (0 for MALA, HMC)
+    energy : ()
+        Hamiltonian (negative conditional log-density plus kinetic energy) at the end of
+        the u_b trajectory (ArviZ's ``energy``: BFMI, energy plot)
     """
 
     acceptance_rate: jax.Array
@@ -105,6 +108,7 @@ class GibbsInfo(NamedTuple):
     grad_evals: jax.Array
     divergent: jax.Array
     tree_depth: jax.Array
+    energy: jax.Array
 
 
 class GibbsParams(NamedTuple):
@@ -191,14 +195,15 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                               max_num_doublings=max_num_doublings)
             moved = jnp.any(new.position != ustate.position)
             return new, (info.acceptance_rate, moved, info.num_integration_steps, info.is_divergent,
-                         info.num_trajectory_expansions)
+                         info.num_trajectory_expansions, info.energy)
         if jitter:
             key, k_n = jax.random.split(key)
             n = jax.random.randint(k_n, (), 1, 2 * n_leap)  # 1 .. 2L - 1, mean L
         else:
             n = jnp.asarray(n_leap)
         new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n)
-        return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0))
+        return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0),
+                     info.energy)
 
     def step(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
         k_u, k_e = jax.random.split(rng_key)
@@ -212,7 +217,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         def cond_fn(w):
             return target.u_logdensity(w, eta, cache, state.interior)
 
-        ustate, (acc_u, moved_u, n_grad, divergent, depth) = u_step(k_u, state.u, cond_fn, params)
+        ustate, (acc_u, moved_u, n_grad, divergent, depth, energy) = u_step(k_u, state.u, cond_fn, params)
         _, interior, its, ok_u = target.u_evaluate(ustate.position, eta, cache, state.interior)
         # a rejected trajectory keeps the old interior (the cached map gives the same)
         interior = jnp.where(moved_u, interior, state.interior)
@@ -263,7 +268,8 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         else:
             lp_nat = ustate.logdensity + cache.log_norm
         state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)
-        info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth)
+        info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth,
+                         energy)
         return state, info, cache
 
     def init_cache(state: GibbsState) -> Cache:

@@ -168,6 +168,19 @@ def _nifti(path: Path, *, required: bool = True):
     return np.asarray(img.dataobj), np.asarray(img.affine, np.float64)
 
 
+def _field(path: Path, *, required: bool = True):
+    """A displacement field file as ``(I, J, K, 3)`` RAS mm (any form
+    :func:`bayesreg.transforms.load_displacement` reads)."""
+    from bayesreg.transforms import load_displacement
+
+    if not path.exists():
+        if required:
+            raise FileNotFoundError(f"{path.name} not found in run directory {path.parent}")
+        return None, None
+    img = load_displacement(path)
+    return img.data, np.asarray(img.affine, np.float64)
+
+
 def load_run(path) -> RunData:
     """Read a finished run directory (written by :func:`bayesreg.outputs.write_outputs`).
 
@@ -193,6 +206,8 @@ def load_run(path) -> RunData:
     import arviz as az
     import meshio
 
+    from bayesreg.diagnostics import group_draws
+
     path = Path(path)
     if not path.is_dir():
         raise FileNotFoundError(f"run directory {path} not found")
@@ -208,20 +223,24 @@ def load_run(path) -> RunData:
     tets = next((np.asarray(c.data) for c in mesh.cells if c.type == "tetra"), None)
     if tets is None:
         raise ValueError(f"mesh.vtu of run {path} has no tetra cells")
-    tissue = np.asarray(mesh.cell_data["tissue"][0]).astype(int) if "tissue" in mesh.cell_data \
-        else np.zeros(len(tets), int)
+    if "label" in mesh.cell_data:  # the label map's coding, 1 CSF, 2 GM, 3 WM
+        tissue = np.asarray(mesh.cell_data["label"][0]).astype(int) - 1
+    elif "tissue" in mesh.cell_data:  # runs written before: tissue index 0, 1, 2
+        tissue = np.asarray(mesh.cell_data["tissue"][0]).astype(int)
+    else:
+        tissue = np.zeros(len(tets), int)
     u_init = mesh.point_data.get("u_init")
 
     tree = az.from_netcdf(path / "posterior.nc")
     try:
         post = tree.posterior
-        missing = [v for v in ("u_b", "lam", "mu") if v not in post]
+        consts = tree.constant_data if "constant_data" in tree.children else {}
+        missing = [v for v in ("u_b", "lam", "mu") if v not in post and f"{v}_fixed" not in consts]
         if missing:
             raise ValueError(f"posterior.nc of run {path} lacks {missing}")
         u_b = np.asarray(post["u_b"].transpose("chain", "draw", "node", "axis").values, float)
         boundary = np.asarray(post["node"].values, int)
-        lam, mu = (np.asarray(post[v].transpose("chain", "draw", "group").values, float)
-                   for v in ("lam", "mu"))
+        lam, mu = (group_draws(tree, v) for v in ("lam", "mu"))
         ratio = (np.asarray(post["ratio"].transpose("chain", "draw", "group").values, float)
                  if "ratio" in post else lam / mu)
         groups = tuple(str(g) for g in post["group"].values)
@@ -230,10 +249,10 @@ def load_run(path) -> RunData:
 
     f, affine = _nifti(path / "f.nii.gz")
     labels, _ = _nifti(path / "labels.nii.gz")
-    disp_mean, _ = _nifti(path / "displacement_mean.nii.gz")
-    disp_true, _ = _nifti(path / "displacement_true.nii.gz")
+    disp_mean, _ = _field(path / "displacement_mean.nii.gz")
+    disp_true, _ = _field(path / "displacement_true.nii.gz")
     m, _ = _nifti(path / "m.nii.gz", required=False)
-    disp_init, _ = _nifti(path / "displacement_init.nii.gz", required=False)
+    disp_init, _ = _field(path / "displacement_init.nii.gz", required=False)
     disp_sd, _ = _nifti(path / "displacement_sd.nii.gz", required=False)
     iqr, _ = _nifti(path / "displacement_norm_iqr.nii.gz", required=False)
     in_mesh, _ = _nifti(path / "mesh_mask.nii.gz", required=False)
