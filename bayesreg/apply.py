@@ -61,8 +61,9 @@ class RunPosterior(NamedTuple):
         Lamé parameters of each parameter group per draw (fixed ones included).
     group : (M,) int ndarray
         Parameter group of each element.
-    u_mean : (N, 3) ndarray
-        Posterior mean nodal displacement, mm.
+    u_mean, u_sd : (N, 3) ndarray
+        Posterior mean and sd of the nodal displacement, mm (RAS components), as the run
+        wrote them in ``mesh.vtu``.
     u_true : (N, 3) ndarray or None
         The synthetic truth (synthetic runs).
     """
@@ -77,6 +78,7 @@ class RunPosterior(NamedTuple):
     mu: np.ndarray
     group: np.ndarray
     u_mean: np.ndarray
+    u_sd: np.ndarray
     u_true: np.ndarray | None
 
     @property
@@ -98,18 +100,20 @@ def load_posterior(run_dir) -> RunPosterior:
     Raises
     ------
     FileNotFoundError
-        If ``posterior.nc`` or the checkpoint (config, problem) is missing: the run has not
-        finished, or was written without ``output.checkpoint``.
+        If ``posterior.nc``, ``mesh.vtu`` or the checkpoint (config, problem) is missing: the
+        run has not finished, or was written without ``output.checkpoint``.
     """
     import arviz as az
+    import meshio
 
     from bayesreg.checkpoint import Checkpoint
     from bayesreg.diagnostics import group_draws
     from bayesreg.problem import parameter_layout
 
     path = Path(run_dir)
-    if not (path / "posterior.nc").is_file():
-        raise FileNotFoundError(f"{path / 'posterior.nc'} not found: {path} is not a finished run")
+    for name in ("posterior.nc", "mesh.vtu"):
+        if not (path / name).is_file():
+            raise FileNotFoundError(f"{path / name} not found: {path} is not a finished run")
     ckpt = Checkpoint(path)
     if not ckpt.problem_path.is_file():
         raise FileNotFoundError(f"{ckpt.problem_path} not found: the run's mesh and images are "
@@ -130,10 +134,12 @@ def load_posterior(run_dir) -> RunPosterior:
                          "mesh (files of two different runs?)")
     c, d = u_b.shape[:2]
     u_b, lam, mu = (a.reshape(c * d, *a.shape[2:]) for a in (u_b, lam, mu))
-    rp = RunPosterior(path, data.mesh, data.f, data.m, data.labels, u_b, lam, mu,
-                      np.asarray(group), np.zeros_like(data.mesh.nodes),
-                      None if data.truth is None else np.asarray(data.truth.u))
-    return rp._replace(u_mean=nodal_field_draws(rp, np.arange(rp.n_draws)).mean(axis=0))
+    # the run's own nodal moments (over every draw's stored interior): no solve of all draws
+    point_data = meshio.read(path / "mesh.vtu").point_data
+    return RunPosterior(path, data.mesh, data.f, data.m, data.labels, u_b, lam, mu,
+                        np.asarray(group), np.asarray(point_data["u_mean"], np.float64),
+                        np.asarray(point_data["u_sd"], np.float64),
+                        None if data.truth is None else np.asarray(data.truth.u))
 
 
 def draw_indices(n_draws: int, k: int | None) -> np.ndarray:
@@ -179,8 +185,9 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
     return out
 
 
-def _grid_field(rp: RunPosterior, u, grid: Image) -> np.ndarray:
-    w, _ = interpolation_matrix(rp.mesh, grid)
+def _grid_field(w, u, grid: Image) -> np.ndarray:
+    """Nodal ``u`` ``(N, 3)`` on ``grid`` through the interpolation matrix ``w`` of
+    :func:`bayesreg.warp.interpolation_matrix` (located once per grid, reused per field)."""
     return (w @ u).reshape(*grid.data.shape[:3], 3)
 
 
@@ -244,8 +251,9 @@ def export(run_dir, fmt: str = "itk", *, draws: int = 0, out=None, inverse: bool
     if len(idx):
         fields += [(f"draw{int(s):05d}", u) for s, u in zip(idx, nodal_field_draws(rp, idx))]
     files = []
+    w_f, _ = interpolation_matrix(rp.mesh, rp.f)
     for tag, u in fields:
-        fwd = save_displacement(_grid_field(rp, u, rp.f), rp.f.affine, out / fwd_name.format(tag),
+        fwd = save_displacement(_grid_field(w_f, u, rp.f), rp.f.affine, out / fwd_name.format(tag),
                                 convention=conv, description=FIXED_TO_MOVING)
         entry = {"what": tag, "fixed_to_moving": fwd.name}
         if inverse:
@@ -288,8 +296,7 @@ def _write_slicer_mesh(rp: RunPosterior, path: Path) -> None:
     import meshio
 
     lps = np.array([-1.0, -1.0, 1.0])
-    u = nodal_field_draws(rp, draw_indices(rp.n_draws, 200))
-    point_data = {"u_mean": rp.u_mean * lps, "u_sd": u.std(axis=0)}
+    point_data = {"u_mean": rp.u_mean * lps, "u_sd": rp.u_sd}  # an sd has no sign
     if rp.u_true is not None:
         point_data["u_true"] = rp.u_true * lps
     meshio.write(str(path), meshio.Mesh(rp.mesh.nodes * lps, [("tetra", rp.mesh.tets)],
@@ -307,11 +314,14 @@ def _direction(direction: str) -> str:
     return d
 
 
-def _sample_points(rp: RunPosterior, u, direction: str):
-    """Output grid and, per output voxel centre, the point of the input image to sample."""
+def _sample_points(rp: RunPosterior, u, direction: str, w_f=None):
+    """Output grid and, per output voxel centre, the point of the input image to sample
+    (``w_f``: the interpolation matrix on ``f``'s grid, when already built)."""
     if direction == "to_fixed":
         grid = rp.f
-        return grid, grid_points(grid) + _grid_field(rp, u, grid).reshape(-1, 3)
+        if w_f is None:
+            w_f, _ = interpolation_matrix(rp.mesh, grid)
+        return grid, grid_points(grid) + _grid_field(w_f, u, grid).reshape(-1, 3)
     grid = rp.m
     v, _ = inverse_displacement(rp.mesh, u, grid)
     return grid, grid_points(grid) + v.reshape(-1, 3)
@@ -396,9 +406,10 @@ def warp_labels(rp: RunPosterior, labels: Image, *, direction: str = "to_moving"
         raise ValueError("warp_labels: the label map holds non-integer values")
     values = np.unique(data).astype(np.int64)
     idx = draw_indices(rp.n_draws, draws)
+    w_f = interpolation_matrix(rp.mesh, rp.f)[0] if direction == "to_fixed" else None
     counts = None
     for u in nodal_field_draws(rp, idx):
-        grid, pts = _sample_points(rp, u, direction)
+        grid, pts = _sample_points(rp, u, direction, w_f)
         lab = interpolate_numpy(Image(data.astype(np.float64), labels.affine), pts, order=0,
                                 cval=float(values[0] if 0 not in values else 0))
         k = np.searchsorted(values, lab.astype(np.int64))

@@ -180,7 +180,9 @@ def _exported_transforms_and_applied_posterior(out, capsys):
 
     # SimpleITK resamples m through the exported mean as the project's own warp does
     rp = A.load_posterior(out)
-    np.testing.assert_allclose(rp.u_mean, vtu.point_data["u_mean"], atol=1e-6)
+    # a draw's interior by the direct solve agrees with the sampler's stored interiors
+    np.testing.assert_allclose(A.nodal_field_draws(rp, np.arange(rp.n_draws)).mean(axis=0),
+                               vtu.point_data["u_mean"], atol=1e-6)
     m = sitk.ReadImage(str(out / "m.nii.gz"), sitk.sitkFloat64)
     f = sitk.ReadImage(str(out / "f.nii.gz"), sitk.sitkFloat64)
     field = sitk.ReadImage(str(out / "export" / "itk" / "fixed_to_moving_mean.nii.gz"),
