@@ -56,28 +56,20 @@ def mni152(resolution_mm: float = 2.0, *, margin_mm: float = 20.0):
     return tuple(pad(o, margin_mm) for o in out)
 
 
-#: The twenty normal BrainWeb subjects (the numbers of their model files).
 BRAINWEB_SUBJECTS = (4, 5, 6, 18, 20, 38, 41, 42, 43, 44, 45, 46, 47, 48, 49, 50, 51, 52, 53, 54)
+"""The twenty normal BrainWeb subjects (the numbers of their model files)."""
 
-#: BrainWeb's classes of the twenty normal models, by label value.
 BRAINWEB_CLASSES = ("background", "csf", "gm", "wm", "fat", "muscle", "muscle/skin", "skull",
                     "vessels", "around fat", "dura", "marrow")
+"""BrainWeb's classes of the twenty normal models, by label value."""
 
-#: bayesreg's coding of each BrainWeb class: the intracranial tissues as themselves, the
-#: vessels (blood inside the intracranial volume, mechanically soft) as CSF, the skull, dura
-#: and marrow as the skull region, and the scalp (fat, muscle, skin, connective tissue)
-#: outside the skull as part of the forbidden region too.
 BRAINWEB_LABELS = np.array([L.BACKGROUND, L.CSF, L.GM, L.WM, L.SKULL, L.SKULL, L.SKULL, L.SKULL,
                             L.CSF, L.SKULL, L.SKULL, L.SKULL], np.uint8)
+"""bayesreg's coding of each BrainWeb class: the intracranial tissues as themselves, the
+vessels (blood inside the intracranial volume, mechanically soft) as CSF, the skull, dura
+and marrow as the skull region, and the scalp (fat, muscle, skin, connective tissue)
+outside the skull as part of the forbidden region too."""
 
-#: Tissue parameters at 1.5 T, ``(T1 ms, T2* ms, proton density)`` per class, as BrainWeb's
-#: MR simulator uses them (Kwan, Evans & Pike, IEEE TMI 18(11) 1999; Collins et al., IEEE TMI
-#: 17(3) 1998): CSF, GM, WM, fat, muscle and skin as published there.  The classes the
-#: original phantom lacked take those of the nearest published class: muscle as the
-#: "muscle/skin" class (569 ms, 30 ms, 1.0), the connective tissue around fat as WM-like
-#: connective tissue (500 ms, 61 ms, 0.77), the dura as the "skin" class (2569 ms, 58 ms,
-#: 1.0), the marrow as fat, and the vessels as CSF (flowing blood has no single T1-weighted
-#: value).  The skull gives no signal.
 BRAINWEB_TISSUE = {
     "background": (0.0, 0.0, 0.0),
     "csf": (2569.0, 58.0, 1.00),
@@ -92,9 +84,17 @@ BRAINWEB_TISSUE = {
     "dura": (2569.0, 58.0, 1.00),
     "marrow": (350.0, 58.0, 1.00),
 }
+"""Tissue parameters at 1.5 T, ``(T1 ms, T2* ms, proton density)`` per class, as BrainWeb's
+MR simulator uses them (Kwan, Evans & Pike, IEEE TMI 18(11) 1999; Collins et al., IEEE TMI
+17(3) 1998): CSF, GM, WM, fat, muscle and skin as published there.  The classes the
+original phantom lacked take those of the nearest published class: muscle as the
+"muscle/skin" class (569 ms, 30 ms, 1.0), the connective tissue around fat as WM-like
+connective tissue (500 ms, 61 ms, 0.77), the dura as the "skin" class (2569 ms, 58 ms,
+1.0), the marrow as fat, and the vessels as CSF (flowing blood has no single T1-weighted
+value).  The skull gives no signal."""
 
-#: BrainWeb's T1-weighted sequence: spoiled FLASH, TR 18 ms, TE 10 ms, flip angle 30 degrees.
 BRAINWEB_T1_SEQUENCE = {"tr_ms": 18.0, "te_ms": 10.0, "flip_deg": 30.0}
+"""BrainWeb's T1-weighted sequence: spoiled FLASH, TR 18 ms, TE 10 ms, flip angle 30 degrees."""
 
 
 def t1_weighted_signal(t1_ms, t2s_ms, pd, *, tr_ms=18.0, te_ms=10.0, flip_deg=30.0):

@@ -150,7 +150,7 @@ class DataConfig(_Strict):
             if source == self.source:
                 continue
             given = [k for k in keys if k in self.model_fields_set and getattr(self, k) is not None
-                     and getattr(self, k) != self.model_fields[k].default]
+                     and getattr(self, k) != type(self).model_fields[k].default]
             if given:
                 raise ValueError(f"data.{', data.'.join(given)} {'is' if len(given) == 1 else 'are'} "
                                  f"only used with data.source: {source} (data.source is "
