@@ -291,18 +291,25 @@ def export(run_dir, fmt: str = "itk", *, draws: int = 0, out=None, inverse: bool
 
 
 def _write_slicer_mesh(rp: RunPosterior, path: Path) -> None:
-    """The mesh in LPS (3D Slicer's convention for model files) with ``u_mean``, ``u_sd``
-    (LPS components) and ``label`` (the label-map coding of the tissue)."""
+    """The mesh in LPS (3D Slicer's convention for model files), ``SPACE=LPS`` in its legacy
+    VTK header (where Slicer reads a model file's space), with ``u_mean``, ``u_sd`` (LPS
+    components) and ``label`` (the label-map coding of the tissue)."""
     import meshio
 
     lps = np.array([-1.0, -1.0, 1.0])
     point_data = {"u_mean": rp.u_mean * lps, "u_sd": rp.u_sd}  # an sd has no sign
     if rp.u_true is not None:
         point_data["u_true"] = rp.u_true * lps
-    meshio.write(str(path), meshio.Mesh(rp.mesh.nodes * lps, [("tetra", rp.mesh.tets)],
-                                        point_data=point_data,
-                                        cell_data={"label": [tissue_label(rp.mesh.tissue)]}),
-                 binary=False)
+    # legacy format 4.2: VTK's reader refuses the integer arrays of meshio's 5.1 ("vtktypeint32")
+    meshio.vtk.write(str(path), meshio.Mesh(rp.mesh.nodes * lps, [("tetra", rp.mesh.tets)],
+                                            point_data=point_data,
+                                            cell_data={"label": [tissue_label(rp.mesh.tissue)]}),
+                     binary=True, fmt_version="4.2")
+    # the legacy header's title line (ASCII before the binary data) carries the space: 3D
+    # Slicer reads "SPACE=LPS" there (vtkMRMLModelStorageNode::GetCoordinateSystemFromFileHeader)
+    lines = path.read_bytes().split(b"\n", 2)
+    lines[1] = b"bayesreg posterior mesh, world mm SPACE=LPS"
+    path.write_bytes(b"\n".join(lines))
 
 
 # ---- images and label maps -------------------------------------------------------------

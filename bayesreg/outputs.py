@@ -69,7 +69,8 @@ from bayesreg.sampler import SamplerResult
 from bayesreg.transforms import FIXED_TO_MOVING, save_displacement
 from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
-__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "summary_table"]
+__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "verdict", "summary_table",
+           "RHAT_RANK_MAX", "ESS_MIN"]
 
 
 class RunResult(NamedTuple):
@@ -135,7 +136,7 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
     for k, name in enumerate(problem.layout.group_names[:16]):
         r = ratio[..., k].ravel()
         ratios[name] = {
-            "mean": float(r.mean()), "sd": float(r.std()),
+            "mean": float(r.mean()), "sd": float(r.std()), "median": float(np.median(r)),
             "q05": float(np.quantile(r, 0.05)), "q95": float(np.quantile(r, 0.95)),
         }
     if truth is None:
@@ -202,9 +203,9 @@ def _f(x, spec: str) -> str:
 
 
 def format_report(errors: dict | None, info: dict) -> str:
-    """The short table the run prints (error vs truth, ratio posteriors, sampler figures), ending
-    with a warning where chains never moved.  Missing or non-finite figures (``null`` in a
-    ``run.json`` read back) print as ``n/a``."""
+    """The short table the run prints (error vs truth, ratio posteriors as medians with 90%
+    intervals, sampler figures), ending with the verdict line (:func:`verdict`).  Missing or
+    non-finite figures (``null`` in a ``run.json`` read back) print as ``n/a``."""
     lines = []
     mesh = info.get("mesh") or {}
     if "n_nodes" in mesh:
@@ -247,15 +248,65 @@ def format_report(errors: dict | None, info: dict) -> str:
             lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
         lines.append(f"  MSE all nodes {_f(errors['mse_all_nodes_mm2'], '.4f')} mm^2")
     if errors:
-        lines.append("lam/mu posterior        mean      sd     5%     95%   truth")
+        lines.append("lam/mu posterior       median        5%       95%     truth")
         for name, r in errors["ratio"].items():
-            tr = f"{_f(r['true'], '7.3g')}" if "true" in r else "      -"
-            lines.append(f"  {name:<14} {_f(r['mean'], '9.3f')} {_f(r['sd'], '7.3f')} {_f(r['q05'], '7.3f')} {_f(r['q95'], '7.3f')} {tr}")
+            tr = f"{_f(r['true'], '9.4g')}" if "true" in r else "        -"
+            mid = r.get("median", r.get("mean"))  # (runs written before medians were kept)
+            lines.append(f"  {name:<14} {_f(mid, '9.4g')} {_f(r['q05'], '9.4g')} {_f(r['q95'], '9.4g')} {tr}")
+    lines.append(verdict(s))
+    return "\n".join(lines)
+
+
+RHAT_RANK_MAX = 1.01
+"""Today's convergence criterion (Vehtari, Gelman, Simpson, Carpenter & Buerkner, Bayesian
+Analysis 16(2), 2021; ArviZ's and Stan's defaults): rank-normalised split R-hat at most this
+over every monitored estimand ..."""
+ESS_MIN = 400
+"""... and bulk and tail effective sample sizes at least this."""
+
+
+def verdict(s: dict) -> str:
+    """The plain last line of a run's summary: converged or not, against which criterion.
+
+    Parameters
+    ----------
+    s : dict
+        ``run.json["sampler"]``: ``converged`` (the run's own stop rule, classic R-hat below
+        ``rhat_threshold``), ``rhat_classic_max`` / ``rhat_classic_split_max``,
+        ``rhat_rank_max``, ``ess_bulk_min``, ``ess_tail_min`` (absent in older runs),
+        ``stuck_chains``, ``draws_per_chain``.
+
+    Returns
+    -------
+    str
+        ``"verdict: converged ..."`` only where both the run's rule and today's
+        (rank-normalised R-hat <= 1.01, bulk and tail ESS >= 400) are met;
+        ``"verdict: NOT converged ..."`` otherwise, with the figures that fail.
+    """
     stuck = s.get("stuck_chains") or []
     if stuck:
-        lines.append(f"WARNING: chains {stuck} never moved while sampling: this run's summaries do "
-                     "not describe the posterior")
-    return "\n".join(lines)
+        return (f"verdict: NOT converged: chains {stuck} never moved while sampling; this run's "
+                "summaries do not describe the posterior")
+    split = bool(s.get("rhat_split_monitored"))
+    classic = s.get("rhat_classic_split_max" if split else "rhat_classic_max")
+    rule = f"{'split ' if split else ''}classic R-hat {_f(classic, '.3f')}, needs < {s.get('rhat_threshold')}"
+    rank, bulk, tail = s.get("rhat_rank_max"), s.get("ess_bulk_min"), s.get("ess_tail_min")
+
+    def ok(x, good):
+        return x is not None and np.isfinite(x) and good(x)
+
+    modern_ok = (ok(rank, lambda r: r <= RHAT_RANK_MAX) and ok(bulk, lambda e: e >= ESS_MIN)
+                 and (tail is None or ok(tail, lambda e: e >= ESS_MIN)))
+    modern = (f"today's criterion (rank-normalised R-hat <= {RHAT_RANK_MAX}, bulk"
+              f"{'' if tail is None else ' and tail'} ESS >= {ESS_MIN}): R-hat {_f(rank, '.3f')}, "
+              f"bulk ESS {_f(bulk, '.0f')}" + ("" if tail is None else f", tail ESS {_f(tail, '.0f')}"))
+    if s.get("converged") and modern_ok:
+        return f"verdict: converged by the run's stop rule ({rule}) and by {modern}"
+    if s.get("converged"):
+        return (f"verdict: NOT converged by {modern}, although the run's stop rule was met ({rule}); "
+                "means and intervals are not yet reliable")
+    return (f"verdict: NOT converged: {s.get('draws_per_chain')} draws per chain without meeting the "
+            f"run's stop rule ({rule}); {modern}; these summaries do not describe the posterior")
 
 
 def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: SamplerResult,
@@ -399,7 +450,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     truth_ratio = None
     if errors and all("true" in errors["ratio"].get(nm, {}) for nm in names[:6]):
         truth_ratio = [errors["ratio"][nm]["true"] for nm in names[:6]]
-    plot_parameters(run_dir, tree, names, truth_ratio)
+    plot_parameters(run_dir, tree, names, truth_ratio, nodes=mesh.nodes,
+                    u_true_b=None if problem.truth is None else problem.truth.u[mesh.boundary])
 
     rank_rhat = summary["r_hat"].to_numpy(dtype=float)
     info = {
@@ -436,6 +488,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
             "rhat_split_monitored": s_info.rhat_split,
             "rhat_rank_max": float(np.nanmax(rank_rhat)),
             "ess_bulk_min": float(summary["ess_bulk"].min()),
+            "ess_tail_min": float(summary["ess_tail"].min()),
             "converged": bool(result.converged),
             "stuck_chains": list(s_info.stuck_chains),
             "rhat_threshold": s_info.rhat_threshold,
@@ -452,6 +505,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
     }
+    info["sampler"]["verdict"] = verdict(info["sampler"])
     write_text_atomic(run_dir.file("errors.json"), dumps_json(errors, indent=2))
     write_text_atomic(run_dir.file("run.json"), dumps_json(info, indent=2))
     path = run_dir.commit()

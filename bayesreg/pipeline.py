@@ -194,6 +194,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         if init is None:
             with stages.stage("starts"):
                 init = initialise(problem, cfg)
+                stages.tell(starts_line(init.info, len(init.x0)))
             if cfg.output.checkpoint:
                 ckpt.save_init(init)
         resumable = cfg.output.checkpoint
@@ -227,6 +228,18 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         raise
     finally:
         run_dir.release()
+
+
+def starts_line(info: dict, chains: int) -> str:
+    """One line on how the chains' starts were made (the mode search's gain and why it
+    stopped)."""
+    line = f"{chains} chains, start {info.get('start', '?')}"
+    if info.get("method") == "mode":
+        line += (f"; mode search log p {info['logp_start']:.6g} -> {info['logp_mode']:.6g} in "
+                 f"{info['iterations']} iterations ({info['message']})")
+    else:
+        line += f", {info.get('method', '?')}"
+    return line
 
 
 class RunInterrupted(KeyboardInterrupt):

@@ -208,6 +208,17 @@ def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
     return tissue_vals[mesh.tissue]
 
 
+def _truth_line(info: dict, u) -> str:
+    """One line on a synthetic truth: its kind, push, largest displacement and, for the
+    constrained truth, its active sets and energy."""
+    line = (f"{info['truth']}, {len(info['pushed'])} nodes pushed {info['shift_mm']:g} mm, "
+            f"max |u| {float(np.linalg.norm(u, axis=1).max()):.1f} mm")
+    if info["truth"] == "constrained":
+        line += (f", {info['n_active']} skull and {info['n_volume_active']} volume constraints "
+                 f"active, energy {info['energy']:.4g}")
+    return line
+
+
 def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
     """Synthetic truth per ``cfg.synthetic``; returns ``(Truth, info dict)``.
 
@@ -250,6 +261,7 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
                 "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
             )
         info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
+    info.setdefault("truth", s.truth)
     info["lam"] = s.lam.model_dump()
     info["mu"] = s.mu.model_dump()
     return truth, info
@@ -308,6 +320,7 @@ def make_data(cfg: Config, stages: Stages | None = None) -> ProblemData:
     """
     timings = {}
     stage = stages.stage if stages is not None else (lambda name: contextlib.nullcontext())
+    tell = stages.tell if stages is not None else (lambda detail: None)
     with stage("data"):
         t = time.perf_counter()
         f, m, labels = _load_data(cfg)
@@ -319,6 +332,10 @@ def make_data(cfg: Config, stages: Stages | None = None) -> ProblemData:
         if m is not None:
             m = Image(np.asarray(m.data, np.float64) / scale, m.affine)
         timings["data_s"] = time.perf_counter() - t
+        spacing = np.linalg.norm(f.affine[:3, :3], axis=0)
+        tell(f"{_data_name(cfg)}, f {'x'.join(map(str, f.data.shape[:3]))} voxels of "
+             f"{'x'.join(f'{v:.3g}' for v in spacing)} mm, "
+             f"m {'from the synthetic truth' if m is None else 'given'}")
 
     with stage("mesh"):
         t = time.perf_counter()
@@ -344,6 +361,8 @@ def make_data(cfg: Config, stages: Stages | None = None) -> ProblemData:
                 "under and near the mesh became background, so the skull constraint only holds "
                 "beyond them.  Is the mesh of these images?", UserWarning, stacklevel=2)
         timings["mesh_s"] = time.perf_counter() - t
+        tell(f"{len(mesh.nodes)} nodes ({len(mesh.boundary)} boundary), {len(mesh.tets)} tets"
+             + (f", {n_carved} skull voxels carved" if n_carved else ""))
         empty = [n for n, c in zip(L.TISSUES, np.bincount(mesh.tissue, minlength=3)) if c == 0]
         if cfg.model.elastic == "tissue" and empty:
             raise ValueError(f"no mesh element is labelled {empty}: refine the mesh or use elastic: uniform")
@@ -353,6 +372,7 @@ def make_data(cfg: Config, stages: Stages | None = None) -> ProblemData:
     if cfg.synthetic.enabled:
         with stage("truth"):
             truth, truth_info = _make_truth(cfg, mesh, labels)
+            tell(_truth_line(truth_info, truth.u))
             m = warp_image(f, mesh, truth.u, background=0.0, outside=cfg.synthetic.outside)
     elif m is None:  # pragma: no cover - guarded by the config validator
         raise ValueError("no intra-operative image")

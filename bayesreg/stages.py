@@ -82,6 +82,7 @@ class Stages:
         self.current: str | None = None
         self.done: list[str] = []
         self._t = time.perf_counter()
+        self._detail: str | None = None
 
     @contextlib.contextmanager
     def stage(self, name: str):
@@ -91,6 +92,7 @@ class Stages:
         through, :attr:`current` telling where it came."""
         self.current = name
         self._t = time.perf_counter()
+        self._detail = None
         try:
             yield
         except StageError:
@@ -112,9 +114,17 @@ class Stages:
         self._finish()
         self.current = name
         self._t = time.perf_counter()
+        self._detail = None
+
+    def tell(self, detail: str) -> None:
+        """What the current stage made, printed on its line when it ends (``bayesreg: mesh
+        done (0.9 s): 282 nodes (188 boundary), 1024 tets``)."""
+        self._detail = detail
 
     def _finish(self) -> None:
         self.done.append(self.current)
         if self.progress:
-            print(f"bayesreg: {self.current} done ({time.perf_counter() - self._t:.1f} s)",
+            detail = f": {self._detail}" if self._detail else ""
+            print(f"bayesreg: {self.current} done ({time.perf_counter() - self._t:.1f} s){detail}",
                   file=self.stream or sys.stderr, flush=True)
+        self._detail = None

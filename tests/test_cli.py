@@ -177,6 +177,7 @@ def _exported_transforms_and_applied_posterior(out, capsys):
     assert (out / "export" / "ants" / "mean_1Warp.nii.gz").is_file()
     slicer_mesh = meshio.read(out / "export" / "slicer" / "mesh.vtk")
     np.testing.assert_allclose(slicer_mesh.points[:, :2], -vtu.points[:, :2])  # LPS
+    assert b"SPACE=LPS" in (out / "export" / "slicer" / "mesh.vtk").read_bytes().split(b"\n")[1]  # for Slicer
 
     # SimpleITK resamples m through the exported mean as the project's own warp does
     rp = A.load_posterior(out)

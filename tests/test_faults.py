@@ -213,7 +213,7 @@ def test_stuck_chains_are_a_loud_warning_a_status_of_their_own_and_strict_json(
             "sampler.sigma_mu=500", "--set", "sampler.warmup_steps=0"]
     with pytest.warns(RuntimeWarning, match=r"chains \[0, 1\] never moved"):
         assert main(_args(mesh, out, *huge, "--strict")) == 3
-    assert "WARNING: chains [0, 1] never moved" in capsys.readouterr().out
+    assert "verdict: NOT converged: chains [0, 1] never moved" in capsys.readouterr().out
 
     def strict(token):
         raise ValueError(f"non-standard JSON token {token}")

@@ -33,3 +33,47 @@ def test_summary_in_threads_equals_one_arviz_call(parts):
             got = outputs.summary_table(tree, ["lam", "mu", "ratio"], "u_b", "node", parts=parts)
     assert list(got.index) == list(ref.index) and list(got.columns) == list(ref.columns)
     np.testing.assert_array_equal(got.to_numpy(float), ref.to_numpy(float))
+
+
+def _sampler(**kw):
+    s = {"converged": True, "rhat_threshold": 1.2, "rhat_split_monitored": False,
+         "rhat_classic_max": 1.05, "rhat_classic_split_max": 1.06, "rhat_rank_max": 1.004,
+         "ess_bulk_min": 812.0, "ess_tail_min": 655.0, "stuck_chains": [], "draws_per_chain": 500}
+    return {**s, **kw}
+
+
+@pytest.mark.parametrize("case, sampler, start, names", [
+    ("both met", _sampler(), "verdict: converged", ["1.004", "812", "655"]),
+    ("paper's rule only", _sampler(rhat_rank_max=1.108, ess_bulk_min=24.0),
+     "verdict: NOT converged by today's criterion", ["1.108", "24", "1.050"]),
+    ("tail ESS short", _sampler(ess_tail_min=120.0), "verdict: NOT converged by today's", ["120"]),
+    ("no rule met", _sampler(converged=False, rhat_classic_max=5.77, rhat_rank_max=float("nan")),
+     "verdict: NOT converged: 500 draws per chain", ["5.770", "R-hat n/a"]),
+    ("stuck chains", _sampler(stuck_chains=[2]), "verdict: NOT converged: chains [2] never moved", []),
+    ("an old run.json", {k: v for k, v in _sampler().items() if k != "ess_tail_min"},
+     "verdict: converged", ["bulk ESS 812"]),
+])
+def test_the_verdict_names_the_criterion_and_the_figures_that_fail(case, sampler, start, names):
+    line = outputs.verdict(sampler)
+    assert line.startswith(start), (case, line)
+    assert "\n" not in line
+    for name in names:
+        assert name in line, (case, name, line)
+
+
+def test_the_printed_summary_gives_medians_and_intervals_and_ends_with_the_verdict():
+    """A heavy-tailed ratio (the CSF one) prints as its median and 90% interval, never as
+    a mean and sd; the verdict is the last line."""
+    rng = np.random.default_rng(0)
+    csf = np.exp(rng.normal(3.0, 3.0, 4000))  # lognormal: mean >> median
+    ratio = {"csf": {"mean": float(csf.mean()), "sd": float(csf.std()),
+                     "median": float(np.median(csf)), "q05": float(np.quantile(csf, 0.05)),
+                     "q95": float(np.quantile(csf, 0.95)), "true": 1e-6 / 1e-6}}
+    info = {"sampler": {**_sampler(converged=False), "blocks": ["u_b"], "acceptance": [0.3],
+                        "thinning": 1, "chains": 4, "cg_iterations_per_step_mean": 2.0,
+                        "solve_failures": 0, "steps_per_s_per_chain": 10.0}}
+    text = outputs.format_report({"ratio": ratio}, info)
+    row = next(line for line in text.splitlines() if line.strip().startswith("csf"))
+    assert f"{np.median(csf):.4g}" in row and f"{np.quantile(csf, 0.95):.4g}" in row
+    assert f"{csf.mean():.4g}" not in row and "sd" not in text.splitlines()[-3]
+    assert "median" in text and text.splitlines()[-1].startswith("verdict: NOT converged")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
+from bayesreg.plots import most_uncertain_voxel
 from bayesreg.report.data import (
     SKULL_LABEL, TISSUE_COLORS, TISSUE_LABELS, TISSUE_NAMES, RunData, as_runs, true_ratio)
 
@@ -438,8 +439,21 @@ def plot_boundary_node(run: RunData, b: int | None = None):
     return fig, info
 
 
+def _spread(r: RunData):
+    """The run's per-voxel spread of ``u``, mm: the IQR of ``|u|``, or for runs without it
+    the norm of the per-component sd ``sqrt(sum_c sd_c^2)``; ``None`` if neither."""
+    if r.disp_norm_iqr is not None:
+        return r.disp_norm_iqr
+    if r.disp_sd is not None:
+        return np.linalg.norm(r.disp_sd, axis=-1)
+    return None
+
+
 def plot_uncertainty(runs, k: int | None = None):
-    """Posterior uncertainty over ``f`` on slice ``k``, one panel per run (common scale).
+    """Posterior uncertainty over ``f`` on axial slice ``k``, one panel per run (common scale).
+
+    By default the slice goes through the first run's most uncertain region
+    (:func:`bayesreg.plots.most_uncertain_voxel`), not the centre of the brain.
 
     The IQR of ``|u|`` (``displacement_norm_iqr.nii.gz``), or, for runs without it, the
     norm of the per-component sd ``sqrt(sum_c sd_c^2)`` (``displacement_sd.nii.gz``), mm,
@@ -451,17 +465,18 @@ def plot_uncertainty(runs, k: int | None = None):
     """
     runs = as_runs(runs)
     first = next(iter(runs.values()))
-    world = _brain_centroid(first) if k is None else first.affine[:3, :3] @ [0, 0, k] + first.affine[:3, 3]
+    if k is None:
+        spread = _spread(first)
+        k = (int(most_uncertain_voxel(spread, _brain(first))[2]) if spread is not None
+             else slice_index(first, _brain_centroid(first)))
+    world = first.affine[:3, :3] @ [0, 0, k] + first.affine[:3, 3]
     maps = {}
     for lab, r in runs.items():
         kk = slice_index(r, world)
-        if r.disp_norm_iqr is not None:
-            u, what = r.disp_norm_iqr[:, :, kk], "IQR of |u|"
-        elif r.disp_sd is not None:
-            u, what = np.linalg.norm(r.disp_sd[:, :, kk], axis=-1), "sd norm"
-        else:
-            u, what = None, "no uncertainty map"
-        maps[lab] = (kk, u, what)
+        spread = _spread(r)
+        what = ("IQR of |u|" if r.disp_norm_iqr is not None else "sd norm" if spread is not None
+                else "no uncertainty map")
+        maps[lab] = (kk, None if spread is None else spread[:, :, kk], what)
     vals = [u[_brain(r)[:, :, kk]] for (kk, u, _), r in zip(maps.values(), runs.values())
             if u is not None]
     vmax = max([float(v.max()) for v in vals if v.size] + [0.0]) or 1.0
