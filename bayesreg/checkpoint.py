@@ -242,8 +242,7 @@ class Checkpoint:
             k = int(meta["chunks_done"])
             ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
                                      z["warmup_acceptance"], k,
-                                     [(int(a), float("inf") if b is None else float(b))
-                                      for a, b in meta["rhat_history"]],
+                                     [_history_entry(h) for h in meta["rhat_history"]],
                                      meta["timings"])
         if k == 0:
             return ckpt, None
@@ -265,3 +264,12 @@ class Checkpoint:
         """Remove the draws and the sampler state (after the outputs are written)."""
         shutil.rmtree(self.draws_dir, ignore_errors=True)
         (self.dir / "state.npz").unlink(missing_ok=True)
+
+
+def _history_entry(h) -> tuple:
+    """A stop-rule record read back from strict JSON (``null`` for a non-finite number): the
+    classic R-hat ``inf`` (before it can be computed), the rank figures NaN (not computed);
+    records of 2 entries (older checkpoints) get NaN rank figures."""
+    classic = float("inf") if h[1] is None else float(h[1])
+    rest = [float("nan") if v is None else float(v) for v in h[2:5]]
+    return (int(h[0]), classic, *rest, *[float("nan")] * (3 - len(rest)))

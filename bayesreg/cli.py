@@ -22,7 +22,8 @@
     the package's version (``run.json`` records it with its dependencies' versions).
 
 Exit status 0 on success; 2 on bad input or a failed stage (the message names the problem and
-what to change), and for a sweep with a run not finished; 3 with ``run --strict`` when chains never moved; 130 when interrupted
+what to change), and for a sweep with a run not finished; with ``run --strict``, 3 when chains
+never moved and 4 when the stop rule was not met by ``max_draws``; 130 when interrupted
 (Ctrl-C or SIGTERM; one line says what was kept).
 """
 
@@ -66,7 +67,8 @@ def _parser():
                    help="continue the unfinished run in RUN_DIR (same draws as an uninterrupted run)")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.add_argument("--strict", action="store_true",
-                   help="exit with status 3 when chains never moved (their draws are their start)")
+                   help="exit with status 3 when chains never moved (their draws are their start), "
+                        "4 when the stop rule was not met by sampler.max_draws")
 
     q = sub.add_parser("reproduce", help="the paper's two experiments and their report")
     q.add_argument("--variant", choices=("paper", "nuts"), default="paper",
@@ -208,7 +210,7 @@ def _report_runs(items) -> dict:
 
 
 #: Exit statuses of the ``bayesreg`` command.
-EXIT_OK, EXIT_ERROR, EXIT_STUCK, EXIT_INTERRUPTED = 0, 2, 3, 130
+EXIT_OK, EXIT_ERROR, EXIT_STUCK, EXIT_NOT_CONVERGED, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
 
 
 def _interrupt_on_sigterm():
@@ -227,7 +229,8 @@ def main(argv=None) -> int:
     """The ``bayesreg`` command; returns the exit status.
 
     0 success; 2 bad input or a failed stage (the message names the stage and what to
-    change); 3 with ``--strict``, a run whose chains never moved; 130 interrupted (Ctrl-C,
+    change); with ``--strict``, 3 a run whose chains never moved, 4 a run that did not meet its
+    stop rule by ``sampler.max_draws``; 130 interrupted (Ctrl-C,
     SIGTERM: one line says what was kept, and how to continue).
     """
     args = _parser().parse_args(argv)
@@ -257,6 +260,8 @@ def main(argv=None) -> int:
                   f"outputs in {res.dir}")
             if args.strict and res.info["sampler"].get("stuck_chains"):
                 status = EXIT_STUCK
+            elif args.strict and not res.info["sampler"].get("converged"):
+                status = EXIT_NOT_CONVERGED
         elif args.command == "reproduce":
             cdir = _configs_dir(args.configs)
             out = Path(args.out or ("runs/paper" if args.variant == "paper" else f"runs/paper_{args.variant}"))

@@ -3,19 +3,20 @@
 ArviZ's default R-hat is the rank-normalised split R-hat (Vehtari et al. 2021); the classic
 Gelman-Rubin R-hat of the paper's stopping rule is :mod:`bayesreg.convergence`.
 :func:`coverage` checks the calibration of credible intervals against a synthetic truth.
-:func:`arviz_fast_ess` runs ArviZ's ESS (bulk, tail, MCSE) with the end of Geyer's
-initial sequence found in one vectorised search (:func:`geyer_ess`) instead of ArviZ's
-Python loop over lags: the same numbers, and the summary of a long, slowly mixing run in
-seconds instead of minutes.
+:func:`arviz_fast_ess` (from :mod:`bayesreg.convergence`, where the samplers' stop rule
+uses it too) runs ArviZ's ESS with the end of Geyer's initial sequence found in one
+vectorised search instead of ArviZ's Python loop over lags.
 """
 
 from __future__ import annotations
 
-import contextlib
 
 import numpy as np
 
-__all__ = ["coverage", "to_datatree", "group_draws", "geyer_ess", "arviz_fast_ess"]
+from bayesreg.convergence import arviz_fast_ess, geyer_ess
+
+__all__ = ["coverage", "to_datatree", "group_draws", "contraction", "IDENTIFIED_MIN", "geyer_ess",
+           "arviz_fast_ess"]
 
 
 def coverage(draws, truth, levels=(0.5, 0.9, 0.95), *, block: int = 64) -> dict[float, float]:
@@ -114,120 +115,82 @@ def group_draws(tree, var: str) -> np.ndarray:
     return out
 
 
-def geyer_ess(rho, n_chain: int, n_draw: int, *, relative: bool = False) -> float:
-    """Effective sample size from the combined autocorrelations by Geyer's initial monotone
-    sequence, vectorised over the lags.
+IDENTIFIED_MIN = 0.5
+"""Contraction below which a quantity is reported as not identified by the images: the data
+removed less than half of its prior variance (Betancourt, *Calibrating model-based
+inferences and decisions*, arXiv:1803.08393, 2018)."""
 
-    The estimator of Geyer (1992) as Vehtari et al. (2021) use it, exactly as ArviZ's
-    ``_ess`` computes it (``arviz_stats.base.diagnostics``) lag by lag in a Python loop:
-    the first pair sum ``rho_2k + rho_2k+1`` that is not positive ends the initial positive
-    sequence, the pair sums before it are made non-increasing (running minimum), and
-    ``tau = -1 + 2 sum(pairs) + rho_2K``, floored at ``1 / log10(C D)``.  Here the end of
-    the sequence is found with one search over all pair sums, so the cost no longer grows
-    with the autocorrelation time (ArviZ's loop visits every lag up to the end).
+
+def _beta_moments(a, b, r1, r2, fn):
+    """Mean and variance of ``fn(r1 + (r2 - r1) X)``, ``X ~ Beta(a, b)`` (SciPy quadrature)."""
+    from scipy import stats
+
+    d = stats.beta(a, b)
+    m = d.expect(lambda x: fn(r1 + (r2 - r1) * x))
+    return m, d.expect(lambda x: (fn(r1 + (r2 - r1) * x) - m) ** 2)
+
+
+def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
+    """How far the images moved each elastic parameter and ratio from its prior.
+
+    ``contraction = 1 - posterior variance / prior variance`` on the scale the sampler moves
+    in: the logit of each free parameter's position in its prior support
+    (``logit((phi - r1) / (r2 - r1))``, whose prior variance under ``Beta(a, b)`` is
+    ``psi'(a) + psi'(b)``) and the log of each group's ``lam/mu`` (prior variance
+    ``var log lam + var log mu`` of the independent scaled Beta priors, a fixed parameter
+    contributing 0; SciPy quadrature).  1: the data fixed it; 0: the posterior is the
+    prior; negative: wider than the prior (a chain stuck far out, or too few draws).
 
     Parameters
     ----------
-    rho : (D,) ndarray
-        ``1 - (W - mean_c acov_c(t)) / var_plus`` for every lag ``t`` (``rho[0]`` is taken as 1).
-    n_chain, n_draw : int
-        Chains and draws per chain of the (split) draws.
-    relative : bool, keyword-only
-        ESS per draw instead of the ESS.
+    layout : bayesreg.parameters.ParamLayout
+    priors : bayesreg.parameters.BetaPriors
+        ``a, b, r1, r2``, each ``(n_free,)``.
+    phi : (C, D, n_free) array_like
+        Draws of the free parameters (natural scale).
+    groups : int
+        Ratios of at most this many groups.
 
     Returns
     -------
-    float
-        The ESS; NaN when ``rho[1]`` is NaN (as ArviZ).
+    dict
+        ``{"lam_gm": {...}, ..., "ratio_csf": {...}, ...}``, each with ``scale`` (``"logit"``
+        or ``"log"``), ``prior_sd`` and ``posterior_sd`` on that scale, ``contraction`` and
+        ``identified`` (``contraction >= IDENTIFIED_MIN``).
+
+    Raises
+    ------
+    ValueError
+        ``phi`` not ``(C, D, n_free)``.
     """
-    rho = np.array(rho, dtype=float)
-    rho[0] = 1.0
-    if np.isnan(rho[1]):
-        return float("nan")
-    # ArviZ's loop computes pair k (lags 2k, 2k+1) for k = 1, 2, ... while the previous pair
-    # sum is positive and 2k - 1 < D - 3
-    k_max = (n_draw - 3) // 2
-    pairs = rho[0:2 * k_max + 2:2] + rho[1:2 * k_max + 2:2]  # pair sums k = 0..k_max
-    if not pairs[0] > 0.0 or k_max < 1:
-        big_k = 0
-    else:
-        stop = np.flatnonzero(~(pairs[1:k_max + 1] > 0.0))
-        big_k = int(stop[0]) + 1 if stop.size else k_max
-    if big_k == 0:
-        last_even = 1.0
-    else:
-        # the even lag of the last pair: kept if its pair was stored (sum >= 0) or if > 0
-        last_even = rho[2 * big_k] if (pairs[big_k] >= 0.0 or rho[2 * big_k] > 0.0) else 0.0
-    monotone = np.minimum.accumulate(pairs[:big_k])
-    tau = -1.0 + 2.0 * float(np.sum(monotone)) + float(last_even)
-    total = n_chain * n_draw
-    tau = max(tau, 1.0 / np.log10(total))
-    return (1.0 if relative else total) / tau
+    from scipy.special import polygamma
 
+    phi = np.asarray(phi, np.float64)
+    a, b, r1, r2 = (np.asarray(v, np.float64) for v in priors)
+    if phi.ndim != 3 or phi.shape[-1] != len(layout.free):
+        raise ValueError(f"phi must be (C, D, {len(layout.free)}), got {phi.shape}")
+    lo = np.maximum(r1, 0.0)
+    flat = phi.reshape(-1, phi.shape[-1])
 
-def _fast_backend():
-    """ArviZ's NumPy stats backend with :func:`geyer_ess` in place of the lag loop of
-    ``_ess`` (``None`` if this ArviZ has no such method to replace)."""
-    try:
-        from arviz_stats.base.array import BaseArray
-        from arviz_stats.base.dataarray import BaseDataArray
-    except ImportError:  # pragma: no cover - another ArviZ layout: keep its own
-        return None
-    if not hasattr(BaseArray, "_ess") or not hasattr(BaseArray, "autocov"):
-        return None  # pragma: no cover
+    def entry(scale, prior_var, post_var):
+        c = 1.0 - post_var / prior_var if prior_var > 0 else float("nan")
+        return {"scale": scale, "prior_sd": float(np.sqrt(prior_var)),
+                "posterior_sd": float(np.sqrt(post_var)), "contraction": float(c),
+                "identified": bool(c >= IDENTIFIED_MIN)}
 
-    class GeyerArray(BaseArray):
-        def _ess(self, ary, relative=False):
-            ary = np.asarray(ary, dtype=float)
-            if ary.ndim != 2 or ary.shape[1] < 8 or not np.isfinite(ary).all():
-                return super()._ess(ary, relative=relative)
-            if (np.max(ary) - np.min(ary)) < np.finfo(float).resolution:
-                return ary.size
-            n_chain, n_draw = ary.shape
-            acov = self.autocov(ary, axis=1)
-            mean_var = np.mean(acov[:, 0]) * n_draw / (n_draw - 1.0)
-            var_plus = mean_var * (n_draw - 1.0) / n_draw
-            if n_chain > 1:
-                var_plus += np.var(ary.mean(axis=1), axis=None, ddof=1)
-            rho = 1.0 - (mean_var - acov.mean(axis=0)) / var_plus
-            return geyer_ess(rho, n_chain, n_draw, relative=relative)
-
-    arrays = GeyerArray()
-
-    class Backend:
-        """``rcParams["stats.module"]`` object: ArviZ's base functions, faster ESS."""
-
-        array_stats = arrays
-        dataarray_stats = BaseDataArray(array_class=arrays)
-        eti = dataarray_stats.eti  # what arviz_base checks a stats module by
-        rhat = dataarray_stats.rhat
-
-    return Backend()
-
-
-_BACKEND = None
-
-
-@contextlib.contextmanager
-def arviz_fast_ess():
-    """Context in which ArviZ (``az.summary``, ``az.ess``, ``az.mcse``) computes every ESS
-    with :func:`geyer_ess`: the same numbers as ArviZ's own (tests: equal to 1e-12 relative),
-    without its Python loop over lags.
-
-    ArviZ stays the implementation of every diagnostic (rank normalisation, splitting,
-    quantiles, MCSE, R-hat); only the search for the end of Geyer's initial positive
-    sequence is vectorised.  Through ArviZ's documented ``stats.module`` rcParam, restored
-    on exit, so a user's own settings are untouched (and a backend the user chose, e.g.
-    ``"numba"``, is left in place).  It matters for long, slowly mixing runs, where the
-    initial positive sequence runs over thousands of lags.
-    """
-    global _BACKEND
-    from arviz_base import rc_context, rcParams
-
-    if _BACKEND is None:
-        _BACKEND = _fast_backend() or False
-    if not _BACKEND or rcParams["stats.module"] != "base":
-        yield  # another backend chosen by the user (e.g. numba): theirs
-        return
-    with rc_context({"stats.module": _BACKEND}):
-        yield
+    out = {}
+    for k, name in enumerate(layout.free_names):
+        x = np.clip((flat[:, k] - lo[k]) / (r2[k] - lo[k]), 1e-300, 1.0 - 1e-16)
+        out[name] = entry("logit", float(polygamma(1, a[k]) + polygamma(1, b[k])),
+                          float(np.var(np.log(x) - np.log1p(-x))))
+    for g, gname in enumerate(layout.group_names[:groups]):
+        prior_var, log_ratio = 0.0, 0.0
+        for sign, p in ((1.0, "lam"), (-1.0, "mu")):
+            k = next((k for k, (pk, gk) in enumerate(layout.free) if (pk, gk) == (p, g)), None)
+            if k is None:
+                continue  # fixed: no variance
+            prior_var += _beta_moments(a[k], b[k], lo[k], r2[k], np.log)[1]
+            log_ratio = log_ratio + sign * np.log(flat[:, k])
+        if prior_var > 0:
+            out[f"ratio_{gname}"] = entry("log", prior_var, float(np.var(log_ratio)))
+    return out

@@ -55,7 +55,7 @@ from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.chains import available_cores
 from bayesreg.config import Config
 from bayesreg.convergence import gelman_rubin
-from bayesreg.diagnostics import arviz_fast_ess, coverage, to_datatree
+from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, to_datatree
 from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
 from bayesreg.initialisation import Initialisation
@@ -168,8 +168,11 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
 
 
 def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = None):
-    """``az.summary`` of the variables ``small + [big]`` (90% equal-tailed intervals), the
-    rows of ``big`` computed in ``parts`` threads over contiguous blocks of its ``dim``.
+    """``az.summary`` of the variables ``small + [big]`` (90% equal-tailed intervals) with the
+    Monte Carlo standard errors of the interval ends (``mcse_eti90_lb``, ``mcse_eti90_ub``:
+    ``az.mcse(method="quantile")`` of the 5% and 95% quantiles), the rows of ``big`` computed
+    in ``parts`` threads over contiguous blocks of its ``dim``.  ``ess_tail`` is that of the
+    5% and 95% quantiles, the stop rule's (:func:`bayesreg.convergence.rank_figures`).
 
     The same table as one ``az.summary(tree, var_names=small + [big], ...)`` call, row for
     row and value for value (ArviZ's diagnostics are per estimand; tested).  ArviZ's NumPy
@@ -181,7 +184,17 @@ def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = 
 
     def one(names, sel=None):
         t = tree if sel is None else tree.isel({dim: sel})
-        return az.summary(t, var_names=names, ci_prob=0.9, ci_kind="eti")
+        table = az.summary(t, var_names=names, ci_prob=0.9, ci_kind="eti")
+
+        def column(x):  # one value per row, in the table's order (C order over each variable)
+            return np.concatenate([np.ravel(x[n].values) for n in names])
+
+        # the tail ESS of the 5% and 95% quantiles (Vehtari et al. 2021; the stop rule's):
+        # az.summary's own takes its quantiles from rcParams["stats.ci_prob"] (11% and 89%)
+        table["ess_tail"] = column(az.ess(t, var_names=names, method="tail", prob=(0.05, 0.95)))
+        for col, prob in (("mcse_eti90_lb", 0.05), ("mcse_eti90_ub", 0.95)):
+            table[col] = column(az.mcse(t, var_names=names, method="quantile", prob=prob))
+        return table
 
     n = tree.posterior.sizes[dim]
     parts = max(1, min(parts or available_cores(), n))
@@ -226,9 +239,9 @@ def format_report(errors: dict | None, info: dict) -> str:
         f"acceptance {acc}"
     )
     lines.append(
-        f"R-hat max: classic {_f(s['rhat_classic_max'], '.3f')}, split {_f(s['rhat_classic_split_max'], '.3f')} "
-        f"(stop below {s['rhat_threshold']} on {'split' if s['rhat_split_monitored'] else 'classic'}), "
-        f"rank-normalised {_f(s['rhat_rank_max'], '.3f')}  ESS bulk min {_f(s['ess_bulk_min'], '.0f')}"
+        f"R-hat max: rank-normalised {_f(s['rhat_rank_max'], '.3f')}, classic "
+        f"{_f(s['rhat_classic_max'], '.3f')}, split {_f(s['rhat_classic_split_max'], '.3f')}  ESS min: "
+        f"bulk {_f(s['ess_bulk_min'], '.0f')}, tail {_f(s.get('ess_tail_min'), '.0f')}"
     )
     per_solve = s.get("cg_iterations_per_solve_mean")
     cg = (f"CG iterations/solve mean {_f(per_solve, '.1f')}" if per_solve is not None else
@@ -248,11 +261,14 @@ def format_report(errors: dict | None, info: dict) -> str:
             lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
         lines.append(f"  MSE all nodes {_f(errors['mse_all_nodes_mm2'], '.4f')} mm^2")
     if errors:
-        lines.append("lam/mu posterior       median        5%       95%     truth")
+        lines.append("lam/mu posterior       median        5%       95%     truth  contraction")
         for name, r in errors["ratio"].items():
             tr = f"{_f(r['true'], '9.4g')}" if "true" in r else "        -"
             mid = r.get("median", r.get("mean"))  # (runs written before medians were kept)
-            lines.append(f"  {name:<14} {_f(mid, '9.4g')} {_f(r['q05'], '9.4g')} {_f(r['q95'], '9.4g')} {tr}")
+            c = r.get("contraction")
+            flag = "" if c is None or r.get("identified") else "  not identified by the images"
+            lines.append(f"  {name:<14} {_f(mid, '9.4g')} {_f(r['q05'], '9.4g')} {_f(r['q95'], '9.4g')} "
+                         f"{tr} {_f(c, '12.2f') if c is not None else '           -'}{flag}")
     lines.append(verdict(s))
     return "\n".join(lines)
 
@@ -271,17 +287,19 @@ def verdict(s: dict) -> str:
     Parameters
     ----------
     s : dict
-        ``run.json["sampler"]``: ``converged`` (the run's own stop rule, classic R-hat below
-        ``rhat_threshold``), ``rhat_classic_max`` / ``rhat_classic_split_max``,
-        ``rhat_rank_max``, ``ess_bulk_min``, ``ess_tail_min`` (absent in older runs),
-        ``stuck_chains``, ``draws_per_chain``.
+        ``run.json["sampler"]``: ``stop`` (the run's rule, ``"rank"`` or ``"paper"``; older
+        runs: the paper's), ``converged`` (that rule met), ``rhat_threshold``,
+        ``rhat_rank_threshold``, ``ess_min``, ``rhat_classic_max`` /
+        ``rhat_classic_split_max``, ``rhat_rank_max``, ``ess_bulk_min``, ``ess_tail_min``
+        (absent in older runs), ``stuck_chains``, ``draws_per_chain``.
 
     Returns
     -------
     str
-        ``"verdict: converged ..."`` only where both the run's rule and today's
-        (rank-normalised R-hat <= 1.01, bulk and tail ESS >= 400) are met;
-        ``"verdict: NOT converged ..."`` otherwise, with the figures that fail.
+        ``"verdict: converged ..."`` only where today's criterion (rank-normalised R-hat
+        <= 1.01, bulk and tail ESS >= 400, or the run's own thresholds) is met, and under
+        the paper's rule that rule too; ``"verdict: NOT converged ..."`` otherwise, with the
+        figures that fail.
     """
     stuck = s.get("stuck_chains") or []
     if stuck:
@@ -289,24 +307,32 @@ def verdict(s: dict) -> str:
                 "summaries do not describe the posterior")
     split = bool(s.get("rhat_split_monitored"))
     classic = s.get("rhat_classic_split_max" if split else "rhat_classic_max")
-    rule = f"{'split ' if split else ''}classic R-hat {_f(classic, '.3f')}, needs < {s.get('rhat_threshold')}"
+    paper = f"{'split ' if split else ''}classic R-hat {_f(classic, '.3f')}, needs < {s.get('rhat_threshold')}"
     rank, bulk, tail = s.get("rhat_rank_max"), s.get("ess_bulk_min"), s.get("ess_tail_min")
+    rank_max = s.get("rhat_rank_threshold", RHAT_RANK_MAX)
+    ess_min = s.get("ess_min", ESS_MIN)
 
     def ok(x, good):
         return x is not None and np.isfinite(x) and good(x)
 
-    modern_ok = (ok(rank, lambda r: r <= RHAT_RANK_MAX) and ok(bulk, lambda e: e >= ESS_MIN)
-                 and (tail is None or ok(tail, lambda e: e >= ESS_MIN)))
-    modern = (f"today's criterion (rank-normalised R-hat <= {RHAT_RANK_MAX}, bulk"
-              f"{'' if tail is None else ' and tail'} ESS >= {ESS_MIN}): R-hat {_f(rank, '.3f')}, "
-              f"bulk ESS {_f(bulk, '.0f')}" + ("" if tail is None else f", tail ESS {_f(tail, '.0f')}"))
+    modern_ok = (ok(rank, lambda r: r <= rank_max) and ok(bulk, lambda e: e >= ess_min)
+                 and (tail is None or ok(tail, lambda e: e >= ess_min)))
+    modern = (f"rank-normalised R-hat {_f(rank, '.3f')} (needs <= {rank_max:g}), bulk ESS "
+              f"{_f(bulk, '.0f')}" + ("" if tail is None else f", tail ESS {_f(tail, '.0f')}")
+              + f" (need >= {ess_min:g})")
+    if s.get("stop", "paper") == "rank":  # the run's rule is today's
+        if s.get("converged") and modern_ok:
+            return f"verdict: converged: {modern}"
+        return (f"verdict: NOT converged: {s.get('draws_per_chain')} draws per chain (max_draws) "
+                f"without meeting the stop rule: {modern}; means and intervals are not yet "
+                "reliable (a larger sampler.max_draws, or a faster-mixing sampler)")
     if s.get("converged") and modern_ok:
-        return f"verdict: converged by the run's stop rule ({rule}) and by {modern}"
+        return f"verdict: converged by the paper's rule ({paper}) and by today's: {modern}"
     if s.get("converged"):
-        return (f"verdict: NOT converged by {modern}, although the run's stop rule was met ({rule}); "
-                "means and intervals are not yet reliable")
+        return (f"verdict: NOT converged by today's criterion ({modern}), although the paper's rule "
+                f"stopped the run ({paper}); means and intervals are not yet reliable")
     return (f"verdict: NOT converged: {s.get('draws_per_chain')} draws per chain without meeting the "
-            f"run's stop rule ({rule}); {modern}; these summaries do not describe the posterior")
+            f"paper's rule ({paper}); {modern}; these summaries do not describe the posterior")
 
 
 def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: SamplerResult,
@@ -447,6 +473,11 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
 
     errors = error_table(problem, result, u_init, u_mean)
+    identification = (contraction(layout, post.prior, pos[..., 3 * nb:]) if post.n_free else {})
+    for name, r in (errors or {}).get("ratio", {}).items():
+        if f"ratio_{name}" in identification:
+            r["contraction"] = identification[f"ratio_{name}"]["contraction"]
+            r["identified"] = identification[f"ratio_{name}"]["identified"]
     truth_ratio = None
     if errors and all("true" in errors["ratio"].get(nm, {}) for nm in names[:6]):
         truth_ratio = [errors["ratio"][nm]["true"] for nm in names[:6]]
@@ -492,7 +523,12 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
             "converged": bool(result.converged),
             "stuck_chains": list(s_info.stuck_chains),
             "rhat_threshold": s_info.rhat_threshold,
-            "rhat_history": [[int(a), float(b)] for a, b in result.rhat_history],
+            "stop": s_info.stop_rule.kind,
+            "stop_rule": s_info.stop_rule.describe(),
+            "rhat_rank_threshold": s_info.stop_rule.rhat_rank_max,
+            "ess_min": s_info.stop_rule.ess_min,
+            # per chunk: draws per chain, classic R-hat, rank R-hat, bulk and tail ESS
+            "rhat_history": [[int(h[0]), *map(float, h[1:])] for h in result.rhat_history],
             "cg_iterations_per_step_mean": float(result.cg_iterations.mean()),
             "cg_iterations_per_solve_mean": (None if s_info.solves_per_step is None else
                                              float(result.cg_iterations.mean() / s_info.solves_per_step)),
@@ -504,6 +540,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         "resumed": bool(resumed),
         "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
+        # 1 - posterior / prior variance per free parameter (logit scale) and ratio (log)
+        "identification": identification,
     }
     info["sampler"]["verdict"] = verdict(info["sampler"])
     write_text_atomic(run_dir.file("errors.json"), dumps_json(errors, indent=2))

@@ -65,7 +65,8 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     s = cfg.sampler
     common = dict(thinning=s.thinning, warmup_steps=s.warmup_steps, max_draws=s.max_draws,
                   min_draws=s.min_draws, chunk_draws=s.chunk_draws,
-                  rhat_threshold=s.rhat_threshold, rhat_split=s.rhat_split, estimands=estimands,
+                  rhat_threshold=s.rhat_threshold, rhat_split=s.rhat_split, stop=s.stop,
+                  rhat_rank_max=s.rhat_rank_max, ess_min=s.ess_min, estimands=estimands,
                   progress=cfg.output.progress, on_chunk=on_chunk, resume=resume,
                   resume_draws=resume_draws, chain_method=s.chain_method)
     interior0 = jnp.zeros((post.op.n_interior, 3))

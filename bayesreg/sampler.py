@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesreg.chains import build_adaptive_chunk, build_chunk
-from bayesreg.convergence import RunningGelmanRubin
+from bayesreg.convergence import RunningGelmanRubin, StopRule, rank_figures
 from bayesreg.jaxconfig import require_x64
 from bayesreg.kernels import adaptation as gw
 from bayesreg.kernels import gibbs
@@ -65,6 +65,8 @@ class SamplerInfo(NamedTuple):
     stuck_chains : tuple of int
         Chains whose stored draws are all one position (no move accepted while sampling):
         their draws say nothing about the posterior (a :class:`RuntimeWarning` names them).
+    stop_rule : StopRule
+        The rule the run stopped by (or tried to).
     """
 
     kind: str
@@ -79,6 +81,7 @@ class SamplerInfo(NamedTuple):
     rhat_split: bool
     adapted: dict
     stuck_chains: tuple = ()
+    stop_rule: StopRule = StopRule("paper")
 
 
 class SamplerResult(NamedTuple):
@@ -105,7 +108,10 @@ class SamplerResult(NamedTuple):
         NUTS doublings of the transition that made each draw (0 otherwise)
     energy : (C, D)
         Hamiltonian at the end of that transition's u_b trajectory (NaN for random walks)
-    rhat_history : list of (draws per chain, max monitored R-hat)
+    rhat_history : list of tuples
+        After each chunk: draws per chain, the max classic R-hat, the max rank-normalised
+        R-hat, the min bulk and tail ESS (the rank figures NaN where not computed: before
+        ``min_draws``, or with the paper's rule)
     sigma : tuple
         the frozen tuned values: the proposal scale of each block (RW-MH), or
         ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free))`` (gradient kernels)
@@ -114,7 +120,7 @@ class SamplerResult(NamedTuple):
     timings : dict
         seconds for compile, warm-up, sampling
     converged : bool
-        max R-hat < threshold at the end
+        the stop rule met at the end
     final_states : state pytree
         the chains' states at the end (leaves ``(C, ...)``)
     info : SamplerInfo
@@ -155,7 +161,10 @@ class SamplerCheckpoint(NamedTuple):
     warmup_acceptance : (B,) ndarray
     chunks_done : int
         sampling chunks finished (0 right after the warm-up)
-    rhat_history : list of (draws per chain, max monitored R-hat)
+    rhat_history : list of tuples
+        After each chunk: draws per chain, the max classic R-hat, the max rank-normalised
+        R-hat, the min bulk and tail ESS (the rank figures NaN where not computed: before
+        ``min_draws``, or with the paper's rule)
     timings : dict
         seconds spent so far
     """
@@ -185,6 +194,9 @@ def sample(
     target_acceptance: float = 0.25,
     rhat_threshold: float = 1.2,
     rhat_split: bool = False,
+    stop: str = "rank",
+    rhat_rank_max: float = 1.01,
+    ess_min: float = 400.0,
     estimands: Callable | None = None,
     progress: bool = True,
     on_chunk: Callable | None = None,
@@ -237,9 +249,17 @@ def sample(
     target_acceptance : float
         Warm-up target of the mean acceptance probability (paper: about 0.25).
     rhat_threshold : float
-        Stop when the classic Gelman-Rubin R-hat of every estimand is below it.
+        ``stop="paper"``: stop when the classic Gelman-Rubin R-hat of every estimand is below it.
     rhat_split : bool
-        Monitor the split-chain version (see :func:`bayesreg.convergence.gelman_rubin`).
+        ``stop="paper"``: monitor the split-chain version (see
+        :func:`bayesreg.convergence.gelman_rubin`).
+    stop : {"rank", "paper"}
+        The stop rule (:class:`bayesreg.convergence.StopRule`): ``"rank"``, every estimand's
+        rank-normalised split R-hat ``<= rhat_rank_max`` and bulk and tail ESS ``>= ess_min``
+        (checked on all the draws so far after each chunk from ``min_draws`` on); ``"paper"``,
+        the classic R-hat below ``rhat_threshold``.  The classic R-hat is recorded either way.
+    rhat_rank_max, ess_min : float
+        ``stop="rank"``: its thresholds (Vehtari et al. 2021: 1.01 and 400).
     estimands : callable, optional
         ``(draws (C, D, dim) ndarray) -> (C, D, K) ndarray`` of the scalars to monitor,
         acting draw by draw (it is applied to each chunk as it arrives:
@@ -315,6 +335,8 @@ def sample(
     True
     """
     require_x64("sample")
+    rule = StopRule(stop, float(rhat_threshold), bool(rhat_split), float(rhat_rank_max),
+                    float(ess_min)).check()
     x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws,
                                  target_acceptance)
     dim = x0.shape[1]
@@ -349,7 +371,7 @@ def sample(
         preconditioner="dense" if preconditioner is not None else (cg_preconditioner or "unknown"),
         condensed=condensation is not None, chain_method=chunk.method, thinning=int(thinning),
         warmup_steps=n_warm * chunk_draws * thinning, rhat_threshold=float(rhat_threshold),
-        rhat_split=bool(rhat_split), adapted={})
+        rhat_split=bool(rhat_split), adapted={}, stop_rule=rule)
 
     def init_states():
         return jax.vmap(lambda x: init(x, logdensity_fn, interior0))(x0)
@@ -362,7 +384,7 @@ def sample(
 
     return _drive(chunk.run, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=len(idxs),
                   max_draws=max_draws, min_draws=min_draws, chunk_draws=chunk_draws,
-                  rhat_threshold=rhat_threshold, rhat_split=rhat_split, estimands=estimands,
+                  rule=rule, estimands=estimands,
                   progress=progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
                   params_type=lambda *a: tuple(a), info=info, adapted=_adapted_rwmh)
 
@@ -425,9 +447,9 @@ N_OUT = 10  # positions, interior, logdensity, acceptance, CG, failed solves, gr
 
 
 def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_draws, min_draws,
-           chunk_draws, rhat_threshold, rhat_split, estimands, progress, on_chunk, resume,
+           chunk_draws, rule: StopRule, estimands, progress, on_chunk, resume,
            resume_draws, params_type, info: SamplerInfo, adapted: Callable) -> SamplerResult:
-    """The sampling loop shared by every kernel: chunks, R-hat stopping, checkpoints, resume.
+    """The sampling loop shared by every kernel: chunks, the stop rule, checkpoints, resume.
 
     ``warm_up() -> (states, frozen params, warm-up acceptance per block, timings)``;
     ``init_states()`` gives the structure of the states (to rebuild a checkpoint's leaves);
@@ -455,7 +477,7 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         frozen = params_type(*(np.asarray(f_) for f_ in resume.sigma))
         warm_acc = np.asarray(resume.warmup_acceptance)
         timings = dict(resume.timings)
-        history = [tuple(h) for h in resume.rhat_history]
+        history = [tuple(h) + (np.nan,) * (5 - len(h)) for h in resume.rhat_history]
         k = int(resume.chunks_done)
         parts = [[np.asarray(a)] for a in resume_draws] if k else [[] for _ in range(N_OUT)]
         if k and parts[0][0].shape[1] != k * chunk_draws:
@@ -470,8 +492,9 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
     bar = tqdm(total=n_samp, initial=k, disable=not progress, desc="sampling", unit="chunk")
     t1 = time.perf_counter()
     spent = timings.get("sampling_s", 0.0)
-    rhat = history[-1][1] if history else np.inf
+    figures = history[-1][1:] if history else (np.inf, np.nan, np.nan, np.nan)
     n_draws = k * chunk_draws
+    rhat_split = rule.rhat_split
     # R-hat from per-chunk moments (constant work per chunk), fed chunk by chunk as the run
     # that wrote the checkpoint fed them, so a resumed run stops where it would have
     monitor = RunningGelmanRubin(estimands)
@@ -481,7 +504,7 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         acc_sum += parts[3][0][:, j * chunk_draws:(j + 1) * chunk_draws].reshape(-1, n_blocks).sum(axis=0)
 
     def done():
-        return n_draws >= max_draws or (n_draws >= min_draws and rhat < rhat_threshold)
+        return n_draws >= max_draws or (n_draws >= min_draws and rule.met(*figures))
 
     while not done():
         states, out = chunk(jax.random.split(jax.random.fold_in(key_samp, k), n_chains), states, frozen)
@@ -491,12 +514,19 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
             lst.append(o)
         n_draws += chunk_draws
         monitor.add(out[0])
+        rhat = figures[0]
         if n_draws >= (4 if rhat_split else 2):  # split halves need 2 draws each
             rhat = float(np.nanmax(monitor.rhat(split=rhat_split)))
-        history.append((n_draws, rhat))
+        rank = (np.nan,) * 3
+        if rule.kind == "rank" and n_draws >= max(min_draws, 4):  # on every draw so far
+            rank = rank_figures(estimands(np.concatenate(parts[0], axis=1)))
+        figures = (rhat, *rank)
+        history.append((n_draws, *figures))
         acc_sum += out[3].reshape(-1, n_blocks).sum(axis=0)
         acc = acc_sum / (n_chains * n_draws)
-        bar.set_postfix(acc=np.array2string(acc, precision=2), rhat=f"{rhat:.3f}", draws=n_draws)
+        shown = {"rhat": f"{rhat:.3f}"} if rule.kind == "paper" or np.isnan(rank[0]) else {
+            "rank_rhat": f"{rank[0]:.3f}", "ess": f"{rank[1]:.0f}/{rank[2]:.0f}"}
+        bar.set_postfix(acc=np.array2string(acc, precision=2), draws=n_draws, **shown)
         bar.update(1)
         timings["sampling_s"] = spent + time.perf_counter() - t1
         if on_chunk is not None:
@@ -521,7 +551,7 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
         sigma=_as_arrays(frozen),
         warmup_acceptance=warm_acc,
         timings=timings,
-        converged=bool(rhat < rhat_threshold),
+        converged=rule.met(*figures),
         final_states=states,
         info=info._replace(adapted=adapted(_as_arrays(frozen)), stuck_chains=_stuck(pos)),
     )
@@ -566,6 +596,9 @@ def sample_gradient(
     target_acceptance: float | None = None,
     rhat_threshold: float = 1.2,
     rhat_split: bool = False,
+    stop: str = "rank",
+    rhat_rank_max: float = 1.01,
+    ess_min: float = 400.0,
     estimands: Callable | None = None,
     progress: bool = True,
     on_chunk: Callable | None = None,
@@ -611,7 +644,7 @@ def sample_gradient(
     elastic_moves : int
         elastic random-walk updates per transition
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
-    estimands, progress, on_chunk, resume, resume_draws
+    stop, rhat_rank_max, ess_min, estimands, progress, on_chunk, resume, resume_draws
         As :func:`sample` (``warmup_steps`` rounded up to whole chunks).
     target_acceptance : float, optional
         Default :func:`bayesreg.kernels.gibbs.default_target_acceptance` of ``kind``.
@@ -633,6 +666,8 @@ def sample_gradient(
         JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
     """
     require_x64("sample_gradient")
+    rule = StopRule(stop, float(rhat_threshold), bool(rhat_split), float(rhat_rank_max),
+                    float(ess_min)).check()
     target_acceptance = target_acceptance or gibbs.default_target_acceptance(kind)
     x0, n_chains = _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws,
                                  target_acceptance)
@@ -726,10 +761,11 @@ def sample_gradient(
         preconditioner=target.preconditioner, condensed=target.condensed,
         chain_method=mapped.method,
         thinning=int(thinning), warmup_steps=n_warm * per_chunk,
-        rhat_threshold=float(rhat_threshold), rhat_split=bool(rhat_split), adapted={})
+        rhat_threshold=float(rhat_threshold), rhat_split=bool(rhat_split), adapted={},
+        stop_rule=rule)
     return _drive(chunk, init_states, warm_up, key_samp, n_chains=n_chains, n_blocks=n_blocks,
                   max_draws=max_draws, min_draws=min_draws, chunk_draws=chunk_draws,
-                  rhat_threshold=rhat_threshold, rhat_split=rhat_split, estimands=estimands,
+                  rule=rule, estimands=estimands,
                   progress=progress, on_chunk=on_chunk, resume=resume, resume_draws=resume_draws,
                   params_type=lambda *a: gibbs.GibbsParams(*a), info=info, adapted=_adapted_gradient)
 

@@ -502,3 +502,18 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
     tree = az.from_netcdf(out / "posterior.nc")
     assert {"n_steps", "diverging", "acceptance_rate", "step_size"} <= set(tree.sample_stats.data_vars)
     assert np.all(np.isfinite(tree.posterior["lam"].values)) and np.all(tree.posterior["mu"].values > 0)
+
+
+def test_strict_gives_each_failure_its_own_exit_status(monkeypatch, tmp_path, capsys):
+    """``run --strict``: 3 for chains that never moved, 4 for a stop rule not met by
+    ``max_draws``, 0 for a converged run; without ``--strict`` every finished run is 0."""
+    from bayesreg.outputs import RunResult
+
+    monkeypatch.setattr(cli, "format_report", lambda errors, info: "")
+    for sampler, strict in (({"converged": True, "stuck_chains": []}, 0),
+                            ({"converged": False, "stuck_chains": []}, 4),
+                            ({"converged": False, "stuck_chains": [1]}, 3)):
+        result = RunResult(tmp_path, None, None, None, {"sampler": sampler, "timings_s": {}})
+        monkeypatch.setattr(cli, "run", lambda *a, **k: result)
+        assert main(["run", "configs/quickstart.yaml", "--strict"]) == strict, sampler
+        assert main(["run", "configs/quickstart.yaml"]) == 0

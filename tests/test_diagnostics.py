@@ -161,3 +161,35 @@ def test_arviz_fast_ess_summary_equals_arviz_and_restores_settings():
     with pytest.raises(RuntimeError), arviz_fast_ess():
         raise RuntimeError
     assert rcParams["stats.module"] == "base"
+
+
+def test_contraction_is_zero_for_prior_draws_and_near_one_for_a_narrow_posterior():
+    """Against Monte Carlo: draws from the scaled Beta priors themselves contract by 0 (to
+    Monte Carlo error), on the logit scale of each parameter and the log scale of the ratio;
+    a narrow posterior contracts by nearly 1; a fixed mu adds no prior variance."""
+    from bayesreg.diagnostics import IDENTIFIED_MIN, contraction
+    from bayesreg.parameters import BetaPriors, ParamLayout
+
+    layout = ParamLayout(("csf", "gm"), (("lam", 0), ("mu", 0), ("lam", 1)), (("mu", 1, 1.0),))
+    priors = BetaPriors(np.array([2.0, 3.0, 1.5]), np.array([5.0, 3.0, 1.5]),
+                        np.array([0.0, 0.0, 0.0]), np.array([100.0, 10.0, 50.0]))
+    rng = np.random.default_rng(0)
+    n = 400_000
+    prior_draws = np.stack([100.0 * rng.beta(2.0, 5.0, n), 10.0 * rng.beta(3.0, 3.0, n),
+                            50.0 * rng.beta(1.5, 1.5, n)], axis=-1).reshape(4, n // 4, 3)
+    c = contraction(layout, priors, prior_draws)
+    assert set(c) == {"lam_csf", "mu_csf", "lam_gm", "ratio_csf", "ratio_gm"}
+    for name, e in c.items():
+        assert abs(e["contraction"]) < 0.02, (name, e)
+        assert not e["identified"]
+    # the prior sd against the Monte Carlo sd of the same transform
+    x = prior_draws[..., 0].ravel() / 100.0
+    assert c["lam_csf"]["prior_sd"] == pytest.approx(np.std(np.log(x / (1 - x))), rel=0.01)
+    ratio = np.log(prior_draws[..., 0] / prior_draws[..., 1]).ravel()
+    assert c["ratio_csf"]["prior_sd"] == pytest.approx(np.std(ratio), rel=0.01)
+    assert c["ratio_gm"]["scale"] == "log" and c["lam_gm"]["scale"] == "logit"
+
+    narrow = np.array([30.0, 2.0, 25.0]) * np.exp(0.01 * rng.normal(size=(3, 500, 3)))
+    for name, e in contraction(layout, priors, narrow).items():
+        assert e["contraction"] > 0.99 and e["identified"], (name, e)
+    assert 0 < IDENTIFIED_MIN < 1

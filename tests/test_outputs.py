@@ -29,9 +29,19 @@ def test_summary_in_threads_equals_one_arviz_call(parts):
     with warnings.catch_warnings():  # the fixed mu: zero variance, NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
         with arviz_fast_ess():
-            ref = az.summary(tree, var_names=["lam", "mu", "ratio", "u_b"], ci_prob=0.9, ci_kind="eti")
+            names = ["lam", "mu", "ratio", "u_b"]
+            ref = az.summary(tree, var_names=names, ci_prob=0.9, ci_kind="eti")
+            tail = az.ess(tree, var_names=names, method="tail", prob=(0.05, 0.95))
+            ref["ess_tail"] = np.concatenate([np.ravel(tail[n].values) for n in names])
+            for col, prob in (("mcse_eti90_lb", 0.05), ("mcse_eti90_ub", 0.95)):
+                m = az.mcse(tree, var_names=names, method="quantile", prob=prob)
+                ref[col] = np.concatenate([np.ravel(m[n].values) for n in names])
             got = outputs.summary_table(tree, ["lam", "mu", "ratio"], "u_b", "node", parts=parts)
     assert list(got.index) == list(ref.index) and list(got.columns) == list(ref.columns)
+    # the interval ends' MCSE sit in the rows they belong to: one element picked by label
+    with arviz_fast_ess():
+        one = az.mcse(tree.isel(node=[2], axis=[1]), var_names=["u_b"], method="quantile", prob=0.95)
+    assert got.loc["u_b[12, y]", "mcse_eti90_ub"] == pytest.approx(float(one["u_b"].values.ravel()[0]), rel=1e-12)
     np.testing.assert_array_equal(got.to_numpy(float), ref.to_numpy(float))
 
 
@@ -52,6 +62,13 @@ def _sampler(**kw):
     ("stuck chains", _sampler(stuck_chains=[2]), "verdict: NOT converged: chains [2] never moved", []),
     ("an old run.json", {k: v for k, v in _sampler().items() if k != "ess_tail_min"},
      "verdict: converged", ["bulk ESS 812"]),
+    ("the rank rule met", _sampler(stop="rank"), "verdict: converged: rank-normalised R-hat 1.004",
+     ["812", "655"]),
+    ("the rank rule not met", _sampler(stop="rank", converged=False, ess_tail_min=120.0),
+     "verdict: NOT converged: 500 draws per chain (max_draws) without meeting the stop rule",
+     ["tail ESS 120", "sampler.max_draws"]),
+    ("the rank rule with its own thresholds", _sampler(stop="rank", ess_min=100.0, ess_tail_min=120.0),
+     "verdict: converged", ["need >= 100"]),
 ])
 def test_the_verdict_names_the_criterion_and_the_figures_that_fail(case, sampler, start, names):
     line = outputs.verdict(sampler)

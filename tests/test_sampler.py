@@ -18,18 +18,66 @@ from conftest import compilations
 from helpers import D, M_ETA, SD_ETA, gaussian_target, quadratic_problem, toy_target
 
 
-def test_sampler_stops_at_rhat_and_is_reproducible():
+def test_sampler_stops_at_the_papers_rhat_and_is_reproducible():
     logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     chol = sla.cholesky(cov, lower=True)
     x0 = mean + np.random.default_rng(1).normal(size=(3, d)) @ chol.T
     run = partial(sample, jax.random.key(3), logdensity, x0, jnp.zeros((n_i, 3)),
                   2.38 / np.sqrt(d) * chol, thinning=2, warmup_steps=200, max_draws=5000,
-                  min_draws=100, chunk_draws=100, rhat_threshold=1.2, progress=False)
+                  min_draws=100, chunk_draws=100, stop="paper", rhat_threshold=1.2, progress=False)
     a, b = run(), run()
     assert a.converged and a.positions.shape[1] < 5000
-    assert a.rhat_history[-1][1] < 1.2
+    assert a.rhat_history[-1][1] < 1.2 and np.isnan(a.rhat_history[-1][2])  # no rank figures
+    assert a.info.stop_rule.kind == "paper"
     np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_sampler_stops_at_the_first_chunk_meeting_the_rank_rule_as_arviz_measures_it():
+    """The default rule: after ``min_draws``, stop at the first chunk where every estimand's
+    rank-normalised R-hat is <= 1.01 and bulk and tail ESS >= 400, figures that ArviZ's
+    ``az.summary`` of the final draws confirms (monitored estimands: the coordinates and
+    the exponential of the first, a positive quantity on its natural scale)."""
+    import arviz as az
+
+    from bayesreg.diagnostics import to_datatree
+
+    def logdensity(x, interior):  # a 2-D standard normal
+        solve = SolveInfo(jnp.asarray(0), jnp.asarray(0.0), jnp.asarray(True))
+        return -0.5 * jnp.sum(x ** 2), Aux(interior, solve, jnp.zeros(()), jnp.zeros(()))
+
+    def estimands(draws):
+        return np.concatenate([draws, np.exp(draws[..., :1])], axis=-1)
+
+    x0 = 2.0 * np.random.default_rng(1).normal(size=(3, 2))
+    res = sample(jax.random.key(3), logdensity, x0, jnp.zeros((0, 3)), np.full(2, 1.7),
+                 thinning=2, warmup_steps=200, max_draws=5000, min_draws=100, chunk_draws=100,
+                 estimands=estimands, progress=False)
+    assert res.info.stop_rule.kind == "rank" and res.converged
+    hist = np.array(res.rhat_history)
+    n = res.positions.shape[1]
+    assert hist[-1, 0] == n < 5000
+    met = (hist[:, 2] <= 1.01) & (hist[:, 3] >= 400) & (hist[:, 4] >= 400)
+    assert met[-1] and not met[:-1].any()  # the first chunk that meets it, and no later
+    assert np.all(np.isnan(hist[hist[:, 0] < 100, 2]))  # not checked before min_draws
+    tree = to_datatree({"x": estimands(res.positions)})
+    summary = az.summary(tree, ci_prob=0.9)
+    assert summary["r_hat"].max() == pytest.approx(hist[-1, 2], rel=1e-9)
+    assert summary["ess_bulk"].min() == pytest.approx(hist[-1, 3], rel=1e-6)
+    tail = az.ess(tree, method="tail", prob=(0.05, 0.95))["x"].values  # the 5% and 95% quantiles
+    assert tail.min() == pytest.approx(hist[-1, 4], rel=1e-6)
+
+
+def test_the_paper_and_rank_rules_are_checked_and_unknown_rules_refused():
+    logdensity, mean, cov, n_i = quadratic_problem()
+    x0 = np.tile(mean, (2, 1)) + 0.01
+    for bad, match in (({"stop": "classic"}, "stop rule must be one of"),
+                       ({"rhat_rank_max": 1.0}, "R-hat thresholds must be > 1"),
+                       ({"ess_min": 0.0}, "ess_min must be > 0")):
+        with pytest.raises(ValueError, match=match):
+            sample(jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
+                   thinning=1, warmup_steps=0, max_draws=4, min_draws=4, chunk_draws=2,
+                   progress=False, **bad)
 
 
 def test_sampler_rejects_bad_start():

@@ -382,12 +382,22 @@ class SamplerConfig(_Strict):
     target_acceptance: Float | None = Field(
         None, gt=0, lt=1, description="warm-up target of the u_b kernel's acceptance; default 0.25 "
         "(rwmh), 0.57 (mala), 0.8 (hmc, nuts)")
-    rhat_threshold: Float = Field(1.2, gt=1, description="stop once the classic Gelman-Rubin "
-                                  "R-hat of every estimand (each boundary coordinate, free "
-                                  "parameter and lam/mu ratio) is below this (paper: 1.2)")
+    stop: Literal["rank", "paper"] = Field(
+        "rank", description="stop rule, checked after each chunk from min_draws on, over every "
+        "estimand (each boundary coordinate, free parameter and lam/mu ratio): rank, the "
+        "rank-normalised split R-hat at most rhat_rank_max and bulk and tail ESS at least "
+        "ess_min (Vehtari et al. 2021; ArviZ's and Stan's defaults); paper, the classic "
+        "Gelman-Rubin R-hat below rhat_threshold (Sec. 3.2; the paper's configs)")
+    rhat_rank_max: Float = Field(1.01, gt=1, description="stop: rank, the largest rank-normalised "
+                                 "split R-hat allowed")
+    ess_min: Float = Field(400.0, gt=0, description="stop: rank, the smallest bulk and tail "
+                           "effective sample size allowed")
+    rhat_threshold: Float = Field(1.2, gt=1, description="stop: paper, stop once the classic "
+                                  "Gelman-Rubin R-hat of every estimand is below this (paper: "
+                                  "1.2); recorded under either rule")
     rhat_split: bool = Field(
-        False, description="monitor the split-chain Gelman-Rubin R-hat (catches a common drift) "
-        "instead of the paper's whole-chain one")
+        False, description="stop: paper, monitor the split-chain Gelman-Rubin R-hat (catches a "
+        "common drift) instead of the paper's whole-chain one")
     blocked: bool = Field(
         True, description="update u_b and the elastic parameters in turn (Metropolis-within-"
         "Gibbs, each block with its own tuned scale); false: the paper's joint proposal")

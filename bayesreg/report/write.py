@@ -14,6 +14,7 @@ from bayesreg.report.figures import (
     plot_boundary_node, plot_dataset, plot_errors, plot_ratios, plot_uncertainty, slice_index)
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
 from bayesreg._files import dumps_json, write_text_atomic
+from bayesreg.outputs import verdict
 from bayesreg.rundir import RunDirectory
 
 __all__ = ["write_report"]
@@ -64,6 +65,8 @@ def _run_summary(run: RunData) -> dict:
         "rhat_classic_max": s.get("rhat_classic_max"), "converged": s.get("converged"),
         "ess_bulk_min": s.get("ess_bulk_min"),
         "steps_per_s_per_chain": s.get("steps_per_s_per_chain"),
+        # the run's verdict line (older runs: made from their figures)
+        "verdict": s.get("verdict") or (verdict(s) if "rhat_rank_max" in s else None),
     }
 
 
@@ -108,6 +111,11 @@ def _markdown(runs, summaries, t1, t2, cov, ratios, fig5) -> str:
             "Paper columns: *Different Elastic Parameters* for runs with `elastic: tissue`, "
             "*Uniform Elastic Parameters* for `elastic: uniform`; – where the paper has no value.",
             ""]
+    verdicts = [f"- **{lab}**: {s['verdict'].removeprefix('verdict: ')}"
+                for lab, s in summaries.items() if s.get("verdict")]
+    if verdicts:
+        out += ["Convergence (the run's stop rule, and today's: rank-normalised R-hat <= 1.01, "
+                "bulk and tail ESS >= 400):", "", *verdicts, ""]
     if not any(str(i).startswith("initial") for i in t1.index):
         out += ["No initial configuration (`u_init` in mesh.vtu) in these runs: no initial rows.", ""]
     out += ["## Table 1: boundary-node error of the posterior mean (mm)", "",
