@@ -195,11 +195,11 @@ def test_moving_image_is_an_error_with_a_synthetic_case(tmp_path):
 def test_draw_counts_are_consistent():
     """Sampling runs whole chunks until max_draws: min_draws and chunk_draws may not exceed it."""
     assert ("sampler.min_draws (2000) must not exceed sampler.max_draws (1000)"
-            in _error(["sampler.min_draws=2000"]))
+            in _error(["sampler.max_draws=1000", "sampler.min_draws=2000"]))
     assert ("sampler.chunk_draws (1500) must not exceed sampler.max_draws (1000)"
-            in _error(["sampler.chunk_draws=1500"]))
-    cfg = load_config("configs/quickstart.yaml",
-                      overrides=["sampler.min_draws=1000", "sampler.chunk_draws=1000"])
+            in _error(["sampler.max_draws=1000", "sampler.chunk_draws=1500"]))
+    cfg = load_config("configs/quickstart.yaml", overrides=[
+        "sampler.max_draws=1000", "sampler.min_draws=1000", "sampler.chunk_draws=1000"])
     assert cfg.sampler.min_draws == cfg.sampler.chunk_draws == cfg.sampler.max_draws == 1000
 
 
