@@ -93,7 +93,8 @@ def rank_figures(draws) -> tuple[float, float, float]:
     -------
     rhat_max, ess_bulk_min, ess_tail_min : float
         Over the estimands that vary (a constant estimand has no R-hat); the tail ESS is
-        that of the 5% and 95% quantiles (ArviZ's default in ``az.summary``).
+        that of the 5% and 95% quantiles (Vehtari et al.'s; ``az.summary`` would take its
+        quantiles from ``rcParams["stats.ci_prob"]``, 11% and 89% by default).
     """
     x = np.moveaxis(np.asarray(draws, np.float64), -1, 0)  # (K, C, D)
     stats = _array_stats()
