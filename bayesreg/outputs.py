@@ -54,7 +54,7 @@ import numpy as np
 from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.chains import available_cores
 from bayesreg.config import Config
-from bayesreg.convergence import gelman_rubin
+from bayesreg.convergence import StopRule, gelman_rubin
 from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, to_datatree
 from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
@@ -69,8 +69,7 @@ from bayesreg.sampler import SamplerResult
 from bayesreg.transforms import FIXED_TO_MOVING, save_displacement
 from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
-__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "verdict", "summary_table",
-           "RHAT_RANK_MAX", "ESS_MIN"]
+__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "verdict", "summary_table"]
 
 
 class RunResult(NamedTuple):
@@ -273,14 +272,6 @@ def format_report(errors: dict | None, info: dict) -> str:
     return "\n".join(lines)
 
 
-RHAT_RANK_MAX = 1.01
-"""Today's convergence criterion (Vehtari, Gelman, Simpson, Carpenter & Buerkner, Bayesian
-Analysis 16(2), 2021; ArviZ's and Stan's defaults): rank-normalised split R-hat at most this
-over every monitored estimand ..."""
-ESS_MIN = 400
-"""... and bulk and tail effective sample sizes at least this."""
-
-
 def verdict(s: dict) -> str:
     """The plain last line of a run's summary: converged or not, against which criterion.
 
@@ -309,14 +300,14 @@ def verdict(s: dict) -> str:
     classic = s.get("rhat_classic_split_max" if split else "rhat_classic_max")
     paper = f"{'split ' if split else ''}classic R-hat {_f(classic, '.3f')}, needs < {s.get('rhat_threshold')}"
     rank, bulk, tail = s.get("rhat_rank_max"), s.get("ess_bulk_min"), s.get("ess_tail_min")
-    rank_max = s.get("rhat_rank_threshold", RHAT_RANK_MAX)
-    ess_min = s.get("ess_min", ESS_MIN)
-
-    def ok(x, good):
-        return x is not None and np.isfinite(x) and good(x)
-
-    modern_ok = (ok(rank, lambda r: r <= rank_max) and ok(bulk, lambda e: e >= ess_min)
-                 and (tail is None or ok(tail, lambda e: e >= ess_min)))
+    # today's criterion with the run's thresholds (older runs: the defaults); a figure that
+    # is missing (null in run.json: not finite) fails it, an absent tail ESS (older runs) not
+    default = StopRule()
+    today = StopRule("rank", rhat_rank_max=s.get("rhat_rank_threshold", default.rhat_rank_max),
+                     ess_min=s.get("ess_min", default.ess_min))
+    rank_max, ess_min = today.rhat_rank_max, today.ess_min
+    modern_ok = today.met(np.nan, *(np.nan if x is None else x for x in (rank, bulk)),
+                          np.inf if tail is None else tail)
     modern = (f"rank-normalised R-hat {_f(rank, '.3f')} (needs <= {rank_max:g}), bulk ESS "
               f"{_f(bulk, '.0f')}" + ("" if tail is None else f", tail ESS {_f(tail, '.0f')}")
               + f" (need >= {ess_min:g})")
