@@ -98,6 +98,15 @@ def _parser():
     s.add_argument("--max-start-mm", type=float, default=1.0,
                    help="status 'bad start' for a run whose chains start further than this from "
                         "the truth (median over boundary nodes, mm; default 1)")
+    c = sub.add_parser("calibrate", help="simulation-based calibration of the posterior on a "
+                       "small problem (truths from the prior, data from the likelihood)")
+    c.add_argument("spec", nargs="?", help="calibration file (YAML; default: every default, "
+                   "as configs/calibration.yaml)")
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a value, e.g. --set replicas=20 (repeatable)")
+    c.add_argument("--out", help="output folder (default: dir of the file)")
+    c.add_argument("--strict", action="store_true",
+                   help="exit with status 5 when the posterior is not calibrated")
     e = sub.add_parser("export", help="a run's posterior as ITK/ANTs/Slicer/NIfTI transforms")
     e.add_argument("run_dir", help="a finished run directory")
     e.add_argument("--format", default="itk", choices=["itk", "ants", "slicer", "nifti"])
@@ -211,6 +220,7 @@ def _report_runs(items) -> dict:
 
 #: Exit statuses of the ``bayesreg`` command.
 EXIT_OK, EXIT_ERROR, EXIT_STUCK, EXIT_NOT_CONVERGED, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
+EXIT_NOT_CALIBRATED = 5
 
 
 def _interrupt_on_sigterm():
@@ -294,6 +304,15 @@ def main(argv=None) -> int:
                   f"directions in {folder / 'transforms.json'}")
         elif args.command == "apply":
             print(_apply(args))
+        elif args.command == "calibrate":
+            from bayesreg.calibration import calibrate, load_spec, table
+
+            summary = calibrate(load_spec(args.spec, args.set), args.out)
+            print(table(summary))
+            v = summary["verdict"]
+            print("calibrated" if v["calibrated"] else "NOT calibrated: " + "; ".join(v["problems"]))
+            if args.strict and not v["calibrated"]:
+                status = EXIT_NOT_CALIBRATED
         elif args.command == "sweep":
             if args.workers is not None and args.workers < 1:
                 raise ValueError(f"sweep: --workers must be >= 1, got {args.workers}")

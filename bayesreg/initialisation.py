@@ -28,14 +28,15 @@ from bayesreg.config import Config
 from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image, interpolate_numpy
 from bayesreg.mode import find_mode
-from bayesreg.posterior import elastic_groups
+from bayesreg.mesh import Mesh
+from bayesreg.posterior import Posterior, elastic_groups
 from bayesreg.problem import Problem
 from bayesreg.registration import displacement_at, optical_flow_displacement
 from bayesreg.similarity import sample_moving
 from bayesreg.targets import make_logdensity
 
 __all__ = ["Initialisation", "initialise", "start_center", "start_check", "initial_positions",
-           "laplace_precision", "proposal_scale"]
+           "laplace_precision", "gauss_newton_precision", "proposal_scale"]
 
 
 def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarray, dict]:
@@ -166,18 +167,38 @@ def _dofs(nodes):
 
 
 def laplace_precision(problem: Problem, theta) -> np.ndarray:
+    """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed
+    (:func:`gauss_newton_precision` of the problem's posterior)."""
+    return gauss_newton_precision(problem.posterior, problem.mesh, problem.element_group, theta)
+
+
+def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) -> np.ndarray:
     """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed.
 
-    ``P = 2 J^T J / T_s + S / T_r``: ``J`` is the Jacobian of the SSD residuals with respect
-    to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib u_b``, ``S`` the Schur
-    complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b / 2``).  Returns the
-    dense ``(3 n_b, 3 n_b)`` matrix.
+    ``P = 2 J^T J / T_s + S / T_r + R_b R_b^T / (n_b sigma^2)``: ``J`` is the Jacobian of the
+    SSD residuals with respect to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib
+    u_b``, ``S`` the Schur complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b
+    / 2``), the last term the posterior's prior along the rigid-body modes (0 if flat).
+
+    Parameters
+    ----------
+    post : Posterior
+    mesh : Mesh
+        The posterior's mesh.
+    element_group : (M,) int array
+        Parameter group of each element.
+    theta : (dim,) array
+        ``[u_b.ravel() (mm), phi]``.
+
+    Returns
+    -------
+    (3 n_b, 3 n_b) array
+        Dense, symmetric, with a ridge of ``1e-6`` times its mean diagonal.
     """
-    post, mesh = problem.posterior, problem.mesh
     nb = len(mesh.boundary)
     phi = np.asarray(theta)[3 * nb:]
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
-    g = problem.element_group
+    g = np.asarray(element_group)
     k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
     bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
     k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
@@ -210,6 +231,8 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
     g_ib = gram[idf][:, bd]
     jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
     prec = 2.0 * float(post.inv_t_s) * jtj + float(post.inv_t_r) * schur
+    rigid = np.asarray(post.normaliser.rigid_b)
+    prec = prec + float(post.inv_rigid_var) * rigid @ rigid.T
     prec = 0.5 * (prec + prec.T)
     ridge = 1e-6 * np.trace(prec) / len(prec)
     return prec + ridge * np.eye(len(prec))

@@ -19,7 +19,7 @@ from bayesreg import labels as L
 from bayesreg.images import Image, check_image, interpolate_numpy
 
 __all__ = [
-    "Mesh", "MeshError", "read_mesh", "boundary_faces", "boundary_nodes", "signed_volumes",
+    "Mesh", "MeshError", "read_mesh", "box_mesh", "boundary_faces", "boundary_nodes", "signed_volumes",
     "orient_tets", "dihedral_angles", "mesh_quality", "label_elements", "compact_nodes",
     "tangle_report",
 ]
@@ -54,6 +54,52 @@ class Mesh(NamedTuple):
         mask = np.ones(len(self.nodes), bool)
         mask[self.boundary] = False
         return np.flatnonzero(mask)
+
+
+#: Kuhn subdivision of the unit cube into 6 tetrahedra around its diagonal 0-7 (corners
+#: numbered ``4 a + 2 b + c`` for offsets ``(a, b, c)``): conforming across neighbouring cubes.
+_KUHN = ((0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7))
+
+
+def box_mesh(n=(3, 3, 3), size=(30.0, 30.0, 30.0), origin=(0.0, 0.0, 0.0), tissue=None) -> Mesh:
+    """Structured tetrahedral mesh of a box: ``n`` cubes per axis, 6 tetrahedra per cube.
+
+    Parameters
+    ----------
+    n : (3,) ints
+        Cells per axis (>= 1).
+    size, origin : (3,) floats
+        Edge lengths and lowest corner, world mm.
+    tissue : (M,) ints, optional
+        Label of each element; default thirds along x (0, 1, 2 by the centroid).
+
+    Returns
+    -------
+    Mesh
+        ``(n_x + 1)(n_y + 1)(n_z + 1)`` nodes (x slowest), ``6 n_x n_y n_z`` positively
+        oriented tetrahedra.
+
+    Examples
+    --------
+    >>> m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
+    >>> m.nodes.shape, m.tets.shape, len(m.boundary)
+    ((27, 3), (48, 4), 26)
+    """
+    n = tuple(int(k) for k in n)
+    if len(n) != 3 or min(n) < 1:
+        raise ValueError(f"box_mesh needs three cell counts >= 1, got {n}")
+    grid = np.stack(np.meshgrid(*[np.linspace(0, s, k + 1) for s, k in zip(size, n)],
+                                indexing="ij"), -1)
+    nodes = grid.reshape(-1, 3) + np.asarray(origin, np.float64)
+    idx = np.arange(len(nodes)).reshape(n[0] + 1, n[1] + 1, n[2] + 1)
+    corners = np.stack([idx[a:a + n[0], b:b + n[1], c:c + n[2]].ravel()
+                        for a in (0, 1) for b in (0, 1) for c in (0, 1)], axis=1)
+    tets = orient_tets(nodes, corners[:, np.array(_KUHN)].reshape(-1, 4))
+    if tissue is None:
+        cent = nodes[tets].mean(1)
+        x0, sx = float(np.asarray(origin)[0]), float(size[0])
+        tissue = np.digitize(cent[:, 0], [x0 + sx / 3, x0 + 2 * sx / 3])
+    return Mesh(nodes, tets, np.asarray(tissue, np.int64), boundary_nodes(tets))
 
 
 def boundary_faces(tets):

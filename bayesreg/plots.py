@@ -11,7 +11,8 @@ import numpy as np
 from bayesreg.images import Image
 from bayesreg.rundir import RunDirectory
 
-__all__ = ["plot_parameters", "parameter_figures", "plot_uncertainty", "most_uncertain_voxel"]
+__all__ = ["plot_parameters", "parameter_figures", "plot_uncertainty", "most_uncertain_voxel",
+           "rank_histograms"]
 
 
 def plot_parameters(run_dir: RunDirectory, tree, names, truth_ratio, *, nodes=None, u_true_b=None):
@@ -174,3 +175,38 @@ def plot_uncertainty(run_dir: RunDirectory, f: Image, iqr, labels: Image):
     fig.suptitle(f"posterior uncertainty of the displacement magnitude over f, through the most "
                  f"uncertain region (voxel {tuple(int(v) for v in c)})")
     fig.savefig(run_dir.file("uncertainty.png"), dpi=90)
+
+
+def rank_histograms(summary: dict, bins: int):
+    """Rank histograms of a calibration (:func:`bayesreg.calibration.summarise`): one panel per
+    quantity and one for the boundary coordinates pooled, each with the count a uniform
+    histogram expects and its 99% band (binomial), and the chi-square p in the title
+    (Talts et al. 2018, Fig. 2).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.figure import Figure
+    from scipy.stats import binom
+
+    rows = dict(summary["quantities"], u_b=summary["u_b"])
+    n = len(rows)
+    ncol = min(4, n)
+    nrow = -(-n // ncol)
+    fig = Figure(figsize=(3.2 * ncol, 2.6 * nrow), layout="constrained")
+    for k, (name, row) in enumerate(rows.items()):
+        ax = fig.add_subplot(nrow, ncol, k + 1)
+        counts = np.asarray(row["histogram"])
+        total = counts.sum()
+        lo, hi = binom.interval(0.99, total, 1.0 / bins)
+        ax.axhspan(lo, hi, color="0.85", zorder=0)
+        ax.axhline(total / bins, color="0.4", lw=1)
+        ax.bar(np.arange(bins), counts, width=0.9, color="C0")
+        pooled = " (pooled)" if name == "u_b" else ""
+        ax.set_title(f"{name}: p = {row['p']:.2g}{pooled}", fontsize=9)
+        ax.set_xticks([0, bins - 1], ["low", "high"])
+        ax.tick_params(labelsize=8)
+    fig.suptitle(f"ranks of the truths among the posterior draws, {summary['replicas']} replicas "
+                 "(grey: 99% band of a uniform histogram)", fontsize=9)
+    return fig

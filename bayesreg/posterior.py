@@ -63,6 +63,7 @@ __all__ = [
     "stiffness_blocks",
     "solve_position",
     "log_normaliser",
+    "rigid_log_prior",
     "MAX_GROUPED",
     "SCOPES",
 ]
@@ -118,6 +119,12 @@ class Posterior(NamedTuple):
         The hard constraint and the barrier (:mod:`bayesreg.constraints`).
     inv_t_s, inv_t_r : ()
         ``1 / T_s`` and ``1 / T_r``.
+    inv_rigid_var : ()
+        ``1 / (n_b sigma^2)``: precision of each coefficient ``a_k = r_k . u_b`` of ``u_b``
+        on the six orthonormal rigid-body modes ``r_k`` (:attr:`NormaliserData.rigid_b`), a
+        proper Gaussian prior of rms boundary displacement ``sigma`` mm along each mode
+        (``build_posterior(rigid_sd=sigma)``); 0: flat along them, as the paper (the
+        elastic prior does not see rigid motion).
     normaliser : NormaliserData
         What :func:`log_normaliser` needs (:mod:`bayesreg.normaliser`).
     unit_blocks : GroupBlocks or None
@@ -149,6 +156,7 @@ class Posterior(NamedTuple):
     normaliser: NormaliserData
     unit_blocks: GroupBlocks | None = None
     spectral: SpectralPreconditioner | None = None
+    inv_rigid_var: jax.Array | float = 0.0
 
     @property
     def n_boundary(self) -> int:
@@ -199,6 +207,7 @@ def build_posterior(
     phi_ref,
     barrier_mm: float = 0.0,
     spectral: bool = False,
+    rigid_sd: float | None = None,
 ) -> Posterior:
     """Assemble :class:`Posterior` from a mesh, the SSD term and the parameter layout.
 
@@ -238,7 +247,7 @@ def build_posterior(
         such tuple per group, with finite ``A, B > 0`` and ``0 <= r1 < r2 < inf``;
         ``phi_ref`` not of shape ``(n_free,)`` or not strictly inside its support (NaN
         included); ``forbidden`` not a 3D :class:`~bayesreg.images.Image` with a finite
-        invertible affine; or a negative barrier width.
+        invertible affine; a negative barrier width; ``rigid_sd`` not finite and > 0.
     RuntimeError
         JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
 
@@ -269,6 +278,8 @@ def build_posterior(
     require_x64("build_posterior")
     if not (t_s > 0 and t_r > 0 and np.isfinite(t_s) and np.isfinite(t_r)):
         raise ValueError(f"temperatures must be finite and > 0, got T_s={t_s}, T_r={t_r}")
+    if rigid_sd is not None and not (np.isfinite(rigid_sd) and rigid_sd > 0):
+        raise ValueError(f"rigid_sd must be finite and > 0 (mm) or None, got {rigid_sd}")
     forbidden = check_image(forbidden, "forbidden")
     n_groups = len(layout.group_names)
     base = np.ones(2 * n_groups)
@@ -316,6 +327,7 @@ def build_posterior(
         inv_t_r=jnp.asarray(1.0 / t_r),
         normaliser=normaliser_data(mesh.nodes, mesh.tets, mesh.boundary, perm),
         unit_blocks=group_blocks(op, element_group, n_groups) if n_groups <= MAX_GROUPED else None,
+        inv_rigid_var=jnp.asarray(0.0 if rigid_sd is None else 1.0 / (n_b * rigid_sd**2)),
     )
     if spectral and n_groups == 1 and 3 * n_i <= DENSE_MAX_DOFS:
         ub = post.unit_blocks
@@ -554,8 +566,17 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
             & jnp.isfinite(e_r)
         )
         barrier = skull_barrier(post.skull, post.nodes + u)
-    logp = -e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior + barrier
+    logp = (-e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior + barrier
+            + rigid_log_prior(post, u_b))
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
+
+
+def rigid_log_prior(post: Posterior, u_b):
+    """``-(1/2) inv_rigid_var ||R_b^T u_b||^2``: the log prior of ``u_b`` ``(n_b, 3)`` mm along
+    the rigid-body modes, up to a constant (0 when the posterior is flat along them;
+    :attr:`Posterior.inv_rigid_var`)."""
+    a = post.normaliser.rigid_b.T @ u_b.reshape(-1)
+    return -0.5 * post.inv_rigid_var * jnp.sum(a * a)
 
 
 def condensation(post: Posterior, theta):

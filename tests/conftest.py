@@ -36,6 +36,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 import bayesreg  # noqa: E402
 
 bayesreg.configure_jax()  # float64, XLA flags, BLAS threads: before any JAX computation
+from bayesreg import mesh as mesh_mod  # noqa: E402
 from bayesreg.mesh import Mesh, boundary_nodes, orient_tets  # noqa: E402
 
 
@@ -46,25 +47,9 @@ def pytest_unconfigure(config):
         shutil.rmtree(_SESSION_CACHE, ignore_errors=True)
 
 
-# Kuhn subdivision of the unit cube into 6 tetrahedra (conforming across cubes)
-_KUHN = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-
-
 def box_mesh(n=(3, 3, 3), size=(30.0, 30.0, 30.0), origin=(0.0, 0.0, 0.0), tissue=None) -> Mesh:
-    """Structured tetrahedral mesh of a box: ``n`` cubes per axis, 6 tets per cube (mm)."""
-    nx, ny, nz = n
-    grid = np.stack(np.meshgrid(*[np.linspace(0, s, k + 1) for s, k in zip(size, n)], indexing="ij"), -1)
-    nodes = grid.reshape(-1, 3) + np.asarray(origin)
-    idx = np.arange(len(nodes)).reshape(nx + 1, ny + 1, nz + 1)
-    tets = []
-    for i, j, k in itertools.product(range(nx), range(ny), range(nz)):
-        corner = [idx[i + a, j + b, k + c] for a, b, c in itertools.product((0, 1), repeat=3)]
-        tets += [[corner[v] for v in t] for t in _KUHN]
-    tets = orient_tets(nodes, np.array(tets))
-    if tissue is None:
-        cent = nodes[tets].mean(1)
-        tissue = np.digitize(cent[:, 0], [size[0] / 3 + origin[0], 2 * size[0] / 3 + origin[0]])
-    return Mesh(nodes, tets, np.asarray(tissue, np.int64), boundary_nodes(tets))
+    """Structured tetrahedral mesh of a box (:func:`bayesreg.mesh.box_mesh`)."""
+    return mesh_mod.box_mesh(n, size, origin, tissue)
 
 
 def centred_cube() -> Mesh:
