@@ -39,16 +39,15 @@ then shows.
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse.linalg as spla
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bayesreg.config.models import BetaPrior, Float, Int
+from bayesreg.config.calibration import CalibrationSpec
 from bayesreg.constraints import points_forbidden
 from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image
@@ -67,77 +66,6 @@ LEVELS = (0.5, 0.9, 0.95)
 
 #: Tissue groups of the calibration problem: ``a`` (x below the box's middle), ``b``.
 GROUPS = ("a", "b")
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
-
-class ProblemSpec(_Strict):
-    """The small problem: a box mesh over an analytic image."""
-
-    cells: Int = Field(3, ge=2, le=6, description="cubes per axis of the box mesh (6 tetrahedra "
-                       "each; 3: 64 nodes, 56 on the boundary)")
-    size_mm: Float = Field(30.0, gt=0, description="edge of the box, mm")
-    voxel_mm: Float = Field(1.5, gt=0, description="voxel size of the moving image m, mm")
-    wavelength_mm: Float = Field(15.0, gt=0, description="wavelength of the plane waves that make "
-                                 "m, mm")
-    quadrature_level: Int = Field(0, ge=0, le=2, description="quadrature of E_s (as "
-                                  "model.quadrature_level of a run)")
-
-
-class CalModelSpec(_Strict):
-    """The posterior that is checked (and the prior the truths come from)."""
-
-    prior_normaliser: Literal["paper", "exact"] = Field(
-        "exact", description="exact: the posterior carries (1/2) log pdet S(lam, mu), the "
-        "normaliser of its elastic prior; paper: Eq. 12 without it (the truths are drawn from "
-        "the normalised prior either way)")
-    t_s: Float = Field(0.5, gt=0, description="similarity temperature T_s (intensity^2 mm^3): "
-                       "noise sd sqrt(T_s / (2 w_q)) at a quadrature point of weight w_q")
-    t_r: Float = Field(20.0, gt=0, description="elastic temperature T_r ([lam] mm^3)")
-    rigid_sd_mm: Float = Field(1.0, gt=0, description="prior sd of the rms boundary "
-                               "displacement along each rigid-body mode, mm")
-    prior_lam: BetaPrior = Field(BetaPrior(a=2.0, b=2.0, r1=0.0, r2=20.0),
-                                 description="prior of lam_a and lam_b")
-    prior_mu: BetaPrior = Field(BetaPrior(a=2.0, b=2.0, r1=0.5, r2=2.0),
-                                description="prior of mu_b (mu_a is fixed at 1)")
-
-
-class CalSamplerSpec(_Strict):
-    """The chains of each replica (NUTS in Gibbs, as ``sampler.kind: nuts``)."""
-
-    chains: Int = Field(4, ge=2, description="chains per replica")
-    warmup_steps: Int = Field(300, ge=20, description="transitions of Stan's windowed warm-up")
-    draws: Int = Field(250, ge=10, description="draws per chain after the warm-up")
-    thinning: Int = Field(1, ge=1, description="transitions per stored draw")
-    max_tree_depth: Int = Field(6, ge=1, le=10, description="NUTS' maximum trajectory doublings")
-    elastic_moves: Int = Field(4, ge=1, description="random-walk moves of the parameters per "
-                               "transition")
-    ranks: Int = Field(99, ge=9, description="L: draws (thinned evenly from all chains) among "
-                       "which each truth is ranked (ranks 0..L)")
-    bins: Int = Field(10, ge=2, description="bins of the rank histograms (must divide L + 1)")
-
-    @model_validator(mode="after")
-    def _bins(self):
-        if (self.ranks + 1) % self.bins:
-            raise ValueError(f"bins ({self.bins}) must divide ranks + 1 ({self.ranks + 1})")
-        if self.ranks > self.chains * self.draws:
-            raise ValueError(f"ranks ({self.ranks}) exceeds the draws of all chains "
-                             f"({self.chains * self.draws})")
-        return self
-
-
-class CalibrationSpec(_Strict):
-    """A calibration file (YAML), validated: ``bayesreg calibrate FILE``."""
-
-    name: str = Field("calibration", description="the check's name")
-    seed: Int = Field(0, ge=0, description="seed of the truths, the data and the chains")
-    replicas: Int = Field(100, ge=2, description="truths drawn from the prior, each sampled")
-    problem: ProblemSpec = Field(ProblemSpec(), description="the small problem")
-    model: CalModelSpec = Field(CalModelSpec(), description="the posterior that is checked")
-    sampler: CalSamplerSpec = Field(CalSamplerSpec(), description="the chains")
-    dir: str = Field("runs/calibration", description="output folder")
 
 
 class CalibrationProblem(NamedTuple):
@@ -294,8 +222,9 @@ class Replicas(NamedTuple):
     ----------
     draws : (R, C, D, dim)
         Natural positions ``[u_b.ravel() (mm), phi]``.
-    acceptance : (R, C, 2)
-        Mean acceptance of the ``u_b`` kernel and of the elastic moves over the draws.
+    acceptance : (R, C, B)
+        Mean acceptance of the ``u_b`` kernel, of the elastic random-walk moves and (with
+        ``collapsed_moves``) of the collapsed moves over the draws.
     divergences : (R, C)
         Divergent NUTS transitions while drawing.
     gradients : (R, C)
@@ -328,7 +257,9 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
 
     from bayesreg.kernels import adaptation as gw
     from bayesreg.kernels import gibbs
-    from bayesreg.kernels.target import make_target
+    from bayesreg.kernels.target import laplace_likelihood, make_target
+    from bayesreg.posterior import condensation, full_displacement
+    from bayesreg.similarity import ssd_residuals
 
     s = spec.sampler
     post = cp.posterior
@@ -339,12 +270,30 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
     stages = jnp.asarray(gw.schedule(s.warmup_steps))
     interior0 = jnp.zeros((post.op.n_interior, 3))
 
+    def curvature(p, theta):
+        # Gauss-Newton curvature 2 J^T J / T_s of the similarity in u_b (interior by the map at
+        # theta's parameters): dense, the problem is small
+        h = condensation(p, theta)
+
+        def residuals(u):
+            u_i = (h @ u).reshape(-1, 3)
+            u_n = full_displacement(p, u.reshape(-1, 3), u_i)
+            return ssd_residuals(p.ssd, u_n[p.tets]).ravel()
+
+        jac = jax.jacfwd(residuals)(theta[:nb3])
+        return 2.0 * p.inv_t_s * jac.T @ jac
+
+    def kernel_of(p, theta):
+        lik = (laplace_likelihood(p, theta, curvature(p, theta)) if s.collapsed_moves else None)
+        target = make_target(p, center_u=jnp.zeros(nb3), factor=factor, exact=cp.exact,
+                             condensed=True, likelihood=lik)
+        return target, gibbs.build_kernel(target, "nuts", max_num_doublings=s.max_tree_depth,
+                                          elastic_moves=s.elastic_moves,
+                                          collapsed_moves=s.collapsed_moves)
+
     def one_chain(key, f_q, theta0):
         p = post._replace(ssd=post.ssd._replace(f_q=f_q))
-        target = make_target(p, center_u=jnp.zeros(nb3), factor=factor, exact=cp.exact,
-                             condensed=True)
-        kernel = gibbs.build_kernel(target, "nuts", max_num_doublings=s.max_tree_depth,
-                                    elastic_moves=s.elastic_moves)
+        target, kernel = kernel_of(p, theta0)
         ws_init, ws_step, ws_final = gw.build_warmup_step(
             kernel, target_acceptance=gibbs.default_target_acceptance("nuts"))
         state, _ = gibbs.init(target, theta0, interior0)
@@ -364,6 +313,8 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
         (state, ws, cache), _ = jax.lax.scan(
             warm, (state, ws, cache), (jax.random.split(k_warm, s.warmup_steps), stages))
         params = ws_final(ws)
+        if s.collapsed_moves:  # the likelihood linearised again where the warm-up ended
+            _, kernel = kernel_of(p, state.position)
         cache = kernel.init_cache(state)
 
         def draw(carry, key):
@@ -491,6 +442,8 @@ def summarise(cp: CalibrationProblem, spec: CalibrationSpec, truths: Truths,
     out["convergence"] = {"rhat_rank_max": [c[0] for c in conv], "ess_bulk_min": [c[1] for c in conv]}
     out["sampler"] = {"acceptance_u": float(np.mean(reps.acceptance[..., 0])),
                       "acceptance_elastic": float(np.mean(reps.acceptance[..., 1])),
+                      "acceptance_collapsed": (float(np.mean(reps.acceptance[..., 2]))
+                                               if reps.acceptance.shape[-1] > 2 else None),
                       "divergences": int(np.sum(reps.divergences)),
                       "gradients_per_transition": float(np.mean(reps.gradients)),
                       "seconds": reps.seconds}

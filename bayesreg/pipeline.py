@@ -75,6 +75,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
             jax.random.key(cfg.seed), gradient_target(problem, cfg, init.center, init.sigma[0]),
             init.x0, interior0, kind=s.kind, step_size=s.step_size, eta_scale=init.sigma[1],
             dense_mass=s.dense_mass, adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
+            collapsed_moves=s.collapsed_moves,
             num_integration_steps=s.hmc_steps, jitter_integration_steps=s.hmc_jitter,
             max_tree_depth=s.max_tree_depth, target_acceptance=s.target_acceptance, **common)
         return result, init

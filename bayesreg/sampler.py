@@ -114,7 +114,9 @@ class SamplerResult(NamedTuple):
         ``min_draws``, or with the paper's rule)
     sigma : tuple
         the frozen tuned values: the proposal scale of each block (RW-MH), or
-        ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free))`` (gradient kernels)
+        ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free),
+        collapsed_scale (C, n_free, n_free))`` (gradient kernels; the last the collapsed
+        moves' factor, :class:`bayesreg.kernels.gibbs.GibbsParams`)
     warmup_acceptance : (B,) ndarray
         acceptance per block in the last warm-up chunk
     timings : dict
@@ -588,6 +590,7 @@ def sample_gradient(
     jitter_integration_steps: bool = True,
     max_tree_depth: int = 10,
     elastic_moves: int = 1,
+    collapsed_moves: int = 0,
     thinning: int = 1,
     warmup_steps: int = 1000,
     max_draws: int = 1000,
@@ -614,7 +617,8 @@ def sample_gradient(
     ``target_acceptance``, a diagonal or dense inverse mass matrix from the slow windows) on
     each chain, plus the scale of the elastic random walk; the tuned values are frozen
     after it and returned in ``SamplerResult.sigma`` as ``(step_size (C,), inverse_mass
-    (C, ...), eta_scale (C, n_free, n_free))`` (the elastic random walk's factor).
+    (C, ...), eta_scale (C, n_free, n_free), collapsed_scale (C, n_free, n_free))`` (the
+    elastic random walk's factor and the collapsed moves').
 
     Parameters
     ----------
@@ -643,6 +647,9 @@ def sample_gradient(
         NUTS' maximum number of trajectory doublings
     elastic_moves : int
         elastic random-walk updates per transition
+    collapsed_moves : int
+        collapsed moves of the elastic parameters per transition (a target with
+        ``conditional``; :func:`bayesreg.kernels.gibbs.build_kernel`)
     thinning, warmup_steps, max_draws, min_draws, chunk_draws, rhat_threshold, rhat_split,
     stop, rhat_rank_max, ess_min, estimands, progress, on_chunk, resume, resume_draws
         As :func:`sample` (``warmup_steps`` rounded up to whole chunks).
@@ -678,11 +685,12 @@ def sample_gradient(
         raise ValueError(f"eta_scale must be finite and, as scales, > 0, got {eta_scale}")
     kernel = gibbs.build_kernel(target, kind, num_integration_steps=num_integration_steps,
                              jitter_integration_steps=jitter_integration_steps,
-                             max_num_doublings=max_tree_depth, elastic_moves=elastic_moves)
+                             max_num_doublings=max_tree_depth, elastic_moves=elastic_moves,
+                             collapsed_moves=collapsed_moves)
     ws_init, ws_step, ws_final = gw.build_warmup_step(
         kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
     key_warm, key_samp = jax.random.split(rng_key)
-    n_blocks = 1 + (target.n_free > 0)
+    n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0)
     eta0 = np.asarray(eta_scale, np.float64)  # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
     dim_u = x0.shape[1] - target.n_free  # the preconditioned u_b coordinates w
@@ -702,8 +710,15 @@ def sample_gradient(
     def ws_frozen(frozen):
         # a warm-up state whose kernel parameters are exactly ``frozen`` (eta_scale * exp(0))
         ws = ws_start()
+        # the collapsed moves' factor is the same base times its own multiplier (trace ratio);
+        # a checkpoint from before them has none
+        log_col = jnp.zeros_like(ws.log_eta_scale)
+        if frozen.collapsed_scale is not None and frozen.eta_scale.shape[-1]:
+            log_col = jnp.log(jnp.trace(frozen.collapsed_scale, axis1=-2, axis2=-1)
+                              / jnp.trace(frozen.eta_scale, axis1=-2, axis2=-1))
         return ws._replace(step_size=frozen.step_size, inverse_mass=frozen.inverse_mass,
-                           eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale))
+                           eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale),
+                           log_collapsed_scale=log_col)
 
     # the draws' keys as a chunk of :func:`bayesreg.chains.build_chunk` takes them
     samp_keys = jax.jit(jax.vmap(lambda k: jax.vmap(lambda kd: jax.random.split(kd, thinning))(
@@ -753,7 +768,7 @@ def sample_gradient(
     per_chunk = chunk_draws * thinning
     n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
     info = SamplerInfo(
-        kind=kind, blocks=("u_b", "elastic") if target.n_free else ("u_b",),
+        kind=kind, blocks=(("u_b", "elastic", "collapsed")[:n_blocks]),
         # the solves counted: with the cached map the trajectory needs none, and the elastic
         # block makes elastic_moves solves plus one evaluation before them; without it every
         # gradient solves (uncounted) and the count per step varies
@@ -785,8 +800,10 @@ def _adapted_rwmh(sigma: tuple) -> dict:
 
 def _adapted_gradient(sigma: tuple) -> dict:
     """The gradient kernel's frozen step sizes, mass matrices and elastic factors."""
-    step, inv_mass, eta_scale = (np.asarray(a) for a in sigma)
-    return {"step_size_per_chain": step.tolist(),
+    step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
+    collapsed = {} if len(sigma) < 4 or sigma[3] is None else {
+        "collapsed_proposal_sd_per_chain": _marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
+    return {**collapsed, "step_size_per_chain": step.tolist(),
             "inverse_mass_diag_quantiles_0_50_100": np.quantile(
                 inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
                 [0, 0.5, 1]).tolist(),

@@ -14,14 +14,15 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from bayesreg.config import Config
 from bayesreg.kernels.rwmh import Condensation, Preconditioner
-from bayesreg.kernels.target import Target, make_target
+from bayesreg.kernels.target import Target, laplace_likelihood, make_target
 from bayesreg.normaliser import add_normaliser
 from bayesreg.posterior import (
     Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
-    split_position)
+    prior_precision, split_position)
 from bayesreg.preconditioners import DENSE_MAX_DOFS
 from bayesreg.problem import Problem
 
@@ -142,7 +143,22 @@ def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     (:func:`bayesreg.kernels.target.make_target`; ``center`` ``(dim,)``, of which the first
     ``3 n_b`` entries are used)."""
     post = problem.posterior
-    return make_target(post, center_u=center[:3 * post.n_boundary], factor=factor,
+    nb3 = 3 * post.n_boundary
+    return make_target(post, center_u=center[:nb3], factor=factor,
                        exact=cfg.model.prior_normaliser == "exact",
                        condensed=cfg.sampler.use_condensed, rtol=cfg.solver.rtol,
-                       maxiter=cfg.solver.maxiter, precondition=dense_preconditioning(problem, cfg))
+                       maxiter=cfg.solver.maxiter, precondition=dense_preconditioning(problem, cfg),
+                       likelihood=_likelihood(problem, center, factor) if cfg.sampler.collapsed_moves
+                       else None)
+
+
+def _likelihood(problem: Problem, center, factor):
+    """The collapsed moves' Gaussian likelihood of ``u_b``, linearised at the central start
+    ``center`` with the Gauss-Newton curvature that ``factor`` holds (``F F^T = P^-1``, ``P``
+    the Gauss-Newton precision at ``center``, :func:`bayesreg.initialisation.laplace_precision`):
+    ``A = P - Q(phi_center)`` (:func:`bayesreg.kernels.target.laplace_likelihood`)."""
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    f_inv = np.linalg.inv(np.asarray(factor))
+    a_lik = f_inv.T @ f_inv - np.asarray(prior_precision(post, jnp.asarray(center[nb3:])))
+    return laplace_likelihood(post, jnp.asarray(center), 0.5 * (a_lik + a_lik.T))

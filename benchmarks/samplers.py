@@ -129,7 +129,7 @@ def measure(kind: str, args) -> dict:
         "ess_bulk_min_per_s_total": float(ess.min() / (t_init + t_warm + t_samp)),
         "rhat_rank_max": rank_rhat_max(est), "rhat_classic_max": float(np.nanmax(gelman_rubin(est))),
         "time_to_rank_rhat_1_01_s": t_rank, "time_to_classic_rhat_1_2_s": t_classic,
-        "adapted": {k: np.asarray(v).tolist() for k, v in zip(("a", "b", "c"), result.sigma)}
+        "adapted": {k: np.asarray(v).tolist() for k, v in zip(("a", "b", "c", "d"), result.sigma)}
         if kind != "rwmh" else None,
     }
 

@@ -482,18 +482,22 @@ def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, c
 # kinds share the driver, and each recovers a known joint in tests/test_kernels.py
 @pytest.mark.parametrize("kind", ["mala"])
 def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_path, capsys, kind):
-    """A gradient kernel end to end: exact normaliser, no fixed parameter, sample stats and
-    adapted values written."""
+    """A gradient kernel end to end: exact normaliser, no fixed parameter, collapsed moves of
+    the parameters (Laplace proposal), sample stats and adapted values written."""
     out = tmp_path / "run"
-    tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps"))]
+    tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps",
+                                                 "sampler.proposal"))]
     sets = tiny + [f"sampler.kind={kind}", "sampler.thinning=1", "sampler.warmup_steps=40",
-                   "sampler.max_tree_depth=4", "model.prior_normaliser=exact", "model.fixed=null"]
+                   "sampler.max_tree_depth=4", "model.prior_normaliser=exact", "model.fixed=null",
+                   "sampler.proposal=laplace", "sampler.collapsed_moves=1"]
     args = ["run", "configs/quickstart.yaml", "--out", str(out)] + sum((["--set", s] for s in sets), [])
     assert main(args) == 0
     assert f"{kind}: gradients/step" in capsys.readouterr().out
     info = json.loads((out / "run.json").read_text())
     s = info["sampler"]
-    assert s["kind"] == kind and s["prior_normaliser"] == "exact" and s["blocks"] == ["u_b", "elastic"]
+    assert s["kind"] == kind and s["prior_normaliser"] == "exact"
+    assert s["blocks"] == ["u_b", "elastic", "collapsed"]
+    assert len(s["adapted"]["collapsed_proposal_sd_per_chain"]) == 3
     assert info["parameters"]["fixed"] == [] and len(info["parameters"]["free"]) == 6
     assert len(s["adapted"]["step_size_per_chain"]) == 3 and all(x > 0 for x in s["adapted"]["step_size_per_chain"])
     assert s["gradient_evaluations_per_step_mean"] >= 1

@@ -34,7 +34,7 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
         assert_moments(x, mean_true[j], var_true[j], fourth_true[j], n_se=5.0, what=(kind, j))
     acc = res.acceptance.reshape(-1, 2).mean(axis=0)
     assert 0.25 < acc[0] < 0.99 and 0.1 < acc[1] < 0.7, acc  # targets 0.57 (MALA), 0.8; 0.3
-    step, inv_mass, eta_scale = res.sigma
+    step, inv_mass, eta_scale, collapsed = res.sigma
     assert step.shape == (4,) and inv_mass.shape == (4, D) and eta_scale.shape == (4, 1, 1)
     if not adapt_mass:
         np.testing.assert_array_equal(inv_mass, 1.0)
@@ -132,3 +132,48 @@ def test_preconditioned_gibbs_kernel_gives_the_draws_of_block_jacobi(small):
     np.testing.assert_allclose(np.asarray(fast[2]), np.asarray(plain[2]), rtol=1e-9)  # log p
     assert np.asarray(plain[3])[..., 1].max() > 0  # elastic moves accepted (the cache rebuilt)
     assert its[1] < 0.5 * its[0] and np.asarray(fast[5]).sum() == 0  # fewer iterations, no failure
+
+
+def _toy_conditional(shift=0.0, scale=1.0):
+    """The toy's ``u | eta`` as the collapsed moves take it: exact for ``shift=0, scale=1``
+    (``N(A eta, e^(2 eta) S^2)``), else a deliberately wrong Gaussian."""
+    from helpers import A
+
+    def conditional(eta):
+        mean = jnp.full(D, A * eta[0] + shift)
+        return mean, jnp.diag(1.0 / (scale * jnp.asarray(S) * jnp.exp(eta[0])))
+
+    return conditional
+
+
+@pytest.mark.parametrize("shift,scale", [(0.0, 1.0), (0.7, 2.0)])
+def test_collapsed_moves_keep_the_joint(shift, scale):
+    """Collapsed moves (u carried along by a Gaussian u | eta, the Jacobian in the
+    acceptance) leave the toy's joint invariant whether that Gaussian is exact or wrong:
+    moments within 5 Monte Carlo standard errors; with the exact one eta mixes better than
+    with the random walk given u alone."""
+    rng = np.random.default_rng(0)
+    x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
+    target = toy_target()._replace(conditional=_toy_conditional(shift, scale))
+    common = dict(kind="nuts", step_size=0.3, eta_scale=0.5, warmup_steps=300, elastic_moves=1,
+                  max_draws=1000, min_draws=1000, chunk_draws=100, progress=False)
+    res = sample_gradient(jax.random.key(2), target, x0, jnp.zeros((1, 3)), collapsed_moves=2,
+                          **common)
+    mean_true, var_true, fourth_true = toy_moments()
+    for j in range(D + 1):
+        assert_moments(res.positions[..., j], mean_true[j], var_true[j], fourth_true[j], n_se=5.0,
+                       what=("collapsed", shift, j))
+    acc = res.acceptance.reshape(-1, 3).mean(axis=0)
+    assert acc.shape == (3,) and 0.05 < acc[2] < 0.9, acc
+    assert res.info.blocks == ("u_b", "elastic", "collapsed")
+    assert res.sigma[3].shape == (4, 1, 1)
+    if shift == 0.0:
+        base = sample_gradient(jax.random.key(2), toy_target(), x0, jnp.zeros((1, 3)), **common)
+        ess_c = float(az.ess(res.positions[..., D], method="bulk"))
+        ess_b = float(az.ess(base.positions[..., D], method="bulk"))
+        assert ess_c > 1.5 * ess_b, (ess_c, ess_b)
+
+
+def test_collapsed_moves_need_a_conditional():
+    with pytest.raises(ValueError, match="collapsed"):
+        gk.build_kernel(toy_target(), "nuts", collapsed_moves=1)

@@ -15,7 +15,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "bayesreg"
 # lower ones, never of a higher one.  Names are relative to ``bayesreg``; a package's
 # ``__init__`` is the package's name ("bayesreg" for the top-level one).
 LAYERS = [
-    ["_checks", "_files", "jaxconfig", "stages", "config.models", "config.loading", "config"],
+    ["_checks", "_files", "jaxconfig", "stages", "config.models", "config.loading",
+     "config.calibration", "config"],
     ["images"],
     ["interpolation"],
     ["labels"],
@@ -56,6 +57,7 @@ LAYERS = [
     ["outputs"],
     ["apply"],
     ["pipeline"],
+    ["calibration"],  # simulation-based calibration: a small problem, many replicas
     ["report.data"],
     ["report.tables", "report.figures"],
     ["report.write"],

@@ -435,8 +435,21 @@ class SamplerConfig(_Strict):
                              "coordinates, step size alone adapted")
     elastic_moves: Int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
                                "elastic parameters per transition (cheap next to a trajectory)")
+    collapsed_moves: Int = Field(0, ge=0, description="gradient kernels with proposal laplace: "
+                                 "collapsed moves of the elastic parameters per transition, which "
+                                 "carry u_b along by its Laplace approximation given the "
+                                 "parameters (one dense factorisation each): they move the "
+                                 "parameters as if u_b were integrated out, where random-walk "
+                                 "moves given u_b barely move them")
     sigma_eta: Float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
                              "random walk in the unconstrained (logit) space (adapted)")
+
+    @model_validator(mode="after")
+    def _collapsed(self):
+        if self.collapsed_moves and not (self.gradient and self.proposal == "laplace"):
+            raise ValueError("sampler.collapsed_moves needs a gradient kernel (mala, hmc, nuts) "
+                             "and sampler.proposal laplace")
+        return self
 
     @model_validator(mode="after")
     def _draws(self):

@@ -36,7 +36,8 @@ class WarmupState(NamedTuple):
     ``C`` sets the elastic random walk's factor ``2.38 / sqrt(n_free) chol(C)`` (Haario et
     al.'s adaptive Metropolis; the posterior of the parameters is strongly correlated along
     the overall stiffness scale under the exact normaliser), and the Robbins-Monro
-    log-multiplier of that factor."""
+    log-multipliers of that factor for the random-walk and for the collapsed moves (each
+    toward acceptance 0.3)."""
 
     da: tuple
     mm: tuple
@@ -46,6 +47,7 @@ class WarmupState(NamedTuple):
     eta_base: jax.Array
     log_eta_scale: jax.Array
     count: jax.Array
+    log_collapsed_scale: jax.Array | float = 0.0
 
 
 def schedule(num_steps: int) -> np.ndarray:
@@ -84,10 +86,15 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
         if eta_scale.ndim == 1:
             eta_scale = jnp.diag(eta_scale)
         return WarmupState(da, mm, jnp.asarray(initial_step_size, jnp.float64), mm.inverse_mass_matrix,
-                           mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0))
+                           mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0),
+                           jnp.zeros(()))
+
+    def params_of(ws: WarmupState, step_size) -> GibbsParams:
+        return GibbsParams(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale),
+                           ws.eta_base * jnp.exp(ws.log_collapsed_scale))
 
     def step(key, state, ws: WarmupState, cache, stage):
-        params = GibbsParams(ws.step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale))
+        params = params_of(ws, ws.step_size)
         state, info, cache = kernel.step(key, state, params, cache)
         slow, window_end = stage[0] == 1, stage[1] == 1
         acc_u = jnp.nan_to_num(info.acceptance_rate[0])
@@ -100,24 +107,27 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
         n_free = state.eta.shape[0]
 
         def end_window(args):
-            da_, mm_, mm_eta_, base, log_eta = args
+            da_, mm_, mm_eta_, base, log_eta, log_col = args
             if adapt_mass:
                 mm_ = mm_final(mm_)
                 da_ = da_init(da_final(da_))
             mm_eta_ = mm_eta_final(mm_eta_)
             if n_free:  # factor from the window's (regularised) covariance, multiplier reset
                 base = 2.38 / jnp.sqrt(n_free) * jnp.linalg.cholesky(mm_eta_.inverse_mass_matrix)
-                log_eta = jnp.zeros(())
-            return da_, mm_, mm_eta_, base, log_eta
+                log_eta, log_col = jnp.zeros(()), jnp.zeros(())
+            return da_, mm_, mm_eta_, base, log_eta, log_col
 
         count = jnp.where(window_end, 0, ws.count + 1)
-        da, mm, mm_eta, base, log_eta = jax.lax.cond(
-            window_end, end_window, lambda a: a, (da, mm, mm_eta, ws.eta_base, ws.log_eta_scale))
+        da, mm, mm_eta, base, log_eta, log_col = jax.lax.cond(
+            window_end, end_window, lambda a: a,
+            (da, mm, mm_eta, ws.eta_base, ws.log_eta_scale, jnp.asarray(ws.log_collapsed_scale)))
+        gain = 1.0 / ((count + 1).astype(jnp.float64) ** 0.6)
         if info.acceptance_rate.shape[0] > 1:
-            gain = 1.0 / ((count + 1).astype(jnp.float64) ** 0.6)
             log_eta = log_eta + gain * (jnp.nan_to_num(info.acceptance_rate[1]) - ELASTIC_TARGET_ACCEPTANCE)
+        if info.acceptance_rate.shape[0] > 2:  # collapsed moves
+            log_col = log_col + gain * (jnp.nan_to_num(info.acceptance_rate[2]) - ELASTIC_TARGET_ACCEPTANCE)
         ws = WarmupState(da, mm, jnp.exp(da.log_step_size), mm.inverse_mass_matrix, mm_eta, base,
-                         log_eta, count)
+                         log_eta, count, log_col)
         return state, ws, cache, info
 
     def final(ws: WarmupState) -> GibbsParams:
@@ -125,7 +135,7 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
         # log_step_size_avg = 0, so with no warm-up step (or none since a window's restart)
         # the step in use is kept
         step_size = jnp.where(ws.da.step > 1, jnp.exp(ws.da.log_step_size_avg), ws.step_size)
-        return GibbsParams(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale))
+        return params_of(ws, step_size)
 
     return init_ws, step, final
 

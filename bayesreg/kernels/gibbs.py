@@ -34,6 +34,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.scipy.linalg import solve_triangular
 
 from bayesreg.kernels.base import Kernel
 from bayesreg.kernels.target import Cache, Target
@@ -115,11 +116,13 @@ class GibbsParams(NamedTuple):
     """Tuned values of one chain: ``step_size`` ``()``, ``inverse_mass`` ``(3 n_b,)`` or
     ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
     of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
-    ``(n_free,)`` is accepted as independent scales."""
+    ``(n_free,)`` is accepted as independent scales; ``collapsed_scale``, the same for the
+    collapsed moves (``None``: ``eta_scale``)."""
 
     step_size: jax.Array
     inverse_mass: jax.Array
     eta_scale: jax.Array
+    collapsed_scale: jax.Array | None = None
 
 
 def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
@@ -136,7 +139,8 @@ def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
 
 def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                  jitter_integration_steps: bool = True, max_num_doublings: int = 10,
-                 divergence_threshold: float = 1000.0, elastic_moves: int = 1) -> Kernel:
+                 divergence_threshold: float = 1000.0, elastic_moves: int = 1,
+                 collapsed_moves: int = 0) -> Kernel:
     """The Gibbs kernel over a :class:`~bayesreg.kernels.target.Target`.
 
     Parameters
@@ -159,6 +163,16 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         Random-walk updates of the elastic parameters per transition (each a full
         Metropolis step given ``u_b``; the cache is rebuilt once after them if any was
         accepted).  Their acceptance is reported as the mean over the moves.
+    collapsed_moves : int
+        Collapsed moves of the parameters per transition, after the random-walk ones (a
+        third acceptance column): ``eta' = eta + L z`` with ``u_b`` carried along by the
+        target's Gaussian approximation of ``u_b`` given the parameters
+        (:attr:`~bayesreg.kernels.target.Target.conditional`), ``u_b' = m' + C'^-T C^T
+        (u_b - m)``, accepted with the joint density ratio times the Jacobian ``det C /
+        det C'``.  Where that approximation is exact the move samples the parameters'
+        marginal (``u_b`` integrated out) however strongly ``u_b`` and the parameters are
+        coupled; elsewhere it stays exact and accepts less.  Needs a target with
+        ``conditional``.
 
     Returns
     -------
@@ -170,8 +184,12 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     Raises
     ------
     ValueError
-        For an unknown ``kind`` or fewer than one leapfrog step.
+        For an unknown ``kind``, fewer than one leapfrog step, or collapsed moves on a
+        target without ``conditional`` or without free parameters.
     """
+    if collapsed_moves and (target.conditional is None or not target.n_free):
+        raise ValueError("collapsed moves need free elastic parameters and a target with a "
+                         "Gaussian conditional of u_b (make_target(mode_phi=...))")
     if kind not in KINDS:
         raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
     # BlackJAX is imported where a kernel is built, not with this module: importing it starts
@@ -249,9 +267,44 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                 return carry, (p_acc, do)
 
             carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, (~ok_c).astype(jnp.int32))
-            (eta_new, _, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
+            k_e, k_c = jax.random.split(k_e)
+            (eta_new, lz, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
                 elastic_move, carry0, jax.random.split(k_e, elastic_moves))
             do = jnp.any(dos)
+            acc.append(jnp.mean(p_acc))
+            accepted.append(do)
+            if collapsed_moves:
+                def collapsed_move(carry, key):
+                    w_c, eta_c, lz, lnat, int_, ln, mean_c, chol_c, n_its, n_fail = carry
+                    k_prop, k_a = jax.random.split(key)
+                    z = jax.random.normal(k_prop, eta_c.shape)
+                    scale = params.eta_scale if params.collapsed_scale is None else params.collapsed_scale
+                    eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
+                    mean_p, chol_p = target.conditional(eta_p)
+                    u_c = target.position(w_c, eta_c)[:-target.n_free]
+                    r = chol_c.T @ (u_c - mean_c)
+                    u_p = mean_p + solve_triangular(chol_p, r, lower=True, trans="T")
+                    phi_p = target.position(w_c, eta_p)[-target.n_free:]
+                    w_p, _ = target.coordinates(jnp.concatenate([u_p, phi_p]))
+                    norm_p = target.log_norm(eta_p)
+                    lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w_p, eta_p, int_, norm_p)
+                    log_jac = (jnp.sum(jnp.log(jnp.diag(chol_c))) - jnp.sum(jnp.log(jnp.diag(chol_p))))
+                    log_ratio = lz_p - lz + log_jac
+                    log_ratio = jnp.where(jnp.isnan(log_ratio) | ~ok_c, -jnp.inf, log_ratio)
+                    _, (do_, p_acc_, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()),
+                                                                  jnp.ones(()))
+                    keep = (w_p, eta_p, lz_p, lnat_p, int_p, norm_p, mean_p, chol_p)
+                    old = (w_c, eta_c, lz, lnat, int_, ln, mean_c, chol_c)
+                    new = tuple(jnp.where(do_, a, b) for a, b in zip(keep, old))
+                    return new + (n_its + its_p, n_fail + (~ok_p).astype(jnp.int32)), (p_acc_, do_)
+
+                mean0, chol0 = target.conditional(eta_new)
+                carry0 = (w, eta_new, lz, lp_nat, interior, norm_new, mean0, chol0, its_e, fail_e)
+                (w, eta_new, _, lp_nat, interior, norm_new, _, _, its_e, fail_e), (p_c, dos_c) = \
+                    jax.lax.scan(collapsed_move, carry0, jax.random.split(k_c, collapsed_moves))
+                do = do | jnp.any(dos_c)
+                acc.append(jnp.mean(p_c))
+                accepted.append(jnp.any(dos_c))
 
             def rebuild(_):
                 new_cache = target.build_cache(eta_new, norm_new)._replace(precond=cache.precond)
@@ -263,8 +316,6 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             its = its + its_e
             failed = failed + fail_e
             grads = grads + do.astype(grads.dtype)
-            acc.append(jnp.mean(p_acc))
-            accepted.append(do)
         else:
             lp_nat = ustate.logdensity + cache.log_norm
         state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)

@@ -14,13 +14,15 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.scipy.linalg import cho_solve
 
 from bayesreg.normaliser import add_normaliser
 from bayesreg.parameters import from_unconstrained, to_unconstrained
 from bayesreg.posterior import (
-    Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner)
+    Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
+    prior_precision)
 
-__all__ = ["Cache", "Target", "make_target"]
+__all__ = ["Cache", "Target", "make_target", "laplace_likelihood"]
 
 
 class Cache(NamedTuple):
@@ -79,6 +81,10 @@ class Target(NamedTuple):
     preconditioner : str
         The CG preconditioner of the target's solves: ``"dense"`` (``build_precond``),
         ``"spectral"`` or ``"block-jacobi"`` (the posterior's own).
+    conditional : callable or None
+        ``eta -> (mean (3 n_b,), chol (3 n_b, 3 n_b))``: a Gaussian approximation
+        ``N(mean, (chol chol^T)^-1)`` of ``u_b`` given the parameters (targets made with
+        ``likelihood``), what the kernel's collapsed moves transport ``u_b`` with.
     """
 
     u_logdensity: Callable
@@ -92,10 +98,11 @@ class Target(NamedTuple):
     build_precond: Callable | None = None
     condensed: bool = False
     preconditioner: str = "block-jacobi"
+    conditional: Callable | None = None
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
-                maxiter=1000, precondition: bool = False) -> Target:
+                maxiter=1000, precondition: bool = False, likelihood=None) -> Target:
     """:class:`Target` of a :class:`bayesreg.posterior.Posterior`.
 
     Parameters
@@ -116,10 +123,17 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
         ``condensed``) by the dense ``K_ii^-1`` at the chain's parameters when the chunk
         started (:func:`bayesreg.posterior.preconditioner`): a few iterations instead of
         a hundred, the same tolerance.
+    likelihood : (A, b), optional
+        A Gaussian approximation ``exp(b^T u_b - u_b^T A u_b / 2)`` of the likelihood in
+        ``u_b`` (``A`` ``(3 n_b, 3 n_b)`` symmetric positive semi-definite, ``b`` ``(3 n_b,)``;
+        :func:`laplace_likelihood`): then the target has a :attr:`Target.conditional`, the
+        Gaussian ``u_b | phi`` it makes with the elastic prior, precision ``A + Q(phi)``
+        (:func:`bayesreg.posterior.prior_precision`), mean ``(A + Q(phi))^-1 b``.
 
     Returns
     -------
     Target
+
     """
 
     c = jnp.asarray(center_u)
@@ -169,9 +183,41 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
     def build_precond(eta):
         return preconditioner(post, theta_of(jnp.zeros(nb3), eta))
 
+    conditional = None
+    if likelihood is not None:
+        a_lik, b_lik = (jnp.asarray(v) for v in likelihood)
+
+        def conditional(eta):
+            phi, _ = from_unconstrained(post.prior, eta)
+            prec = a_lik + prior_precision(post, phi)
+            chol = jnp.linalg.cholesky(0.5 * (prec + prec.T))
+            return cho_solve((chol, True), b_lik), chol
+
     if precondition:
         name = "dense"
     else:
         name = "spectral" if post.spectral is not None else "block-jacobi"
     return Target(u_logdensity, u_evaluate, evaluate, log_norm, build_cache, theta_of, coordinates,
-                  int(post.n_free), build_precond if precondition else None, bool(condensed), name)
+                  int(post.n_free), build_precond if precondition else None, bool(condensed), name,
+                  conditional)
+
+
+def laplace_likelihood(post: Posterior, theta0, a_lik):
+    """``(A, b)`` of :func:`make_target`'s ``likelihood``: the likelihood linearised at the
+    position ``theta0`` ``(dim,)`` with curvature ``a_lik`` ``(3 n_b, 3 n_b)`` (its
+    Gauss-Newton curvature there: ``2 J^T J / T_s``), ``b = A u_0 + g`` with ``g`` the
+    gradient in ``u_b`` of ``log p`` plus the elastic prior's part at ``theta0`` (everything
+    in ``log p`` but the elastic prior: the similarity, the skull barrier), by JAX.
+    """
+    theta0 = jnp.asarray(theta0)
+    nb3 = 3 * post.n_boundary
+    h = condensation(post, theta0)
+    phi0 = theta0[nb3:]
+
+    def logp_u(u):
+        return log_density_condensed(post, jnp.concatenate([u, phi0]), h)[0]
+
+    u0 = theta0[:nb3]
+    g = jax.grad(logp_u)(u0) + prior_precision(post, phi0) @ u0
+    a_lik = jnp.asarray(a_lik)
+    return a_lik, a_lik @ u0 + g
