@@ -81,6 +81,10 @@ class CalibrationProblem(NamedTuple):
     element_group : (M,) int
     exact : bool
         The posterior carries the exact normaliser.
+    t_s_prior : (shape, rate) or None
+        The Gamma prior the truths' ``1 / T_s`` come from (``model.t_s_prior``).
+    data_t_s : float or None
+        The temperature of the simulated noise where it differs from the model's.
     """
 
     mesh: Mesh
@@ -88,6 +92,8 @@ class CalibrationProblem(NamedTuple):
     layout: ParamLayout
     element_group: np.ndarray
     exact: bool
+    t_s_prior: tuple | None = None
+    data_t_s: float | None = None
 
 
 def _plane_waves(x, wavelength):
@@ -128,8 +134,12 @@ def calibration_problem(spec: CalibrationSpec) -> CalibrationProblem:
     post = build_posterior(mesh, build_ssd(mesh.nodes, mesh.tets, m, m,
                                            quadrature_level=p.quadrature_level),
                            skull, t_s=mdl.t_s, t_r=mdl.t_r, layout=layout, element_group=group,
-                           prior=prior, phi_ref=phi_ref, rigid_sd=mdl.rigid_sd_mm)
-    return CalibrationProblem(mesh, post, layout, group, mdl.prior_normaliser == "exact")
+                           prior=prior, phi_ref=phi_ref, rigid_sd=mdl.rigid_sd_mm,
+                           t_s_prior=(None if mdl.t_s_prior is None
+                                      else (mdl.t_s_prior.shape, mdl.t_s_prior.rate)))
+    gamma = None if mdl.t_s_prior is None else (mdl.t_s_prior.shape, mdl.t_s_prior.rate)
+    return CalibrationProblem(mesh, post, layout, group, mdl.prior_normaliser == "exact", gamma,
+                              mdl.data_t_s)
 
 
 def _dofs(idx):
@@ -158,11 +168,13 @@ def _prior_draw(cp: CalibrationProblem, rng, phi):
 class Truths(NamedTuple):
     """Truths and data of the replicas: ``theta`` ``(R, dim)`` (``[u_b.ravel(), phi]``), ``f_q``
     ``(R, M, Q)`` the simulated data, ``redraws`` ``(R,)`` prior draws refused by the hard
-    constraints before each replica's truth."""
+    constraints before each replica's truth, ``t_s`` ``(R,)`` the temperature each replica's
+    noise was drawn with."""
 
     theta: np.ndarray
     f_q: np.ndarray
     redraws: np.ndarray
+    t_s: np.ndarray
 
 
 def _valid(cp: CalibrationProblem, u) -> bool:
@@ -187,8 +199,9 @@ def simulate(cp: CalibrationProblem, n: int, rng, *, max_redraws: int = 1000) ->
     a, b, r1, r2 = (np.asarray(v) for v in (pr.a, pr.b, pr.r1, pr.r2))
     term = post.ssd
     m_at = jax.jit(lambda u: moving_values(term, u[jnp.asarray(mesh.tets)]))
-    sd = np.sqrt(float(1.0 / post.inv_t_s) / (2.0 * np.asarray(term.sqrt_w) ** 2))
-    thetas, fqs, redraws = [], [], []
+    w_q = np.asarray(term.sqrt_w) ** 2
+    gamma = cp.t_s_prior
+    thetas, fqs, redraws, temps = [], [], [], []
     for _ in range(n):
         for tries in range(max_redraws + 1):
             phi = r1 + (r2 - r1) * rng.beta(a, b)
@@ -199,10 +212,18 @@ def simulate(cp: CalibrationProblem, n: int, rng, *, max_redraws: int = 1000) ->
             raise RuntimeError(f"calibration, truths: {max_redraws} prior draws in a row inverted "
                                "an element or left the image; lower model.t_r or "
                                "model.rigid_sd_mm")
+        if cp.data_t_s is not None:
+            t_s = cp.data_t_s
+        elif gamma is not None:
+            t_s = 1.0 / rng.gamma(gamma[0], 1.0 / gamma[1])
+        else:
+            t_s = float(1.0 / post.inv_t_s)
         redraws.append(tries)
+        temps.append(t_s)
         thetas.append(np.r_[u[mesh.boundary].ravel(), phi])
+        sd = np.sqrt(t_s / (2.0 * w_q))
         fqs.append(np.asarray(m_at(jnp.asarray(u))) + sd * rng.standard_normal(sd.shape))
-    return Truths(np.array(thetas), np.array(fqs), np.array(redraws))
+    return Truths(np.array(thetas), np.array(fqs), np.array(redraws), np.array(temps))
 
 
 def _starts(cp: CalibrationProblem, n: int, chains: int, rng) -> np.ndarray:
@@ -258,7 +279,7 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
     from bayesreg.kernels import adaptation as gw
     from bayesreg.kernels import gibbs
     from bayesreg.kernels.target import laplace_likelihood, make_target
-    from bayesreg.posterior import condensation, full_displacement
+    from bayesreg.posterior import condensation, full_displacement, similarity_weight
     from bayesreg.similarity import ssd_residuals
 
     s = spec.sampler
@@ -281,7 +302,8 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
             return ssd_residuals(p.ssd, u_n[p.tets]).ravel()
 
         jac = jax.jacfwd(residuals)(theta[:nb3])
-        return 2.0 * p.inv_t_s * jac.T @ jac
+        r = residuals(theta[:nb3])
+        return 2.0 * similarity_weight(p, r @ r) * jac.T @ jac
 
     def kernel_of(p, theta):
         lik = (laplace_likelihood(p, theta, curvature(p, theta)) if s.collapsed_moves else None)
@@ -583,9 +605,13 @@ def calibrate(spec: CalibrationSpec, out=None, *, progress: bool = True) -> dict
             "coverage within 0.85-0.95" if v["calibrated"]
             else "NOT calibrated: " + "; ".join(v["problems"]))
     conv = summary["convergence"]
+    mdl = spec.model
+    temp = (f"T_s {mdl.t_s:g}" if mdl.t_s_prior is None else
+            f"1 / T_s ~ Gamma({mdl.t_s_prior.shape:g}, {mdl.t_s_prior.rate:g}) integrated out")
+    data = "" if mdl.data_t_s is None else f" (data simulated at T_s {mdl.data_t_s:g})"
     md = [f"# Calibration {spec.name}", "",
-          f"{spec.replicas} replicas, prior normaliser {spec.model.prior_normaliser}, "
-          f"ranks among {s.ranks} draws; worst rank R-hat "
+          f"{spec.replicas} replicas, prior normaliser {mdl.prior_normaliser}, {temp}{data}, "
+          f"{s.collapsed_moves} collapsed moves; ranks among {s.ranks} draws; worst rank R-hat "
           f"{max(conv['rhat_rank_max']):.3f}, smallest bulk ESS "
           f"{min(conv['ess_bulk_min']):.0f} (of {s.chains * s.draws} draws).", "",
           table(summary), "", line, ""]

@@ -29,7 +29,7 @@ from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image, interpolate_numpy
 from bayesreg.mode import find_mode
 from bayesreg.mesh import Mesh
-from bayesreg.posterior import Posterior, elastic_groups
+from bayesreg.posterior import Posterior, elastic_groups, energies, similarity_weight
 from bayesreg.problem import Problem
 from bayesreg.registration import displacement_at, optical_flow_displacement
 from bayesreg.similarity import sample_moving
@@ -175,7 +175,8 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
 def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) -> np.ndarray:
     """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed.
 
-    ``P = 2 J^T J / T_s + S / T_r + R_b R_b^T / (n_b sigma^2)``: ``J`` is the Jacobian of the
+    ``P = 2 J^T J / T_s + S / T_r + R_b R_b^T / (n_b sigma^2)`` (``1 / T_s`` the posterior's
+    :func:`~bayesreg.posterior.similarity_weight` at ``theta``): ``J`` is the Jacobian of the
     SSD residuals with respect to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib
     u_b``, ``S`` the Schur complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b
     / 2``), the last term the posterior's prior along the rigid-body modes (0 if flat).
@@ -230,7 +231,9 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     gram = (jac.T @ jac).tocsr()
     g_ib = gram[idf][:, bd]
     jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
-    prec = 2.0 * float(post.inv_t_s) * jtj + float(post.inv_t_r) * schur
+    u_all = jnp.asarray(u)
+    e_s = energies(post, u_all, jnp.asarray(phi))[0]
+    prec = 2.0 * float(similarity_weight(post, e_s)) * jtj + float(post.inv_t_r) * schur
     rigid = np.asarray(post.normaliser.rigid_b)
     prec = prec + float(post.inv_rigid_var) * rigid @ rigid.T
     prec = 0.5 * (prec + prec.T)

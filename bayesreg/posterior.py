@@ -65,6 +65,8 @@ __all__ = [
     "solve_position",
     "log_normaliser",
     "rigid_log_prior",
+    "similarity_log_likelihood",
+    "similarity_weight",
     "prior_precision",
     "MAX_GROUPED",
     "SCOPES",
@@ -121,6 +123,12 @@ class Posterior(NamedTuple):
         The hard constraint and the barrier (:mod:`bayesreg.constraints`).
     inv_t_s, inv_t_r : ()
         ``1 / T_s`` and ``1 / T_r``.
+    t_s_shape, t_s_rate : ()
+        The similarity temperature as a parameter (``build_posterior(t_s_prior=(a, b))``):
+        its precision ``tau = 1 / T_s`` with a Gamma(a, b) prior, integrated out, so that
+        ``exp(-E_s / T_s)`` becomes ``(1 + E_s / b)^-(a + n_q / 2)`` (``n_q`` quadrature
+        points, each an observation of variance ``1 / (2 w_q tau)``; Risholm et al. 2013);
+        ``t_s_shape = a + n_q / 2``.  ``t_s_shape = 0``: ``T_s`` fixed at ``1 / inv_t_s``.
     inv_rigid_var : ()
         ``1 / (n_b sigma^2)``: precision of each coefficient ``a_k = r_k . u_b`` of ``u_b``
         on the six orthonormal rigid-body modes ``r_k`` (:attr:`NormaliserData.rigid_b`), a
@@ -159,6 +167,8 @@ class Posterior(NamedTuple):
     unit_blocks: GroupBlocks | None = None
     spectral: SpectralPreconditioner | None = None
     inv_rigid_var: jax.Array | float = 0.0
+    t_s_shape: jax.Array | float = 0.0
+    t_s_rate: jax.Array | float = 1.0
 
     @property
     def n_boundary(self) -> int:
@@ -210,6 +220,7 @@ def build_posterior(
     barrier_mm: float = 0.0,
     spectral: bool = False,
     rigid_sd: float | None = None,
+    t_s_prior: tuple[float, float] | None = None,
 ) -> Posterior:
     """Assemble :class:`Posterior` from a mesh, the SSD term and the parameter layout.
 
@@ -249,7 +260,8 @@ def build_posterior(
         such tuple per group, with finite ``A, B > 0`` and ``0 <= r1 < r2 < inf``;
         ``phi_ref`` not of shape ``(n_free,)`` or not strictly inside its support (NaN
         included); ``forbidden`` not a 3D :class:`~bayesreg.images.Image` with a finite
-        invertible affine; a negative barrier width; ``rigid_sd`` not finite and > 0.
+        invertible affine; a negative barrier width; ``rigid_sd`` not finite and > 0;
+        ``t_s_prior`` not two finite numbers > 0.
     RuntimeError
         JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
 
@@ -282,6 +294,9 @@ def build_posterior(
         raise ValueError(f"temperatures must be finite and > 0, got T_s={t_s}, T_r={t_r}")
     if rigid_sd is not None and not (np.isfinite(rigid_sd) and rigid_sd > 0):
         raise ValueError(f"rigid_sd must be finite and > 0 (mm) or None, got {rigid_sd}")
+    if t_s_prior is not None and not (len(t_s_prior) == 2 and all(
+            np.isfinite(v) and v > 0 for v in t_s_prior)):
+        raise ValueError(f"t_s_prior must be (shape, rate), both finite and > 0, got {t_s_prior}")
     forbidden = check_image(forbidden, "forbidden")
     n_groups = len(layout.group_names)
     base = np.ones(2 * n_groups)
@@ -330,6 +345,9 @@ def build_posterior(
         normaliser=normaliser_data(mesh.nodes, mesh.tets, mesh.boundary, perm),
         unit_blocks=group_blocks(op, element_group, n_groups) if n_groups <= MAX_GROUPED else None,
         inv_rigid_var=jnp.asarray(0.0 if rigid_sd is None else 1.0 / (n_b * rigid_sd**2)),
+        t_s_shape=jnp.asarray(0.0 if t_s_prior is None
+                              else t_s_prior[0] + 0.5 * np.size(ssd_term.sqrt_w)),
+        t_s_rate=jnp.asarray(1.0 if t_s_prior is None else float(t_s_prior[1])),
     )
     if spectral and n_groups == 1 and 3 * n_i <= DENSE_MAX_DOFS:
         ub = post.unit_blocks
@@ -568,9 +586,25 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
             & jnp.isfinite(e_r)
         )
         barrier = skull_barrier(post.skull, post.nodes + u)
-    logp = (-e_s * post.inv_t_s - e_r * post.inv_t_r + log_prior + barrier
+    logp = (similarity_log_likelihood(post, e_s) - e_r * post.inv_t_r + log_prior + barrier
             + rigid_log_prior(post, u_b))
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
+
+
+def similarity_log_likelihood(post: Posterior, e_s):
+    """The similarity term of ``log p`` for an SSD ``e_s`` (paper Eqs. 1, 9): ``-E_s / T_s``,
+    or with the temperature integrated out (:attr:`Posterior.t_s_shape` > 0)
+    ``-(a + n_q / 2) log(1 + E_s / b)`` (up to a constant)."""
+    marginal = post.t_s_shape > 0
+    return jnp.where(marginal, -post.t_s_shape * jnp.log1p(e_s / post.t_s_rate),
+                     -e_s * post.inv_t_s)
+
+
+def similarity_weight(post: Posterior, e_s):
+    """``d log p / d (-E_s)`` at ``e_s``: ``1 / T_s``, or with the temperature integrated out
+    ``(a + n_q / 2) / (b + E_s)``, the posterior mean of ``1 / T_s`` given ``E_s`` (what the
+    Gauss-Newton preconditioners scale the similarity's curvature by)."""
+    return jnp.where(post.t_s_shape > 0, post.t_s_shape / (post.t_s_rate + e_s), post.inv_t_s)
 
 
 def rigid_log_prior(post: Posterior, u_b):

@@ -418,6 +418,8 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
                         reach=reach, moving_dtype=cfg.model.moving_dtype),
         forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
+        t_s_prior=(None if cfg.model.t_s_prior is None
+                   else (cfg.model.t_s_prior.shape, cfg.model.t_s_prior.rate)),
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,
         spectral=choice in ("auto", "spectral"),
     )

@@ -63,6 +63,29 @@ def test_simulated_data_have_the_likelihoods_noise(problem):
     assert truths.f_q.shape == (4, *post.ssd.f_q.shape)
 
 
+@pytest.mark.parametrize("sets", [["model.t_s_prior={shape: 3, rate: 1.5}"], ["model.data_t_s=2.0"]])
+def test_simulated_noise_has_each_replicas_temperature(sets):
+    """With ``t_s_prior`` each replica's 1 / T_s is a Gamma draw (mean shape / rate over 40
+    replicas, 5 standard errors) and its noise has that temperature (chi-square); with
+    ``data_t_s`` the noise has that one, not the model's."""
+    spec = cal.load_spec(overrides=sets)
+    cp = cal.calibration_problem(spec)
+    truths = cal.simulate(cp, 40, np.random.default_rng(4))
+    post = cp.posterior
+    n_q = post.ssd.f_q.size
+    if cp.t_s_prior is not None:
+        assert float(post.t_s_shape) == 3 + n_q / 2 and float(post.t_s_rate) == 1.5
+        tau = 1 / truths.t_s
+        assert abs(tau.mean() - 2.0) < 5 * np.sqrt(3 / 1.5**2 / 40)
+    else:
+        np.testing.assert_array_equal(truths.t_s, 2.0)
+        assert float(post.inv_t_s) == 1 / spec.model.t_s and float(post.t_s_shape) == 0
+    for theta, f_q, t_s in list(zip(truths.theta, truths.f_q, truths.t_s))[:3]:
+        p = post._replace(ssd=post.ssd._replace(f_q=jnp.asarray(f_q)))
+        stat = 2 * float(log_p(p, theta)[1].e_s) / t_s
+        assert abs(stat - n_q) < 5 * np.sqrt(2 * n_q)
+
+
 def test_rigid_prior_of_a_translation_is_its_closed_form():
     """A translation t of every boundary node lies in the rigid modes: the prior adds
     -|t|^2 / (2 sigma^2) (rms displacement |t| along a mode of sd sigma), and nothing else

@@ -16,7 +16,7 @@ from bayesreg.posterior import (SCOPES, build_posterior, condensation, elastic_g
 from bayesreg.similarity import build_ssd
 from bayesreg.solver import interior_map
 from conftest import box_mesh
-from helpers import log_p
+from helpers import box_posterior, log_p
 
 
 def test_finite_at_valid_point_and_matches_energies(small):
@@ -342,3 +342,48 @@ def test_compiled_log_density_names_its_parts_for_the_profiler(small):
     cached = build_kernel(logdensity, preconditioner=pre)
     text = jax.jit(cached.init_cache).lower(state).compile().as_text()
     assert f"/{CACHE_SCOPE}/" in text  # each chain's K_ii^-1, built at every chunk start
+
+
+def test_marginal_similarity_temperature_is_the_integral_over_its_gamma_prior():
+    """With ``t_s_prior = (a, b)`` the similarity term is ``log int tau^(n/2) exp(-tau E_s)
+    Gamma(tau; a, b) d tau`` up to a constant (SciPy quadrature over tau at two positions);
+    the rest of ``log p`` is unchanged; and the Gauss-Newton weight is E[tau | E_s]."""
+    from scipy.integrate import quad
+    from scipy.special import gammaln
+
+    from bayesreg.posterior import similarity_weight
+
+    prior = {"lam": (1.0, 1.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+    phi = np.array([5.0, 5.0, 5.0, 1.0, 1.0])
+    mesh, post, theta = box_posterior(prior, 3.0, phi)
+    a, b = 2.0, 0.3
+    marg = post._replace(t_s_shape=jnp.asarray(a + 0.5 * post.ssd.sqrt_w.size),
+                         t_s_rate=jnp.asarray(b))
+    n = post.ssd.sqrt_w.size
+
+    def log_integral(e_s):
+        shape = a + n / 2
+        mode = (shape - 1) / (b + e_s)  # integrate exp(.) scaled at its mode
+
+        def f(t):
+            return np.exp((shape - 1) * np.log(t / mode) - (t - mode) * (b + e_s))
+
+        val, _ = quad(f, 0, 50 * mode, points=[mode], limit=400)
+        return np.log(val) + (shape - 1) * np.log(mode) - mode * (b + e_s)
+
+    thetas = [theta, theta * 1.5]
+    lps, ess = [], []
+    for th in thetas:
+        lp_f, aux_f = log_p(post, th)
+        lp_m, aux_m = log_p(marg, th)
+        e_s = float(aux_m.e_s)
+        # same everything but the similarity term
+        assert float(lp_m) - (-(a + n / 2) * np.log1p(e_s / b)) == pytest.approx(
+            float(lp_f) + e_s * float(post.inv_t_s), rel=1e-10, abs=1e-8)
+        lps.append(float(lp_m) - float(lp_f) - e_s * float(post.inv_t_s))  # the similarity term
+        ess.append(e_s)
+    assert lps[0] - lps[1] == pytest.approx(log_integral(ess[0]) - log_integral(ess[1]), rel=1e-7)
+    assert log_integral(ess[0]) == pytest.approx(gammaln(a + n / 2) - (a + n / 2) * np.log(b + ess[0]),
+                                                 rel=1e-9)
+    assert float(similarity_weight(marg, ess[0])) == pytest.approx((a + n / 2) / (b + ess[0]))
+    assert float(similarity_weight(post, ess[0])) == float(post.inv_t_s)

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bayesreg.config.models import BetaPrior, Float, Int
+from bayesreg.config.models import BetaPrior, Float, GammaPrior, Int
 
 __all__ = ["CalibrationSpec", "ProblemSpec", "CalModelSpec", "CalSamplerSpec"]
 
@@ -38,6 +38,12 @@ class CalModelSpec(_Strict):
         "the normalised prior either way)")
     t_s: Float = Field(0.5, gt=0, description="similarity temperature T_s (intensity^2 mm^3): "
                        "noise sd sqrt(T_s / (2 w_q)) at a quadrature point of weight w_q")
+    t_s_prior: GammaPrior | None = Field(
+        None, description="the similarity temperature as a parameter (as model.t_s_prior of a "
+        "run): each truth's 1 / T_s drawn from this Gamma prior, the posterior integrating it out")
+    data_t_s: Float | None = Field(
+        None, gt=0, description="simulate the data with this temperature instead of the model's "
+        "(noise the posterior does not assume: the simplest model mismatch); null: the model's")
     t_r: Float = Field(20.0, gt=0, description="elastic temperature T_r ([lam] mm^3)")
     rigid_sd_mm: Float = Field(1.0, gt=0, description="prior sd of the rms boundary "
                                "displacement along each rigid-body mode, mm")
@@ -50,14 +56,14 @@ class CalModelSpec(_Strict):
 class CalSamplerSpec(_Strict):
     """The chains of each replica (NUTS in Gibbs, as ``sampler.kind: nuts``)."""
 
-    chains: Int = Field(4, ge=2, description="chains per replica")
+    chains: Int = Field(2, ge=2, description="chains per replica")
     warmup_steps: Int = Field(300, ge=20, description="transitions of Stan's windowed warm-up")
-    draws: Int = Field(250, ge=10, description="draws per chain after the warm-up")
+    draws: Int = Field(500, ge=10, description="draws per chain after the warm-up")
     thinning: Int = Field(1, ge=1, description="transitions per stored draw")
     max_tree_depth: Int = Field(6, ge=1, le=10, description="NUTS' maximum trajectory doublings")
     elastic_moves: Int = Field(4, ge=1, description="random-walk moves of the parameters per "
                                "transition")
-    collapsed_moves: Int = Field(0, ge=0, description="collapsed moves of the parameters per "
+    collapsed_moves: Int = Field(2, ge=0, description="collapsed moves of the parameters per "
                                  "transition (as sampler.collapsed_moves of a run; the likelihood "
                                  "linearised at each chain's start, then at its state after the "
                                  "warm-up)")

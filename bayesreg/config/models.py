@@ -24,7 +24,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 __all__ = ["Config", "ConfigError", "DataConfig", "MeshConfig", "SyntheticConfig", "ModelConfig",
-           "SolverConfig", "SamplerConfig", "InitConfig", "OutputConfig", "BetaPrior",
+           "SolverConfig", "SamplerConfig", "InitConfig", "OutputConfig", "BetaPrior", "GammaPrior",
            "TissuePriors", "TissueValues", "FixedParam", "PRIOR_TAGS"]
 
 Tissue = Literal["csf", "gm", "wm"]
@@ -248,6 +248,13 @@ class BetaPrior(_Strict):
         return self
 
 
+class GammaPrior(_Strict):
+    """A Gamma(shape, rate) prior of a precision (the similarity's 1 / T_s)."""
+
+    shape: Float = Field(gt=0, description="shape a")
+    rate: Float = Field(gt=0, description="rate b, in the units of the temperature")
+
+
 class TissuePriors(_Strict):
     """A separate scaled Beta prior per tissue (paper Sec. 3.1: priors per compartment)."""
 
@@ -293,6 +300,12 @@ class ModelConfig(_Strict):
         "element (one pair per element)")
     t_s: Float = Field(0.1, gt=0, description="similarity temperature T_s (Eq. 11), in "
                        "intensity^2 mm^3")
+    t_s_prior: GammaPrior | None = Field(
+        None, description="the similarity temperature as a parameter: a Gamma(shape, rate) prior "
+        "on 1 / T_s, integrated out (Risholm et al. 2013), so exp(-E_s / T_s) becomes "
+        "(1 + E_s / rate)^-(shape + n_q / 2) with n_q quadrature points: a misfit the model "
+        "cannot explain widens the posterior instead of bending the elastic parameters; t_s "
+        "then only seeds the preconditioners.  null: T_s = t_s")
     t_r: Float = Field(3.0, gt=0, description="elastic temperature T_r (Eq. 12), in [lam] mm^3")
     prior_lam: Prior = Field(BetaPrior(r2=100.0), description="prior of every free lambda: "
                              "{a, b, r1, r2}, or one per tissue {csf: {...}, gm: {...}, wm: {...}} "

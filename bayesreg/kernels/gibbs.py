@@ -267,7 +267,8 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                 return carry, (p_acc, do)
 
             carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, (~ok_c).astype(jnp.int32))
-            k_e, k_c = jax.random.split(k_e)
+            if collapsed_moves:  # (without them the random stream is the one it always was)
+                k_e, k_c = jax.random.split(k_e)
             (eta_new, lz, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
                 elastic_move, carry0, jax.random.split(k_e, elastic_moves))
             do = jnp.any(dos)
