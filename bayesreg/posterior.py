@@ -708,10 +708,15 @@ def log_normaliser(post: Posterior, phi):
         ``NaN`` when the factorisation fails (``K`` not positive definite on the complement
         of the rigid modes: non-positive parameters).
     """
+    return log_pdet_schur(_dense_k(post, phi), post.normaliser.rigid_b)
+
+
+def _dense_k(post: Posterior, phi):
+    """The dense stiffness ``(3N, 3N)`` at ``phi``, interior DOFs first
+    (:func:`bayesreg.normaliser.dense_stiffness`)."""
     lam_g, mu_g = elastic_groups(post, phi)
-    k = dense_stiffness(post.op.klam, post.op.kmu, lam_g[post.group], mu_g[post.group],
-                        post.normaliser, 3 * post.nodes.shape[0])
-    return log_pdet_schur(k, post.normaliser.rigid_b)
+    return dense_stiffness(post.op.klam, post.op.kmu, lam_g[post.group], mu_g[post.group],
+                           post.normaliser, 3 * post.nodes.shape[0])
 
 
 def prior_precision(post: Posterior, phi):
@@ -735,11 +740,8 @@ def prior_precision(post: Posterior, phi):
         DOF order ``3 k + axis`` of the ``k``-th boundary node (:attr:`Posterior.boundary`);
         NaN where the factorisation fails (non-positive parameters).
     """
-    lam_g, mu_g = elastic_groups(post, phi)
-    n_dof = 3 * post.nodes.shape[0]
-    k = dense_stiffness(post.op.klam, post.op.kmu, lam_g[post.group], mu_g[post.group],
-                        post.normaliser, n_dof)
-    ni3 = n_dof - 3 * post.n_boundary
+    k = _dense_k(post, phi)
+    ni3 = k.shape[0] - 3 * post.n_boundary
     k_ii, k_ib, k_bb = k[:ni3, :ni3], k[:ni3, ni3:], k[ni3:, ni3:]
     chol = jnp.linalg.cholesky(0.5 * (k_ii + k_ii.T))
     x = cho_solve((chol, True), k_ib)
