@@ -164,3 +164,14 @@ def test_calibrate_command_writes_its_folder(tmp_path, capsys):
     assert len(summary["convergence"]["rhat_rank_max"]) == 3
     v = summary["verdict"]
     assert v["calibrated"] == (not v["problems"])
+
+
+def test_strict_calibrate_exits_5_when_not_calibrated(monkeypatch, capsys):
+    summary = {"levels": [0.9], "quantities": {}, "u_b": {"coverage": {"0.9": 0.5}, "p": 0.0},
+               "verdict": {"calibrated": False, "problems": ["u_b: 90% intervals hold 50%"]}}
+    monkeypatch.setattr(cal, "calibrate", lambda spec, out: summary)
+    assert main(["calibrate", "--strict"]) == 5
+    assert "NOT calibrated: u_b: 90% intervals hold 50%" in capsys.readouterr().out
+    assert main(["calibrate"]) == 0
+    summary["verdict"] = {"calibrated": True, "problems": []}
+    assert main(["calibrate", "--strict"]) == 0

@@ -19,6 +19,11 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    ``(1/2) log pdet S(lam, mu)`` (:func:`bayesreg.posterior.log_normaliser`).  If any move
    was accepted, the cache (``H`` and the normaliser) and the gradient state of part 1 are
    rebuilt once.
+3. Optionally (``collapsed_moves``), moves of ``(eta, u_b)`` together: ``eta`` by a random
+   walk and ``u_b`` carried along by a Gaussian approximation of ``u_b`` given the
+   parameters (:attr:`bayesreg.kernels.target.Target.conditional`), with the Jacobian of
+   that map in the acceptance (exact whatever the approximation); they move parameters
+   that ``u_b`` pins down given it but not in the marginal.
 
 The elastic parameters move by a random walk rather than inside the gradient kernel because
 they are few (1-6) and because the exact normaliser's gradient costs about eight dense
@@ -189,7 +194,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     """
     if collapsed_moves and (target.conditional is None or not target.n_free):
         raise ValueError("collapsed moves need free elastic parameters and a target with a "
-                         "Gaussian conditional of u_b (make_target(mode_phi=...))")
+                         "Gaussian conditional of u_b (make_target(likelihood=...))")
     if kind not in KINDS:
         raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
     # BlackJAX is imported where a kernel is built, not with this module: importing it starts
