@@ -21,9 +21,12 @@ that many replicas fit in one program:
    redrawn whole (the posterior's hard constraints).  The likelihood ``exp(-E_s / T_s)``
    (Eqs. 1, 9) sees ``f`` only through its values ``f_q`` at the fixed quadrature points
    ``x_q``, as independent ``f_q ~ N(m(x_q + u(x_q)), T_s / (2 w_q))`` (``w_q`` the point's
-   weight, mm^3): ``f_q`` is drawn from exactly that.
+   weight, mm^3): ``f_q`` is drawn from exactly that, at ``T_s`` (or, with ``t_s_prior``,
+   at a ``T_s`` drawn from it; with ``data_t_s``, at that one: a mismatch).
 3. **Posterior draws** (:func:`run_replicas`): NUTS on ``u_b`` in Gibbs with random-walk moves
-   of the parameters (:mod:`bayesreg.kernels.gibbs`), Stan's windowed warm-up
+   of the parameters and, with ``sampler.collapsed_moves``, collapsed moves (the likelihood
+   linearised at each chain's start, again where its warm-up ended)
+   (:mod:`bayesreg.kernels.gibbs`), Stan's windowed warm-up
    (:mod:`bayesreg.kernels.adaptation`), chains started from the prior, not from the truth;
    every chain of every replica in one vmapped, jitted program (one compilation).
 4. **Ranks and coverage** (:func:`summarise`): the rank of each truth among ``L`` draws
@@ -273,6 +276,10 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
     starts : (R, C, dim) array
         Natural chain starts.
     key : PRNGKey
+
+    Returns
+    -------
+    Replicas
     """
     import time
 
