@@ -48,13 +48,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
-import scipy.sparse.linalg as spla
 
 from bayesreg.config.calibration import CalibrationSpec
+from bayesreg.config.loading import load_model_file
 from bayesreg.constraints import points_forbidden
-from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image
-from bayesreg.initialisation import gauss_newton_precision
+from bayesreg.initialisation import gauss_newton_precision, schur_complement
 from bayesreg.jaxconfig import require_x64
 from bayesreg.mesh import Mesh, box_mesh, signed_volumes
 from bayesreg.parameters import ParamLayout
@@ -145,27 +144,25 @@ def calibration_problem(spec: CalibrationSpec) -> CalibrationProblem:
                               mdl.data_t_s)
 
 
-def _dofs(idx):
-    return (3 * np.asarray(idx)[:, None] + np.arange(3)).ravel()
-
-
 def _prior_draw(cp: CalibrationProblem, rng, phi):
     """``u`` ``(N, 3)`` from the elastic prior given ``phi`` (boundary Gaussian, interior FE)."""
     post, mesh = cp.posterior, cp.mesh
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
-    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[cp.element_group], mu_g[cp.element_group])
-    k = k.tocsc()
-    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
-    k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
-    h = -spla.splu(k_ii.tocsc()).solve(k_ib.toarray())
-    schur = k_bb.toarray() + k_ib.T @ h
+    h, schur = schur_complement(post, mesh, cp.element_group, phi)
     rigid = np.asarray(post.normaliser.rigid_b)
     prec = schur * float(post.inv_t_r) + float(post.inv_rigid_var) * rigid @ rigid.T
     chol = np.linalg.cholesky(0.5 * (prec + prec.T))
-    u_b = sla.solve_triangular(chol.T, rng.standard_normal(len(bd)), lower=False)
-    u = np.zeros(3 * len(mesh.nodes))
-    u[bd], u[idf] = u_b, h @ u_b
-    return u.reshape(-1, 3)
+    u_b = sla.solve_triangular(chol.T, rng.standard_normal(len(prec)), lower=False)
+    u = np.zeros_like(mesh.nodes)
+    u[mesh.boundary], u[mesh.interior] = u_b.reshape(-1, 3), (h @ u_b).reshape(-1, 3)
+    return u
+
+
+def _prior_phi(cp: CalibrationProblem, rng, size=None):
+    """Free parameters drawn from their scaled Beta priors, ``(*size, n_free)``."""
+    pr = cp.posterior.prior
+    a, b, r1, r2 = (np.asarray(v) for v in (pr.a, pr.b, pr.r1, pr.r2))
+    shape = None if size is None else tuple(size) + (len(a),)
+    return r1 + (r2 - r1) * rng.beta(a, b, size=shape)
 
 
 class Truths(NamedTuple):
@@ -198,8 +195,6 @@ def simulate(cp: CalibrationProblem, n: int, rng, *, max_redraws: int = 1000) ->
         is too wide for the mesh: lower ``t_r`` or ``rigid_sd_mm``).
     """
     post, mesh = cp.posterior, cp.mesh
-    pr = post.prior
-    a, b, r1, r2 = (np.asarray(v) for v in (pr.a, pr.b, pr.r1, pr.r2))
     term = post.ssd
     m_at = jax.jit(lambda u: moving_values(term, u[jnp.asarray(mesh.tets)]))
     w_q = np.asarray(term.sqrt_w) ** 2
@@ -207,7 +202,7 @@ def simulate(cp: CalibrationProblem, n: int, rng, *, max_redraws: int = 1000) ->
     thetas, fqs, redraws, temps = [], [], [], []
     for _ in range(n):
         for tries in range(max_redraws + 1):
-            phi = r1 + (r2 - r1) * rng.beta(a, b)
+            phi = _prior_phi(cp, rng)
             u = _prior_draw(cp, rng, phi)
             if _valid(cp, u):
                 break
@@ -232,9 +227,7 @@ def simulate(cp: CalibrationProblem, n: int, rng, *, max_redraws: int = 1000) ->
 def _starts(cp: CalibrationProblem, n: int, chains: int, rng) -> np.ndarray:
     """Chain starts ``(n, chains, dim)``: parameters from their priors, ``u_b`` at rest plus
     0.1 mm noise (never the truth)."""
-    pr = cp.posterior.prior
-    a, b, r1, r2 = (np.asarray(v) for v in (pr.a, pr.b, pr.r1, pr.r2))
-    phi = r1 + (r2 - r1) * rng.beta(a, b, size=(n, chains, len(a)))
+    phi = _prior_phi(cp, rng, (n, chains))
     u = 0.1 * rng.standard_normal((n, chains, 3 * cp.posterior.n_boundary))
     return np.concatenate([u, phi], axis=-1)
 
@@ -511,28 +504,7 @@ def load_spec(path=None, overrides: list[str] | None = None) -> CalibrationSpec:
     ConfigError
         Bad YAML, an unknown key or a bad value (the message names it).
     """
-    from pathlib import Path
-
-    import yaml
-    from pydantic import ValidationError
-
-    from bayesreg.config.loading import ConfigError, apply_overrides, format_errors
-
-    raw, source = {}, "defaults"
-    if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"calibration file not found: {path}")
-        try:
-            raw = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-        source = str(path)
-    raw = apply_overrides(raw, overrides)
-    try:
-        return CalibrationSpec.model_validate(raw)
-    except ValidationError as exc:
-        raise ConfigError(format_errors(exc, source)) from None
+    return load_model_file(path, CalibrationSpec, what="calibration file", overrides=overrides)
 
 
 def table(summary: dict) -> str:

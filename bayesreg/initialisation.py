@@ -36,7 +36,7 @@ from bayesreg.similarity import sample_moving
 from bayesreg.targets import make_logdensity
 
 __all__ = ["Initialisation", "initialise", "start_center", "start_check", "initial_positions",
-           "laplace_precision", "gauss_newton_precision", "proposal_scale"]
+           "laplace_precision", "gauss_newton_precision", "schur_complement", "proposal_scale"]
 
 
 def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarray, dict]:
@@ -172,6 +172,27 @@ def laplace_precision(problem: Problem, theta) -> np.ndarray:
     return gauss_newton_precision(problem.posterior, problem.mesh, problem.element_group, theta)
 
 
+def schur_complement(post: Posterior, mesh: Mesh, element_group, phi):
+    """The interior map and the Schur complement of ``K`` at the parameters ``phi``
+    ``(n_free,)``, by SciPy (sparse LU of ``K_ii``).
+
+    Returns
+    -------
+    h : (3 n_i, 3 n_b) array
+        ``u_i = h u_b`` solves ``K_ii u_i = -K_ib u_b`` (DOFs node-major, interior nodes in
+        ``mesh.interior`` order, boundary nodes in ``mesh.boundary`` order).
+    schur : (3 n_b, 3 n_b) array
+        ``S = K_bb - K_bi K_ii^-1 K_ib``, so that ``E_r = u_b^T S u_b / 2``.
+    """
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
+    g = np.asarray(element_group)
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
+    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
+    h = -spla.splu(sp.csc_matrix(k_ii)).solve(k_ib.toarray())
+    return h, k_bb.toarray() + k_ib.T @ h
+
+
 def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) -> np.ndarray:
     """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed.
 
@@ -198,13 +219,8 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     """
     nb = len(mesh.boundary)
     phi = np.asarray(theta)[3 * nb:]
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
-    g = np.asarray(element_group)
-    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
+    h, schur = schur_complement(post, mesh, element_group, phi)
     bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
-    k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
-    h = -spla.splu(sp.csc_matrix(k_ii)).solve(k_ib.toarray())  # (3 n_i, 3 n_b)
-    schur = k_bb.toarray() + k_ib.T @ h
     # residual Jacobian w.r.t. nodal displacements, through the interior map
     u_b = np.asarray(theta)[: 3 * nb]
     u = np.zeros(3 * len(mesh.nodes))
@@ -231,8 +247,8 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     gram = (jac.T @ jac).tocsr()
     g_ib = gram[idf][:, bd]
     jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
-    u_all = jnp.asarray(u)
-    e_s = energies(post, u_all, jnp.asarray(phi))[0]
+    # E_s matters only where the temperature is integrated out (similarity_weight)
+    e_s = energies(post, jnp.asarray(u), jnp.asarray(phi))[0] if float(post.t_s_shape) > 0 else 0.0
     prec = 2.0 * float(similarity_weight(post, e_s)) * jtj + float(post.inv_t_r) * schur
     rigid = np.asarray(post.normaliser.rigid_b)
     prec = prec + float(post.inv_rigid_var) * rigid @ rigid.T

@@ -34,12 +34,12 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.checkpoint import Checkpoint
-from bayesreg.config import Config, ConfigError, format_errors, load_config
+from bayesreg.config import Config, ConfigError, load_config
+from bayesreg.config.loading import load_model_file
 from bayesreg.outputs import RunResult
 from bayesreg.pipeline import run
 from bayesreg.report.data import PAPER, load_run
@@ -95,16 +95,7 @@ def load_sweep(path) -> SweepSpec:
         Bad YAML, an unknown key, a grid key with no values (the message names it).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"sweep file not found: {path}")
-    try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    try:
-        spec = SweepSpec.model_validate(raw)
-    except ValidationError as exc:
-        raise ConfigError(format_errors(exc, str(path))) from None
+    spec = load_model_file(path, SweepSpec, what="sweep file")
     empty = [k for k, v in spec.grid.items() if not v]
     if empty:
         raise ConfigError(f"{path}: grid key(s) {empty} have no values")

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 from bayesreg.config.models import PRIOR_TAGS, Config, ConfigError
 
-__all__ = ["load_config", "override_config", "apply_overrides", "format_errors"]
+__all__ = ["load_config", "override_config", "apply_overrides", "format_errors", "load_model_file"]
 
 
 #: pydantic's tags of the members of a plain union (``Int | list[Int]``) in an error's location
@@ -92,6 +92,35 @@ def _load_yaml(text: str):
         return loader.construct_document(node)
     finally:
         loader.dispose()
+
+
+def load_model_file(path, model, *, what: str, overrides: list[str] | None = None):
+    """A YAML file (``None``: an empty mapping) with ``key=value`` overrides, validated as the
+    pydantic ``model``: the reading shared by the sweep and calibration files (a run's
+    config, with ``extends``, is :func:`load_config`'s).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist (the message names ``what``).
+    ConfigError
+        Bad YAML, an unknown key or a bad value (the message names it).
+    """
+    raw, source = {}, "defaults"
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{what} not found: {path}")
+        try:
+            raw = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        source = str(path)
+    raw = apply_overrides(raw, overrides)
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(format_errors(exc, source)) from None
 
 
 def apply_overrides(raw: dict, overrides: list[str] | None) -> dict:
