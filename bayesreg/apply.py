@@ -108,7 +108,7 @@ def load_posterior(run_dir) -> RunPosterior:
 
     from bayesreg.checkpoint import Checkpoint
     from bayesreg.diagnostics import group_draws
-    from bayesreg.problem import parameter_layout
+    from bayesreg.problem import parameter_layout, sampled_mesh
 
     path = Path(run_dir)
     for name in ("posterior.nc", "mesh.vtu"):
@@ -120,6 +120,7 @@ def load_posterior(run_dir) -> RunPosterior:
                                 "needed (a run written with output.checkpoint: true)")
     cfg = ckpt.load_config()
     data = ckpt.load_problem()
+    data = data._replace(mesh=sampled_mesh(cfg, data.mesh))  # boundary: the sampled nodes
     _, group = parameter_layout(cfg, data.mesh)
     tree = az.from_netcdf(path / "posterior.nc")
     try:
@@ -171,16 +172,17 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
     cache: dict[bytes, tuple] = {}
     for k, s in enumerate(np.asarray(indices)):
         key = np.concatenate([rp.lam[s], rp.mu[s]]).tobytes()
-        if key not in cache:
+        if key not in cache and len(di):
             if len(cache) > 8:
                 cache.clear()
             kk = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, rp.lam[s][rp.group],
                                                 rp.mu[s][rp.group]))
             cache[key] = (spla.splu(sp.csc_matrix(kk[di][:, di])), kk[di][:, db])
-        lu, k_ib = cache[key]
+        lu, k_ib = cache.get(key, (None, None))
         full = np.empty(3 * n)
         full[db] = rp.u_b[s].ravel()
-        full[di] = lu.solve(-(k_ib @ full[db]))
+        if len(di):  # (none where every node is sampled: model.interior: sample)
+            full[di] = lu.solve(-(k_ib @ full[db]))
         out[k] = full.reshape(n, 3)
     return out
 

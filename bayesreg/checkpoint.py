@@ -167,7 +167,11 @@ class Checkpoint:
         }
         if data.truth is not None:
             t = data.truth
-            arrays.update(truth_u=t.u, truth_lam_e=t.lam_e, truth_mu_e=t.mu_e, truth_pushed=t.pushed)
+            arrays.update(truth_u=t.u, truth_pushed=t.pushed)
+            if t.made_by_model:
+                arrays.update(truth_lam_e=t.lam_e, truth_mu_e=t.mu_e)
+            if t.field is not None:
+                arrays.update(truth_field=t.field.data, truth_field_affine=t.field.affine)
         savez_atomic(self.problem_path, compressed=True, **arrays)
 
     def load_problem(self) -> ProblemData:
@@ -184,7 +188,11 @@ class Checkpoint:
             meta = json.loads(str(z["meta"]))
             truth = None
             if "truth_u" in z:
-                truth = Truth(z["truth_u"], z["truth_lam_e"], z["truth_mu_e"], z["truth_pushed"])
+                field = (Image(z["truth_field"], z["truth_field_affine"]) if "truth_field" in z
+                         else None)
+                truth = Truth(z["truth_u"], z["truth_lam_e"] if "truth_lam_e" in z else None,
+                              z["truth_mu_e"] if "truth_mu_e" in z else None, z["truth_pushed"],
+                              field)
             return ProblemData(
                 f=Image(z["f"], z["f_affine"]), m=Image(z["m"], z["m_affine"]),
                 labels=Image(z["labels"], z["labels_affine"]),

@@ -15,7 +15,7 @@ import numpy as np
 
 from bayesreg.convergence import arviz_fast_ess, geyer_ess
 
-__all__ = ["coverage", "to_datatree", "group_draws", "contraction", "IDENTIFIED_MIN", "geyer_ess",
+__all__ = ["coverage", "to_datatree", "group_draws", "contraction", "IDENTIFIED_MIN", "EDGE", "geyer_ess",
            "arviz_fast_ess"]
 
 
@@ -120,6 +120,10 @@ IDENTIFIED_MIN = 0.5
 removed less than half of its prior variance (Betancourt, *Calibrating model-based
 inferences and decisions*, arXiv:1803.08393, 2018)."""
 
+EDGE = 0.01
+"""Fraction of a prior's support at either end within which a posterior median counts as on
+the prior's edge (:func:`contraction`'s ``at_prior_edge``)."""
+
 
 def _beta_moments(a, b, r1, r2, fn):
     """Mean and variance of ``fn(r1 + (r2 - r1) X)``, ``X ~ Beta(a, b)`` (SciPy quadrature)."""
@@ -156,7 +160,10 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
     dict
         ``{"lam_gm": {...}, ..., "ratio_csf": {...}, ...}``, each with ``scale`` (``"logit"``
         or ``"log"``), ``prior_sd`` and ``posterior_sd`` on that scale, ``contraction`` and
-        ``identified`` (``contraction >= IDENTIFIED_MIN``).
+        ``identified`` (``contraction >= IDENTIFIED_MIN``); a free parameter's also
+        ``at_prior_edge``: its posterior median lies in the outer ``EDGE`` (1%) of its prior
+        support at either end (the data push it onto the prior's edge, as a misfit the model
+        cannot make pays itself with extreme stiffness).
 
     Raises
     ------
@@ -183,6 +190,8 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
         x = np.clip((flat[:, k] - lo[k]) / (r2[k] - lo[k]), 1e-300, 1.0 - 1e-16)
         out[name] = entry("logit", float(polygamma(1, a[k]) + polygamma(1, b[k])),
                           float(np.var(np.log(x) - np.log1p(-x))))
+        mid = float(np.median(x))
+        out[name]["at_prior_edge"] = bool(mid < EDGE or mid > 1.0 - EDGE)
     for g, gname in enumerate(layout.group_names[:groups]):
         prior_var, log_ratio = 0.0, 0.0
         for sign, p in ((1.0, "lam"), (-1.0, "mu")):

@@ -35,7 +35,8 @@ from bayesreg.registration import displacement_at, optical_flow_displacement
 from bayesreg.similarity import sample_moving
 from bayesreg.targets import make_logdensity
 
-__all__ = ["Initialisation", "initialise", "start_center", "start_check", "initial_positions",
+__all__ = ["Initialisation", "initialise", "start_center", "start_check", "registration_field",
+           "initial_positions",
            "laplace_precision", "gauss_newton_precision", "schur_complement", "proposal_scale"]
 
 
@@ -72,12 +73,7 @@ def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarr
     base_u = np.zeros((nb, 3))
     if cfg.init.start == "registration":
         t = time.perf_counter()
-        brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
-        f_reg = problem.f
-        if problem.truth is not None:  # a synthetic m holds the brain only: so must f
-            f_reg = Image(np.where(brain, problem.f.data, 0.0), problem.f.affine)
-        flow = optical_flow_displacement(f_reg, problem.m, method=cfg.init.registration,
-                                         mask=ndi.binary_dilation(brain, iterations=3))
+        flow = registration_field(problem, cfg.init.registration)
         base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
         info["registration_s"] = time.perf_counter() - t
     elif problem.truth is not None:
@@ -98,6 +94,28 @@ def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarr
         theta[: 3 * nb] = u.ravel()
         shrink *= 0.5
     raise ValueError("could not find a valid central start (skull, inverted element or solve)")
+
+
+def registration_field(problem: Problem, method: str = "tvl1") -> Image:
+    """A fast dense registration of ``f`` to ``m`` on the brain: scikit-image optical flow
+    (:func:`bayesreg.registration.optical_flow_displacement`), kept within 3 voxels of the
+    intracranial tissues and zero beyond.
+
+    For a synthetic truth of the FE map (whose ``m`` holds the warped brain) ``f`` is
+    registered with its brain alone; otherwise (real data, a dense truth that moved the
+    whole image) both images as they are.
+
+    Returns
+    -------
+    Image
+        ``(I, J, K, 3)`` displacement, world mm, ``m(x + u(x)) ~= f(x)``.
+    """
+    brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
+    f_reg = problem.f
+    if problem.truth is not None and problem.truth.field is None:
+        f_reg = Image(np.where(brain, problem.f.data, 0.0), problem.f.affine)
+    return optical_flow_displacement(f_reg, problem.m, method=method,
+                                     mask=ndi.binary_dilation(brain, iterations=3))
 
 
 def start_check(problem: Problem, cfg: Config):

@@ -75,7 +75,8 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     the barrier's maximum is strictly feasible and within the barrier of the constrained
     one; the chains sample the model as given.  With ``exact`` the search runs without the
     normaliser (it depends on the parameters only, and its gradient costs about eight dense
-    factorisations), then the parameters alone are optimised with it (at most 100 steps).
+    factorisations), then the parameters alone are optimised with it (at most 100 steps);
+    with every node sampled (no interior, ``model.interior: sample``) it runs with it.
 
     Parameters
     ----------
@@ -110,7 +111,10 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     # the exact normaliser depends on lam, mu only: u_b (and the parameters) are first
     # optimised without it (its gradient costs about eight dense factorisations), then the
     # parameters alone with it (below)
-    logdensity = logdensity_fn(post, exact=False, rtol=rtol, maxiter=maxiter)
+    # every node sampled (model.interior: sample): no solve to save, and without the
+    # normaliser the whole K's energy drives the parameters onto their lower edge: with it
+    exact_joint = exact and post.op.n_interior == 0
+    logdensity = logdensity_fn(post, exact=exact_joint, rtol=rtol, maxiter=maxiter)
     joint = optimize_parameters
     free = slice(0, post.dim if joint else nb3)
 
@@ -213,7 +217,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         x, start, res = maximise(objective, x, free, iters)
         nit = res.nit
     logp_mode, exact_its = -float(res.fun), None
-    if joint and exact and post.n_free:
+    if joint and exact and post.n_free and not exact_joint:
         x, _, res_p = maximise(in_log(logdensity_fn(post, exact=True, rtol=rtol, maxiter=maxiter)),
                                x, slice(nb3, post.dim), 100)
         logp_mode, exact_its = -float(res_p.fun), int(res_p.nit)

@@ -3,37 +3,39 @@
 Files of one run (all written atomically into its :class:`~bayesreg.rundir.RunDirectory`; a
 run in progress keeps its draws in ``checkpoint/``, see :mod:`bayesreg.checkpoint`):
 
-==============================  ======================================================
-``posterior.nc``                ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis)
-                                mm, ``lam``, ``mu``, ``ratio = lam/mu`` (chain, draw,
-                                group); sample stats ``acceptance_rate``, ``lp``,
-                                ``cg_iterations``, ``solve_failures``
-``summary.csv``                 mean, sd, 90% central credible interval (``eti90_lb``,
-                                ``eti90_ub``), ESS, rank R-hat (ArviZ), classic R-hat
-``displacement_mean.nii.gz``    posterior mean of ``u`` on the image grid as an ITK/ANTs
-                                displacement field (:mod:`bayesreg.transforms`: 5-D
-                                (I, J, K, 1, 3), intent VECTOR, LPS mm, fixed to moving)
-``displacement_sd.nii.gz``      posterior sd of each RAS component of ``u``, (I, J, K, 3) mm
-``displacement_norm_sd.nii.gz``   posterior sd of ``|u|``, (I, J, K) mm
-``displacement_norm_iqr.nii.gz``  posterior inter-quartile range of ``|u|``, (I, J, K) mm
-``displacement_init.nii.gz``    the chains' central start (ITK/ANTs field)
-``displacement_true.nii.gz``    the synthetic truth (synthetic runs; ITK/ANTs field)
-``mesh_mask.nii.gz``            voxels inside the undeformed mesh (where the maps are defined)
-``mesh.vtu``                    mesh with point data ``u_mean``, ``u_sd``, ``u_norm_sd``,
-                                ``u_norm_iqr``, ``u_init``, ``u_true``, ``u_error``; cell
-                                data ``label``: the element's tissue in the label map's
-                                coding (1 CSF, 2 GM, 3 WM); world RAS mm (``bayesreg export --format slicer``
-                                writes it in LPS for 3D Slicer)
+==================================  ======================================================
+``posterior.nc``                    ArviZ DataTree (NetCDF): ``u_b`` (chain, draw, node, axis)
+                                    mm, ``lam``, ``mu``, ``ratio = lam/mu`` (chain, draw,
+                                    group); sample stats ``acceptance_rate``, ``lp``,
+                                    ``cg_iterations``, ``solve_failures``
+``summary.csv``                     mean, sd, 90% central credible interval (``eti90_lb``,
+                                    ``eti90_ub``), ESS, rank R-hat (ArviZ), classic R-hat
+``displacement_mean.nii.gz``        posterior mean of ``u`` on the image grid as an ITK/ANTs
+                                    displacement field (:mod:`bayesreg.transforms`: 5-D
+                                    (I, J, K, 1, 3), intent VECTOR, LPS mm, fixed to moving)
+``displacement_sd.nii.gz``          posterior sd of each RAS component of ``u``, (I, J, K, 3) mm
+``displacement_norm_sd.nii.gz``     posterior sd of ``|u|``, (I, J, K) mm
+``displacement_norm_iqr.nii.gz``    posterior inter-quartile range of ``|u|``, (I, J, K) mm
+``displacement_init.nii.gz``        the chains' central start (ITK/ANTs field)
+``displacement_true.nii.gz``        the synthetic truth (synthetic runs; ITK/ANTs field)
+``displacement_reference.nii.gz``   the point estimate to beat: scikit-image optical flow
+                                    of ``f`` to ``m`` (synthetic runs; ITK/ANTs field)
+``mesh_mask.nii.gz``                voxels inside the undeformed mesh (where the maps are defined)
+``mesh.vtu``                        mesh with point data ``u_mean``, ``u_sd``, ``u_norm_sd``,
+                                    ``u_norm_iqr``, ``u_init``, ``u_true``, ``u_error``; cell
+                                    data ``label``: the element's tissue in the label map's
+                                    coding (1 CSF, 2 GM, 3 WM); world RAS mm (``bayesreg export --format slicer``
+                                    writes it in LPS for 3D Slicer)
 ``f.nii.gz``, ``m.nii.gz``, ``labels.nii.gz``  the (scaled) images and label map used
-``trace.png``, ``marginals.png``  trace and marginal plots of the elastic parameters
-``uncertainty.png``             IQR of ``|u|`` over ``f`` on three orthogonal slices
-``errors.json``                 error of the posterior mean and of the start against the
-                                truth, coverage of the credible intervals (synthetic)
-``run.json``                    resolved config, seed, versions, timings, acceptance, CG,
-                                R-hat, how the truth and the starts were made
-``checkpoint/``                 config, problem (images, mesh, truth), starts; while the
-                                run goes also the draws so far and the sampler state
-==============================  ======================================================
+``trace.png``, ``marginals.png``    trace and marginal plots of the elastic parameters
+``uncertainty.png``                 IQR of ``|u|`` over ``f`` on three orthogonal slices
+``errors.json``                     error of the posterior mean and of the start against the
+                                    truth, coverage of the credible intervals (synthetic)
+``run.json``                        resolved config, seed, versions, timings, acceptance, CG,
+                                    R-hat, how the truth and the starts were made
+``checkpoint/``                     config, problem (images, mesh, truth), starts; while the
+                                    run goes also the draws so far and the sampler state
+==================================  ======================================================
 
 Maps on the image grid are the FE interpolation of the nodal values (zero outside the mesh).
 """
@@ -58,14 +60,15 @@ from bayesreg.convergence import StopRule, gelman_rubin
 from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, to_datatree
 from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
-from bayesreg.initialisation import Initialisation
-from bayesreg.labels import tissue_label
-from bayesreg.mesh import mesh_quality
+from bayesreg.initialisation import Initialisation, registration_field
+from bayesreg.labels import TISSUE_LABELS, tissue_label
+from bayesreg.mesh import boundary_nodes, mesh_quality
 from bayesreg.plots import plot_parameters, plot_uncertainty
 from bayesreg.posterior import elastic_groups, solve_position
 from bayesreg.problem import Problem
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampler import SamplerResult
+from bayesreg.registration import displacement_at
 from bayesreg.transforms import FIXED_TO_MOVING, save_displacement
 from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
@@ -106,7 +109,10 @@ def _versions():
     return out
 
 
-def error_table(problem, result, u_init, u_mean=None) -> dict | None:
+MOVING_MM = 1.0  # "where tissue moves": nodes the truth moves at least this far, mm
+
+
+def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=None) -> dict | None:
     """Error of the posterior mean against the synthetic truth, mm (``None`` without truth).
 
     Parameters
@@ -117,6 +123,14 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
         Nodal displacement of the chains' central start (mm).
     u_mean : (N, 3) ndarray, optional
         The posterior mean nodal displacement, if already computed.
+    grid : (w, in_mesh), optional
+        The FE interpolation matrix ``(V, N)`` onto ``f``'s grid and its ``(V,)`` mask of
+        voxels inside the mesh (or the grid's shape; :func:`bayesreg.warp.interpolation_matrix`): adds the errors
+        over the brain's voxels.
+    reference : Image, optional
+        A point-estimate registration's dense field ``(I, J, K, 3)`` mm on ``f``'s grid
+        (the run's TV-L1, :func:`bayesreg.initialisation.registration_field`), compared
+        beside the posterior mean.
 
     Returns
     -------
@@ -124,7 +138,13 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
         For the boundary nodes (paper Table 1 style) the median, 95th percentile and max of
         ``|E[u_b] - u_b_true|`` and of the initial configuration's error; the MSE over all
         nodes (mm^2); coverage of the true boundary displacement components by the central
-        50/90/95% credible intervals; the lam/mu ratio posterior per group.
+        50/90/95% credible intervals, and of every node's components where the truth moves
+        the node at least ``MOVING_MM`` (``coverage_moving``); the lam/mu ratio posterior per
+        group (with its truth for an FE truth).  With ``grid``, ``brain``: over the voxels of
+        CSF, GM and WM inside the mesh, the MSE (mm^2) and 95th percentile (mm) of the error
+        of the posterior mean, the start and the reference (the truth there: the dense
+        field of a truth the model did not make, else the FE interpolation of ``u``).  With
+        ``reference``, ``boundary_reference_mm``: its error at the boundary nodes.
     """
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
@@ -140,13 +160,18 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
         }
     if truth is None:
         return {"ratio": ratios}
-    if problem.layout.group_names == ("csf", "gm", "wm"):
+    if problem.layout.group_names == ("csf", "gm", "wm") and truth.made_by_model:
         true_ratio = truth.lam_e / truth.mu_e
         for k, name in enumerate(problem.layout.group_names):
             ratios[name]["true"] = float(np.median(true_ratio[mesh.tissue == k]))
-    u_true_b = truth.u[mesh.boundary]
-    mean_b = result.positions[..., :nb3].mean(axis=(0, 1)).reshape(post.n_boundary, 3)
-    init_b = np.asarray(u_init)[mesh.boundary]
+    # the surface nodes (the sampled ones, unless every node is: model.interior: sample)
+    surface = boundary_nodes(mesh.tets)
+    slot = np.full(len(mesh.nodes), -1)
+    slot[np.asarray(mesh.boundary)] = np.arange(post.n_boundary)
+    cols = (3 * slot[surface][:, None] + np.arange(3)).ravel()
+    u_true_b = truth.u[surface]
+    mean_b = result.positions[..., cols].mean(axis=(0, 1)).reshape(len(surface), 3)
+    init_b = np.asarray(u_init)[surface]
 
     def stats(err):
         return {"median": float(np.median(err)), "q95": float(np.quantile(err, 0.95)),
@@ -154,16 +179,44 @@ def error_table(problem, result, u_init, u_mean=None) -> dict | None:
 
     if u_mean is None:
         u_mean = nodal_mean(problem, result)
-    return {
+    # every node's components where the truth moves the node: thinned nodal draws
+    moving = np.linalg.norm(truth.u, axis=1) >= MOVING_MM
+    n_draws = result.positions.shape[0] * result.positions.shape[1]
+    cov_moving = None
+    if moving.any():
+        draws = nodal_draws(problem, result, slice(None, None, max(1, n_draws // VOXEL_DRAWS)))
+        cov_moving = {str(k): float(v) for k, v in coverage(
+            draws[:, moving].reshape(len(draws), -1), truth.u[moving].ravel()).items()}
+        cov_moving["n_components"] = int(3 * moving.sum())
+    out = {
         "boundary_initial_mm": stats(np.linalg.norm(init_b - u_true_b, axis=1)),
         "boundary_posterior_mean_mm": stats(np.linalg.norm(mean_b - u_true_b, axis=1)),
         "all_nodes_posterior_mean_mm": stats(np.linalg.norm(u_mean - truth.u, axis=1)),
         "mse_all_nodes_mm2": float(np.mean(np.sum((u_mean - truth.u) ** 2, axis=1))),
         "mse_all_nodes_initial_mm2": float(np.mean(np.sum((u_init - truth.u) ** 2, axis=1))),
         "coverage_boundary": {str(k): float(v) for k, v in coverage(
-            result.positions[..., :nb3], u_true_b.ravel()).items()},
+            result.positions[..., cols], u_true_b.ravel()).items()},
+        "moving_threshold_mm": MOVING_MM,
+        "coverage_moving": cov_moving,
+        "truth_made_by_model": bool(truth.made_by_model),
         "ratio": ratios,
     }
+    if reference is not None:
+        ref_b = displacement_at(reference, mesh.nodes[surface])
+        out["boundary_reference_mm"] = stats(np.linalg.norm(ref_b - u_true_b, axis=1))
+    if grid is not None:
+        w, in_mesh = grid
+        brain = np.isin(np.asarray(problem.labels.data).ravel(), TISSUE_LABELS) & np.ravel(in_mesh)
+        true_v = (truth.field.data.reshape(-1, 3)[brain] if truth.field is not None
+                  else (w @ truth.u)[brain])
+        fields = {"posterior_mean": (w @ u_mean)[brain], "start": (w @ np.asarray(u_init))[brain]}
+        if reference is not None:
+            fields["reference"] = np.asarray(reference.data).reshape(-1, 3)[brain]
+        err = {k: np.linalg.norm(v - true_v, axis=1) for k, v in fields.items()}
+        out["brain"] = {"n_voxels": int(brain.sum()),
+                        "mse_mm2": {k: float(np.mean(e**2)) for k, e in err.items()},
+                        "q95_mm": {k: float(np.quantile(e, 0.95)) for k, e in err.items()}}
+    return out
 
 
 def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = None):
@@ -258,7 +311,22 @@ def format_report(errors: dict | None, info: dict) -> str:
                            ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")):
             e = errors[key]
             lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
+        if "boundary_reference_mm" in errors:
+            e = errors["boundary_reference_mm"]
+            label = f"boundary, {errors.get('reference', 'reference').rsplit('_', 1)[-1]}"
+            lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
         lines.append(f"  MSE all nodes {_f(errors['mse_all_nodes_mm2'], '.4f')} mm^2")
+        brain = errors.get("brain")
+        if brain:
+            lines.append("  brain voxels: MSE (mm^2) / 95th (mm): " + ", ".join(
+                f"{k.replace('_', ' ')} {_f(brain['mse_mm2'][k], '.4f')} / {_f(brain['q95_mm'][k], '.3f')}"
+                for k in brain["mse_mm2"]))
+        cm = errors.get("coverage_moving")
+        if cm:
+            lines.append(f"  90% interval coverage where the truth moves >= "
+                         f"{errors.get('moving_threshold_mm', 1.0):g} mm: {_f(cm.get('0.9'), '.2f')} "
+                         f"({cm['n_components']} components); boundary "
+                         f"{_f(errors['coverage_boundary'].get('0.9'), '.2f')}")
     if errors:
         lines.append("lam/mu posterior       median        5%       95%     truth  contraction")
         for name, r in errors["ratio"].items():
@@ -268,6 +336,11 @@ def format_report(errors: dict | None, info: dict) -> str:
             flag = "" if c is None or r.get("identified") else "  not identified by the images"
             lines.append(f"  {name:<14} {_f(mid, '9.4g')} {_f(r['q05'], '9.4g')} {_f(r['q95'], '9.4g')} "
                          f"{tr} {_f(c, '12.2f') if c is not None else '           -'}{flag}")
+    edge = [k for k, v in (info.get("identification") or {}).items() if v.get("at_prior_edge")]
+    if edge:
+        lines.append(f"on the prior's edge: {', '.join(edge)} (posterior median in the outer 1% of "
+                     "the prior's support: a misfit the model cannot make, paid with the "
+                     "parameters?)")
     lines.append(verdict(s))
     return "\n".join(lines)
 
@@ -450,7 +523,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
            "displacement_norm_sd": norm_sd.reshape(grid), "displacement_norm_iqr": norm_iqr.reshape(grid),
            "displacement_init": (w @ u_init).reshape(*grid, 3)}
     if problem.truth is not None:
-        vol["displacement_true"] = (w @ problem.truth.u).reshape(*grid, 3)
+        vol["displacement_true"] = (problem.truth.field.data if problem.truth.field is not None
+                                    else (w @ problem.truth.u).reshape(*grid, 3))
     for name, arr in vol.items():
         if name == "displacement_sd" or arr.ndim == 3:
             save_nifti(Image(arr.astype(np.float32), aff), run_dir.file(f"{name}.nii.gz"))
@@ -463,7 +537,14 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
 
-    errors = error_table(problem, result, u_init, u_mean)
+    reference = None
+    if problem.truth is not None and cfg.output.reference:  # the point estimate to beat
+        reference = registration_field(problem, cfg.init.registration)
+        save_displacement(reference.data, aff, run_dir.file("displacement_reference.nii.gz"),
+                          description=f"{cfg.init.registration} reference: {FIXED_TO_MOVING}")
+    errors = error_table(problem, result, u_init, u_mean, grid=(w, in_mesh), reference=reference)
+    if errors is not None and reference is not None:
+        errors["reference"] = f"skimage.registration.optical_flow_{cfg.init.registration}"
     identification = (contraction(layout, post.prior, pos[..., 3 * nb:]) if post.n_free else {})
     for name, r in (errors or {}).get("ratio", {}).items():
         if f"ratio_{name}" in identification:

@@ -175,7 +175,8 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         # a copy (the caller's config is not changed), overrides applied to a Config object
         cfg = override_config(cfg, overrides if isinstance(config, Config) else None, **values)
         inputs = {"data.fixed": cfg.data.fixed, "data.moving": cfg.data.moving,
-                  "data.labels": cfg.data.labels, "mesh.file": cfg.mesh.file}
+                  "data.labels": cfg.data.labels, "mesh.file": cfg.mesh.file,
+                  "synthetic.field": cfg.synthetic.field}
         run_dir = RunDirectory(cfg.output.dir, overwrite=cfg.output.overwrite,  # fails early
                                inputs={k: v for k, v in inputs.items() if v is not None})
         ckpt = Checkpoint(run_dir.path)

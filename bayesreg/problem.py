@@ -25,19 +25,21 @@ from bayesreg.config import Config
 from bayesreg.contact import constrained_shift
 from bayesreg.datasets import brainweb, brainweb_model, mni152
 from bayesreg.images import (
-    Image, check_same_frame, interpolate_numpy, load_nifti, pad, resample_to_spacing,
+    Image, check_same_frame, interpolate_numpy, load_nifti, pad, resample, resample_to_spacing,
     to_reference_grid)
 from bayesreg._checks import count_nonfinite
-from bayesreg.mesh import Mesh, read_mesh, signed_volumes
+from bayesreg.mesh import Mesh, boundary_nodes, read_mesh, signed_volumes
 from bayesreg.meshing import carve_skull, mesh_brain, mesh_brain_sized
 from bayesreg.parameters import ParamLayout
 from bayesreg.posterior import Posterior, build_posterior
 from bayesreg.similarity import build_ssd
 from bayesreg.stages import Stages
-from bayesreg.synthetic import Truth, brain_shift
-from bayesreg.warp import warp_image
+from bayesreg.synthetic import Truth, brain_shift, bump_field, field_truth
+from bayesreg.transforms import load_displacement
+from bayesreg.warp import warp_image, warp_image_field
 
-__all__ = ["ProblemData", "Problem", "make_data", "assemble", "prepare", "parameter_layout"]
+__all__ = ["ProblemData", "Problem", "make_data", "assemble", "prepare", "parameter_layout",
+           "sampled_mesh"]
 
 
 class ProblemData(NamedTuple):
@@ -82,7 +84,10 @@ class Problem(NamedTuple):
 
     Attributes
     ----------
-    f, m, labels, mesh, truth : as in :class:`ProblemData`
+    f, m, labels, truth : as in :class:`ProblemData`
+    mesh : Mesh
+        The mesh as the posterior samples it: ``boundary`` the sampled nodes, the surface
+        (``model.interior: solve``) or every node (``sample``; :func:`sampled_mesh`).
     layout : ParamLayout
         The elastic parameters' groups, free and fixed parameters.
     element_group : (M,) int
@@ -113,8 +118,10 @@ class Problem(NamedTuple):
 
     @property
     def data(self) -> ProblemData:
-        """The :class:`ProblemData` this problem was assembled from."""
-        return ProblemData(self.f, self.m, self.labels, self.mesh, self.truth, self.truth_info,
+        """The :class:`ProblemData` this problem was assembled from (its mesh's ``boundary``
+        the surface nodes, whatever the posterior samples)."""
+        mesh = self.mesh._replace(boundary=boundary_nodes(self.mesh.tets))
+        return ProblemData(self.f, self.m, self.labels, mesh, self.truth, self.truth_info,
                            self.intensity_scale, self.n_skull_carved, self.timings, self.mesh_info)
 
 
@@ -211,6 +218,11 @@ def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
 def _truth_line(info: dict, u) -> str:
     """One line on a synthetic truth: its kind, push, largest displacement and, for the
     constrained truth, its active sets and energy."""
+    if info["truth"] in ("bump", "field"):
+        line = f"{info['truth']} (not made by the model)"
+        if info["truth"] == "bump":
+            line += f", peak {info['shift_mm']:g} mm, sd {info['radius_mm']:g} mm"
+        return line + f", max |u| at the nodes {float(np.linalg.norm(u, axis=1).max()):.1f} mm"
     line = (f"{info['truth']}, {len(info['pushed'])} nodes pushed {info['shift_mm']:g} mm, "
             f"max |u| {float(np.linalg.norm(u, axis=1).max()):.1f} mm")
     if info["truth"] == "constrained":
@@ -222,6 +234,8 @@ def _truth_line(info: dict, u) -> str:
 def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
     """Synthetic truth per ``cfg.synthetic``; returns ``(Truth, info dict)``.
 
+    A dense truth (``bump``, ``field``) lies on ``labels``' grid (``f``'s).
+
     Raises
     ------
     ValueError
@@ -229,6 +243,21 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
         skull region or inverts an element (nothing is hidden: the figures are in the message).
     """
     s = cfg.synthetic
+    if s.truth in ("bump", "field"):
+        if s.truth == "bump":
+            field = bump_field(labels, mesh, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
+                               radius_mm=s.falloff_mm)
+            info = {"truth": "bump", "shift_mm": s.shift_mm, "radius_mm": s.falloff_mm}
+        else:
+            given = load_displacement(s.field)
+            field = Image(np.stack([resample(Image(given.data[..., c], given.affine), labels.affine,
+                                             labels.data.shape, order=1).data for c in range(3)], -1),
+                          labels.affine)
+            info = {"truth": "field", "file": str(s.field), "sha256": _sha256(s.field)}
+        truth = field_truth(mesh, field, n_pushed=s.n_pushed)
+        info["pushed"] = truth.pushed.tolist()
+        _check_truth_nodes(truth, mesh, labels, info)
+        return truth, info
     lam_t = np.array([s.lam.csf, s.lam.gm, s.lam.wm])[mesh.tissue]
     mu_t = np.array([s.mu.csf, s.mu.gm, s.mu.wm])[mesh.tissue]
     pushed = None if s.pushed_nodes is None else np.asarray(s.pushed_nodes, np.int64)
@@ -254,17 +283,23 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
                             falloff_mm=s.falloff_mm)
         info = {"truth": "smooth", "shift_mm": s.shift_mm, "pushed": truth.pushed.tolist()}
         # the constrained minimiser checks both itself; the smooth push is not constrained
-        moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
-        if np.any(moved == L.SKULL):
-            raise ValueError(
-                f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
-                "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
-            )
-        info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
+        _check_truth_nodes(truth, mesh, labels, info)
     info.setdefault("truth", s.truth)
     info["lam"] = s.lam.model_dump()
     info["mu"] = s.mu.model_dump()
     return truth, info
+
+
+def _check_truth_nodes(truth, mesh: Mesh, labels: Image, info: dict) -> None:
+    """A truth that is not the constrained minimiser must keep every node out of the skull
+    region (``ValueError`` otherwise); its inverted elements are counted in ``info``."""
+    moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
+    if np.any(moved == L.SKULL):
+        raise ValueError(
+            f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
+            "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
+        )
+    info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
 
 
 def _data_name(cfg: Config) -> str:
@@ -373,11 +408,23 @@ def make_data(cfg: Config, stages: Stages | None = None) -> ProblemData:
         with stage("truth"):
             truth, truth_info = _make_truth(cfg, mesh, labels)
             tell(_truth_line(truth_info, truth.u))
-            m = warp_image(f, mesh, truth.u, background=0.0, outside=cfg.synthetic.outside)
+            if truth.field is not None:
+                m = warp_image_field(f, truth.field, background=0.0)
+            else:
+                m = warp_image(f, mesh, truth.u, background=0.0, outside=cfg.synthetic.outside)
     elif m is None:  # pragma: no cover - guarded by the config validator
         raise ValueError("no intra-operative image")
     timings["synthetic_s"] = time.perf_counter() - t
     return ProblemData(f, m, labels, mesh, truth, truth_info, scale, n_carved, timings, mesh_info)
+
+
+def sampled_mesh(cfg: Config, mesh: Mesh) -> Mesh:
+    """``mesh`` with ``boundary`` the nodes the posterior samples: its surface nodes
+    (``model.interior: solve``, the paper's) or every node (``model.interior: sample``: no
+    interior solve, the whole ``u`` under the elastic prior)."""
+    if cfg.model.interior == "sample":
+        return mesh._replace(boundary=np.arange(len(mesh.nodes), dtype=np.int64))
+    return mesh
 
 
 def assemble(cfg: Config, data: ProblemData) -> Problem:
@@ -386,7 +433,7 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
     With ``data.smoothing_mm > 0`` the posterior's copies of ``f`` and ``m`` are smoothed
     by a Gaussian of that sigma (``m`` was made from the unsmoothed ``f``).
     """
-    f, m, labels, mesh, truth = data.f, data.m, data.labels, data.mesh, data.truth
+    f, m, labels, mesh, truth = data.f, data.m, data.labels, sampled_mesh(cfg, data.mesh), data.truth
     layout, group = parameter_layout(cfg, mesh)
 
     def free_values(lam_tv, mu_tv):
@@ -396,7 +443,7 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
 
     phi_init = free_values(cfg.model.initial_lam, cfg.model.initial_mu)
     phi_true = None
-    if truth is not None and layout.group_names != ("all",):
+    if truth is not None and truth.made_by_model and layout.group_names != ("all",):
         phi_true = free_values(cfg.synthetic.lam, cfg.synthetic.mu)
 
     def prior_tuple(pr):

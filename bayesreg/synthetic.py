@@ -1,13 +1,25 @@
-"""Synthetic brain shift with a known truth (paper Sec. 4.1).
+"""Synthetic brain shift with a known truth (paper Sec. 4.1), made by the model or not.
+
+Truths the model makes (an FE field: interior nodes solve ``K u = 0`` with known ``lam``,
+``mu``):
 
 * :func:`brain_shift` - boundary nodes at the top of the brain pushed toward the brain's
   centre of gravity (a supine craniotomy), the push fading smoothly over the surrounding
-  boundary; interior nodes from the FE solve with known ``lam``, ``mu``.
+  boundary.
 * :func:`bayesreg.contact.constrained_shift` - the paper's own truth: the other boundary
   nodes at the minimum of the elastic energy under the skull constraint.
 
+Truths the model does not make (a dense voxel field: no ``lam``, ``mu`` reproduce it, the
+case real brain shift poses):
+
+* :func:`bump_field` - a smooth Gaussian bump of the whole image toward the centre of
+  gravity, peaked at the top of the brain.
+* a displacement field from a file (another registration's: ITK/ANTs or bayesreg's own),
+  :func:`field_truth` samples it at the nodes.
+
 The intra-operative image of a synthetic case is ``f`` warped through the truth's FE map
-(:func:`bayesreg.warp.warp_image`).  Units: world mm.
+(:func:`bayesreg.warp.warp_image`) or through the dense field
+(:func:`bayesreg.warp.warp_image_field`).  Units: world mm.
 """
 
 from __future__ import annotations
@@ -19,9 +31,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from bayesreg.fem import stiffness_matrix
+from bayesreg.images import Image, grid_points
 from bayesreg.mesh import Mesh, signed_volumes
 
-__all__ = ["Truth", "brain_shift", "solve_dirichlet", "centre_of_gravity", "top_boundary"]
+__all__ = ["Truth", "brain_shift", "bump_field", "field_truth", "solve_dirichlet",
+           "centre_of_gravity", "top_boundary"]
 
 
 class Truth(NamedTuple):
@@ -31,16 +45,26 @@ class Truth(NamedTuple):
     ----------
     u : (N, 3)
         nodal displacements, mm
-    lam_e, mu_e : (M,)
-        per-element Lamé parameters used
+    lam_e, mu_e : (M,) or None
+        per-element Lamé parameters used; ``None`` for a truth the model did not make
     pushed : (P,) int
-        nodes given the full push (Dirichlet)
+        nodes given the full push (Dirichlet); for a dense field, the nodes nearest its peak
+    field : Image or None
+        the dense displacement field ``(I, J, K, 3)`` mm on ``f``'s grid of a truth the
+        model did not make (``m(x + u(x)) = f(x)`` for every voxel centre ``x``); ``None``
+        for an FE truth (its field is the FE interpolation of ``u``)
     """
 
     u: np.ndarray
-    lam_e: np.ndarray
-    mu_e: np.ndarray
+    lam_e: np.ndarray | None
+    mu_e: np.ndarray | None
     pushed: np.ndarray
+    field: Image | None = None
+
+    @property
+    def made_by_model(self) -> bool:
+        """Whether the truth is an FE field of known ``lam``, ``mu`` (the model can make it)."""
+        return self.lam_e is not None
 
 
 def solve_dirichlet(mesh: Mesh, lam_e, mu_e, fixed, u_fixed):
@@ -97,6 +121,81 @@ def brain_shift(mesh: Mesh, lam_e, mu_e, *, shift_mm=10.0, n_pushed=20, falloff_
     u_b = shift_mm * weight[:, None] * direction
     u = solve_dirichlet(mesh, lam_e, mu_e, mesh.boundary, u_b)
     return Truth(u, np.asarray(lam_e, float), np.asarray(mu_e, float), mesh.boundary[pushed_local])
+
+
+def bump_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, n_pushed=20, radius_mm=30.0) -> Image:
+    """A smooth Gaussian bump of the whole image toward the brain's centre of gravity.
+
+    ``u(x) = shift_mm * exp(-|x - c|^2 / (2 radius_mm^2)) * d`` at every voxel centre ``x``
+    of ``grid``: ``c`` the centroid of the ``n_pushed`` boundary nodes of largest world
+    ``z`` (:func:`top_boundary`), ``d`` the unit vector from ``c`` to the mesh's centre of
+    gravity (:func:`centre_of_gravity`).  The interior of the brain moves with the same
+    Gaussian profile, which no linear-elastic FE field reproduces: the model's mismatch
+    case.  The map ``x -> x + u(x)`` is invertible while
+    ``shift_mm / radius_mm < e^(1/2) = 1.65`` (its largest gradient is
+    ``shift_mm / radius_mm * e^(-1/2)``).
+
+    Parameters
+    ----------
+    grid : Image
+        The grid (``f``'s), world mm.
+    mesh : Mesh
+        Gives the bump's centre and direction.
+    shift_mm, radius_mm : float
+        Peak displacement and Gaussian sd, mm.
+    n_pushed : int
+        Top boundary nodes whose centroid is the peak.
+
+    Returns
+    -------
+    Image
+        ``(I, J, K, 3)`` float64 displacement in world mm, ``grid``'s affine.
+
+    Raises
+    ------
+    ValueError
+        Non-positive ``shift_mm`` or ``radius_mm``, ``shift_mm / radius_mm >= 1.6`` (the map
+        folds), or ``n_pushed`` outside ``[1, n_b]``.
+    """
+    if shift_mm <= 0 or radius_mm <= 0:
+        raise ValueError("shift_mm and radius_mm must be > 0")
+    if shift_mm / radius_mm >= 1.6:
+        raise ValueError(f"a bump of {shift_mm:g} mm with radius {radius_mm:g} mm folds the "
+                         "image (shift / radius must stay below 1.6)")
+    top = mesh.nodes[mesh.boundary][top_boundary(mesh, n_pushed)]
+    centre = top.mean(axis=0)
+    direction = centre_of_gravity(mesh) - centre
+    direction /= np.linalg.norm(direction)
+    pts = grid_points(grid)
+    weight = np.exp(-0.5 * np.sum((pts - centre) ** 2, axis=1) / radius_mm**2)
+    u = shift_mm * weight[:, None] * direction
+    return Image(u.reshape(*grid.data.shape[:3], 3), grid.affine)
+
+
+def field_truth(mesh: Mesh, field: Image, *, n_pushed=20) -> Truth:
+    """A truth the model did not make: a dense displacement field sampled at the nodes.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    field : Image
+        ``(I, J, K, 3)`` displacement, world mm (e.g. :func:`bump_field`, or another
+        registration's field read by :func:`bayesreg.transforms.load_displacement` and put
+        on ``f``'s grid).
+    n_pushed : int
+        The ``n_pushed`` nodes of largest displacement are recorded as ``pushed``.
+
+    Returns
+    -------
+    Truth
+        ``u`` the trilinear interpolation of ``field`` at the nodes, ``lam_e = mu_e =
+        None``, ``field`` kept.
+    """
+    from bayesreg.registration import displacement_at
+
+    u = displacement_at(field, mesh.nodes)
+    pushed = np.argsort(-np.linalg.norm(u, axis=1))[:max(1, min(int(n_pushed), len(u)))]
+    return Truth(u, None, None, np.sort(pushed), field)
 
 
 # ----------------------------------------------------------------------------------------

@@ -91,12 +91,15 @@ def dense_budget_bytes() -> int:
 def dense_preconditioning(problem: Problem, cfg: Config, *, n_chains: int | None = None) -> bool:
     """Whether the samplers' CG solves use the dense preconditioner (``solver.preconditioner``).
 
-    ``auto``: not where the posterior has the spectral one (one parameter group, see
+    Never without interior nodes (``model.interior: sample``).  ``auto``: not where the
+    posterior has the spectral one (one parameter group, see
     :func:`cg_preconditioner`); else where ``3 n_i <= DENSE_MAX_DOFS`` (4096) and the
     chains' float32 inverses, ``4 (3 n_i)^2`` bytes each, fit :func:`dense_budget_bytes`
     together (2 GiB on a CPU; the paper's size: about 8 MB a chain).  ``n_chains`` defaults
     to ``sampler.chains``.
     """
+    if problem.posterior.op.n_interior == 0:  # every node sampled: nothing to solve
+        return False
     choice = cfg.solver.preconditioner
     if choice != "auto":
         return choice == "dense"

@@ -5,7 +5,8 @@ The FE map ``x -> x + u(x)`` is piecewise affine on the tetrahedra.  :func:`loca
 :func:`interpolation_matrix` turns that into a sparse ``(n_voxels, N)`` matrix of shape-function
 values (nodal fields to images); :func:`grid_moments_from` gives the posterior mean and sd of
 the interpolated displacement on a grid from nodal moments; :func:`warp_image` makes
-``m(x + u(x)) = f(x)`` exactly for the FE map (the synthetic intra-operative image).
+``m(x + u(x)) = f(x)`` exactly for the FE map (the synthetic intra-operative image), and
+:func:`warp_image_field` for a dense voxel field (a truth the model did not make).
 
 Units: points and displacements in world mm; grids carry their voxel-to-world affine.
 """
@@ -13,14 +14,15 @@ Units: points and displacements in world mm; grids carry their voxel-to-world af
 from __future__ import annotations
 
 import numpy as np
+import scipy.ndimage as ndi
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from bayesreg.images import Image, grid_points, interpolate_numpy
+from bayesreg.images import Image, grid_points, interpolate_numpy, world_to_voxel
 from bayesreg.mesh import Mesh, signed_volumes
 
 __all__ = ["locate", "locate_voxels", "locate_grid", "interpolation_matrix", "grid_moments",
-           "grid_moments_from", "warp_image"]
+           "grid_moments_from", "warp_image", "warp_image_field"]
 
 
 def locate(nodes, tets, points, *, tol=1e-9):
@@ -287,3 +289,89 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "backg
         u_ext = np.einsum("pk,pkd->pd", w, u[b][j]) / w.sum(axis=1, keepdims=True)
         out[~inside] = interpolate_numpy(f, pts[~inside] - u_ext, order=1, cval=background)
     return Image(out.reshape(f.data.shape), f.affine)
+
+
+def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, tol_mm=1e-4) -> Image:
+    """Intra-operative image ``m`` with ``m(y) = f(x)``, ``x + u(x) = y``, for a dense field.
+
+    The inverse map is found per voxel centre ``y`` by the fixed-point iteration
+    ``x <- y - u(x)`` from ``x = y`` (``u`` trilinear between voxel centres, continued by
+    its nearest face beyond the grid), which converges where ``|grad u| < 1``.  Before that, the Jacobian determinant
+    of ``x -> x + u(x)`` (central differences) must be positive at every voxel: a folding
+    field has no inverse.
+
+    Parameters
+    ----------
+    f : Image
+        Pre-operative image ``(I, J, K)``; ``m`` gets its grid.
+    field : Image
+        ``(I, J, K, 3)`` displacement ``u`` in world mm on ``f``'s grid.
+    background : float
+        Value of ``f`` beyond its grid.
+    max_iter : int
+    tol_mm : float
+        Largest allowed ``|x + u(x) - y|`` at the end, mm.
+
+    Returns
+    -------
+    Image
+
+    Raises
+    ------
+    ValueError
+        If ``field`` is not ``(I, J, K, 3)`` on ``f``'s grid, folds (the number of voxels of
+        non-positive Jacobian determinant is given), or the iteration does not reach
+        ``tol_mm`` (the largest residual is given).
+    """
+    data = np.asarray(field.data, np.float64)
+    if data.shape != (*f.data.shape[:3], 3) or not np.allclose(field.affine, f.affine, atol=1e-6):
+        raise ValueError(f"the displacement field ({data.shape}) must lie on f's grid "
+                         f"({f.data.shape[:3]} x 3, same affine)")
+    if not np.all(np.isfinite(data)):
+        raise ValueError("the displacement field holds NaN or infinite values")
+    if min(data.shape[:3]) < 2:
+        raise ValueError(f"the grid needs at least 2 voxels along each axis, got {data.shape[:3]}")
+    folded = _count_folds(data, f.affine)
+    if folded:
+        raise ValueError(f"the displacement field folds at {folded} voxel(s) (Jacobian "
+                         "determinant <= 0): it has no inverse")
+    def u_at(points):  # trilinear, continued by the nearest face beyond the grid
+        c = world_to_voxel(f.affine, points).T
+        return np.stack([ndi.map_coordinates(data[..., k], c, order=1, mode="nearest")
+                         for k in range(3)], -1)
+
+    y = grid_points(f)
+    x = y.copy()
+    todo = np.arange(len(y))
+    for _ in range(int(max_iter)):
+        u = u_at(x[todo])
+        new = y[todo] - u
+        step = np.linalg.norm(new - x[todo], axis=1)
+        x[todo] = new
+        todo = todo[step > tol_mm * 0.1]
+        if todo.size == 0:
+            break
+    u = u_at(x)
+    residual = float(np.max(np.linalg.norm(x + u - y, axis=1)))
+    if residual > tol_mm:
+        raise ValueError(f"inverting the displacement field did not converge: largest residual "
+                         f"{residual:.3g} mm after {max_iter} iterations (tolerance {tol_mm:g} mm)")
+    return Image(interpolate_numpy(f, x, order=1, cval=background).reshape(f.data.shape[:3]),
+                 f.affine)
+
+
+def _count_folds(data, affine, slab: int = 16) -> int:
+    """Voxels where ``x -> x + u(x)`` has Jacobian determinant <= 0 (central differences,
+    one-sided at the grid's faces), slab by slab along the first axis to bound memory."""
+    a_inv = np.linalg.inv(np.asarray(affine, np.float64)[:3, :3])
+    n = data.shape[0]
+    folded = 0
+    for lo in range(0, n, slab):
+        hi = min(lo + slab, n)
+        a, b = max(lo - 1, 0), min(hi + 1, n)
+        block = data[a:b]
+        # d u_c / d voxel axis k, then world: J = I + grad_vox(u) A^-1
+        grad = np.stack([np.stack(np.gradient(block[..., c]), -1) for c in range(3)],
+                        -2)[lo - a: lo - a + hi - lo]
+        folded += int(np.sum(np.linalg.det(np.eye(3) + grad @ a_inv) <= 0))
+    return folded

@@ -101,13 +101,16 @@ def fake_run(seed=0, c=3, d=23):
 # --- posteriors ----------------------------------------------------------------------------
 
 
-def box_posterior(prior, t_r, phi, *, quadrature_level=0):
+def box_posterior(prior, t_r, phi, *, quadrature_level=0, every_node=False):
     """The posterior of a 30 mm box mesh (3 tissues by x thirds; ``mu_gm`` fixed at 1) on a
-    smooth random image shifted by one voxel, with a skull at world x > 36 mm.
+    smooth random image shifted by one voxel, with a skull at world x > 36 mm; with
+    ``every_node`` every node sampled (``model.interior: sample``).
 
     Returns ``(mesh, post, theta)``, ``theta`` a start near the rest state at ``phi``.
     """
     mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    if every_node:
+        mesh = mesh._replace(boundary=np.arange(len(mesh.nodes)))
     rng = np.random.default_rng(0)
     shape = (48, 48, 48)
     affine = np.diag([1.0, 1.0, 1.0, 1.0])

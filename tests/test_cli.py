@@ -25,6 +25,7 @@ TINY = [
     "sampler.elastic_moves=4",
     "init.optimizer_iterations=40",
     "output.progress=false",
+    "output.reference=false",  # (TV-L1 beside the posterior: the tiny run below checks it)
 ]
 # the paper's random-walk configs on tiny settings
 TINY_RW = [s for s in TINY if not s.startswith(("sampler.warmup_steps", "sampler.max_tree_depth"))]
@@ -33,7 +34,7 @@ TINY_RW += ["sampler.warmup_steps=200", "sampler.thinning=5"]
 OUTPUTS = [
     "posterior.nc", "summary.csv", "displacement_mean.nii.gz", "displacement_sd.nii.gz",
     "displacement_norm_sd.nii.gz", "displacement_norm_iqr.nii.gz", "displacement_init.nii.gz",
-    "displacement_true.nii.gz", "mesh.vtu", "trace.png", "marginals.png", "uncertainty.png",
+    "displacement_true.nii.gz", "displacement_reference.nii.gz", "mesh.vtu", "trace.png", "marginals.png", "uncertainty.png",
     "run.json", "errors.json", "f.nii.gz", "m.nii.gz", "labels.nii.gz",
 ]
 
@@ -63,7 +64,7 @@ def tiny_run(tmp_path_factory):
             shutil.copytree(out, killed)
 
     args = ["run", "configs/quickstart.yaml", "--out", str(out)]
-    for s in TINY + ["sampler.max_draws=40", "sampler.min_draws=40"]:
+    for s in TINY + ["sampler.max_draws=40", "sampler.min_draws=40", "output.reference=true"]:
         args += ["--set", s]
     printed = io.StringIO()
     with (pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed),
@@ -111,6 +112,10 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     errors = json.loads((out / "errors.json").read_text())
     cov = errors["coverage_boundary"]
     assert set(cov) == {"0.5", "0.9", "0.95"} and cov["0.5"] <= cov["0.9"] <= cov["0.95"]
+    # over the brain's voxels: the posterior mean, the start and TV-L1 on the same images
+    brain = errors["brain"]
+    assert set(brain["mse_mm2"]) == {"posterior_mean", "start", "reference"} and brain["n_voxels"] > 1000
+    assert errors["truth_made_by_model"] and errors["coverage_moving"]["n_components"] > 0
     # the checkpoint keeps config, problem and starts; its draws are gone once outputs exist
     assert (out / "checkpoint" / "problem.npz").is_file()
     assert not (out / "checkpoint" / "draws").exists() and not (out / ".outputs-partial").exists()

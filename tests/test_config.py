@@ -310,3 +310,36 @@ def test_brainweb_source_keys(tmp_path):
     cfg = load_config(tmp_path / "c.yaml")
     assert cfg.data.subject == (tmp_path / "models/s.mnc.gz").resolve()
     assert cfg.data.brainweb_dir == (tmp_path / "bw").resolve()
+
+
+def test_truths_the_model_did_not_make_refuse_the_fe_truths_keys(tmp_path):
+    """``bump`` and ``field`` have no Lamé parameters: the quickstart's ``lam``/``mu`` are
+    errors until removed (``null``); ``field`` needs its file (read from the config's
+    folder) and only it; a resolved config (every key written) validates again."""
+    from bayesreg.config import Config
+
+    bump = ["synthetic.truth=bump"]
+    msg = _error(bump)
+    assert "synthetic.lam, synthetic.mu are not used by synthetic.truth: bump" in msg
+    cfg = load_config("configs/quickstart.yaml", overrides=bump + ["synthetic.lam=null", "synthetic.mu=null"])
+    assert cfg.synthetic.truth == "bump"
+    assert Config.model_validate(cfg.model_dump(mode="json")).synthetic.truth == "bump"
+    assert "synthetic.outside is not used" in _error(bump + ["synthetic.lam=null", "synthetic.mu=null",
+                                                            "synthetic.outside=background"])
+    assert "synthetic.truth: field and synthetic.field go together" in _error(
+        ["synthetic.truth=field", "synthetic.lam=null", "synthetic.mu=null"])
+    assert "go together" in _error(["synthetic.field=u.nii.gz"])
+    shipped = load_config("configs/mismatch_bump.yaml")  # the quickstart with a bump
+    assert shipped.synthetic.truth == "bump" and shipped.init.start == "registration"
+    p = tmp_path / "c.yaml"
+    p.write_text("synthetic:\n  truth: field\n  field: fields/u.nii.gz\n")
+    assert load_config(p).synthetic.field == (tmp_path / "fields" / "u.nii.gz").resolve()
+    assert "synthetic.shift_mm is not used" in _error(
+        ["synthetic.truth=field", "synthetic.field=u.nii.gz", "synthetic.shift_mm=3"], None)
+
+
+def test_sampling_the_interior_needs_the_exact_normaliser():
+    assert "model.interior: sample needs model.prior_normaliser: exact" in _error(["model.interior=sample"])
+    cfg = load_config("configs/quickstart.yaml", overrides=[
+        "model.interior=sample", "model.prior_normaliser=exact", "model.fixed=null"])
+    assert cfg.model.interior == "sample"

@@ -192,4 +192,12 @@ def test_contraction_is_zero_for_prior_draws_and_near_one_for_a_narrow_posterior
     narrow = np.array([30.0, 2.0, 25.0]) * np.exp(0.01 * rng.normal(size=(3, 500, 3)))
     for name, e in contraction(layout, priors, narrow).items():
         assert e["contraction"] > 0.99 and e["identified"], (name, e)
+        assert not e.get("at_prior_edge"), (name, e)
     assert 0 < IDENTIFIED_MIN < 1
+    # a posterior pressed onto the edges of the support: lam_csf near 0 (below 1% of 100),
+    # lam_gm near its top (above 99% of 50); mu_csf at 5 of 10 is not
+    edge = np.array([0.3, 5.0, 49.8]) * np.exp(0.05 * rng.normal(size=(3, 500, 3)))
+    edge[..., 2] = np.minimum(edge[..., 2], 49.99)
+    flags = {k: e["at_prior_edge"] for k, e in contraction(layout, priors, edge).items()
+             if "at_prior_edge" in e}
+    assert flags == {"lam_csf": True, "mu_csf": False, "lam_gm": True}

@@ -34,7 +34,7 @@ TINY = [
     "data.resolution_mm=3.0", "mesh.edge_length_mm=26", "sampler.kind=rwmh", "sampler.chains=2",
     "sampler.proposal=isotropic", "init.method=perturb", "sampler.warmup_steps=20",
     "sampler.thinning=20", "sampler.chunk_draws=10", "sampler.max_draws=30",
-    "sampler.min_draws=30", "output.progress=false",
+    "sampler.min_draws=30", "output.progress=false", "output.reference=false",
 ]
 OUTPUTS = ("run.json", "summary.csv", "posterior.nc", "errors.json")
 

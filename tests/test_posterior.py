@@ -387,3 +387,36 @@ def test_marginal_similarity_temperature_is_the_integral_over_its_gamma_prior():
                                                  rel=1e-9)
     assert float(similarity_weight(marg, ess[0])) == pytest.approx((a + n / 2) / (b + ess[0]))
     assert float(similarity_weight(post, ess[0])) == float(post.inv_t_s)
+
+
+def test_every_node_sampled_keeps_the_elastic_prior_whose_conditional_mean_is_the_fe_solve():
+    """``model.interior: sample`` (every node sampled, no solve): ``log p`` carries the whole
+    ``-u^T K u / (2 T_r)``, its exact normaliser is ``(1/2) log pdet K`` (NumPy's
+    eigenvalues but the six rigid modes'), and without the images the interior's gradient
+    vanishes at the FE solve of the boundary: the paper's interior is this prior's
+    conditional mean."""
+    from bayesreg.posterior import log_normaliser
+    from bayesreg.synthetic import solve_dirichlet
+
+    prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+    phi = np.array([5.0, 10.0, 30.0, 2.0, 1.5])
+    mesh, post, theta = box_posterior(prior, 3.0, phi, every_node=True)
+    assert post.op.n_interior == 0 and post.n_boundary == len(mesh.nodes)
+    lam_e = np.array([5.0, 10.0, 30.0])[mesh.tissue]
+    mu_e = np.array([2.0, 1.0, 1.5])[mesh.tissue]
+    k = fem.stiffness_matrix(mesh.nodes, mesh.tets, lam_e, mu_e).toarray()
+    eig = np.linalg.eigvalsh(k)
+    assert np.all(np.abs(eig[:6]) < 1e-9 * eig[-1]) and eig[6] > 1e-6 * eig[-1]
+    assert float(log_normaliser(post, jnp.asarray(phi))) == pytest.approx(0.5 * np.sum(np.log(eig[6:])),
+                                                                          rel=1e-9)
+    u = theta[:-5].reshape(-1, 3)
+    lp, aux = log_p(post, theta)
+    assert float(aux.e_r) == pytest.approx(0.5 * u.ravel() @ k @ u.ravel(), rel=1e-10)
+    # without the images: d log p / d u_i = 0 at the FE solve of the boundary nodes
+    geo = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    u_fe = solve_dirichlet(geo, lam_e, mu_e, geo.boundary, 0.3 * u[geo.boundary])
+    no_images = post._replace(inv_t_s=jnp.zeros_like(post.inv_t_s))
+    grad = np.asarray(jax.grad(lambda t: log_p(no_images, t)[0])(jnp.asarray(
+        np.concatenate([u_fe.ravel(), phi])))).reshape(-1)[:-5].reshape(-1, 3)
+    inner = geo.interior
+    assert np.abs(grad[inner]).max() < 1e-8 * np.abs(grad[geo.boundary]).max()

@@ -32,3 +32,67 @@ def test_a_run_on_a_given_mesh_gets_that_mesh_and_the_same_data(tmp_path):
     with pytest.warns(UserWarning, match=r"mesh.file .*grown.vtu: \d+ of its \d+ nodes lie in the "
                       r"skull region of the label map at rest"):
         make_data(load_config("configs/quickstart.yaml", overrides=tiny + [f"mesh.file={grown}"]))
+
+
+def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
+    """``synthetic.truth: bump``: a dense field the FE model cannot make: ``m`` is ``f``
+    moved by it (``m(x + u(x)) ~= f(x)``), the truth has no Lamé parameters (no parameter
+    truth to compare), survives the checkpoint, and the error table compares the
+    posterior mean, the start and a reference field over the brain's voxels and gives the
+    coverage where the tissue moves."""
+    from types import SimpleNamespace
+
+    from bayesreg import configure_jax
+    from bayesreg.checkpoint import Checkpoint
+    from bayesreg.fields import node_slots
+    from bayesreg.images import grid_points, interpolate_numpy
+    from bayesreg.labels import TISSUE_LABELS
+    from bayesreg.outputs import error_table
+    from bayesreg.problem import assemble
+    from bayesreg.warp import interpolation_matrix
+
+    configure_jax()
+    tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26", "synthetic.truth=bump",
+            "synthetic.lam=null", "synthetic.mu=null", "synthetic.shift_mm=6", "synthetic.falloff_mm=20"]
+    cfg = load_config("configs/quickstart.yaml", overrides=tiny)
+    data = make_data(cfg)
+    truth = data.truth
+    assert truth.field is not None and not truth.made_by_model and truth.lam_e is None
+    assert data.truth_info["truth"] == "bump" and "lam" not in data.truth_info
+    x = grid_points(data.f)
+    u = truth.field.data.reshape(-1, 3)
+    moved = np.linalg.norm(u, axis=1) > 1.0
+    brain = np.isin(data.labels.data.ravel(), TISSUE_LABELS) & moved
+    warped = np.abs(interpolate_numpy(data.m, x[brain] + u[brain]) - data.f.data.ravel()[brain])
+    unwarped = np.abs(data.m.data.ravel()[brain] - data.f.data.ravel()[brain])
+    assert warped.mean() < 0.25 * unwarped.mean(), (warped.mean(), unwarped.mean())
+
+    ckpt = Checkpoint(tmp_path)
+    ckpt.save_problem(data)
+    back = ckpt.load_problem().truth
+    assert back.lam_e is None and back.field is not None
+    np.testing.assert_array_equal(back.field.data, truth.field.data)
+    np.testing.assert_array_equal(back.u, truth.u)
+
+    problem = assemble(cfg, data)
+    assert problem.phi_true is None
+    # draws as from a calibrated posterior: centred on truth + delta, delta of their own sd
+    rng = np.random.default_rng(0)
+    b, i = node_slots(problem)
+    c, d, s = 2, 400, 0.5
+    centre = truth.u + rng.normal(0.0, s, truth.u.shape)
+    nodal = centre + rng.normal(0.0, s, (c, d, *truth.u.shape))
+    phi = np.broadcast_to(problem.phi_init, (c, d, len(problem.phi_init)))
+    result = SimpleNamespace(positions=np.concatenate([nodal[:, :, b].reshape(c, d, -1), phi], -1),
+                             interior=nodal[:, :, i])
+    w, in_mesh = interpolation_matrix(problem.mesh, problem.f)
+    errors = error_table(problem, result, np.zeros_like(truth.u), grid=(w, in_mesh),
+                         reference=truth.field)
+    assert all("true" not in r for r in errors["ratio"].values())
+    cm = errors["coverage_moving"]
+    k = cm["n_components"]
+    assert k == 3 * int(np.sum(np.linalg.norm(truth.u, axis=1) >= 1.0)) > 30
+    assert abs(cm["0.9"] - 0.9) < 4 * np.sqrt(0.09 / k) + 0.01, cm
+    mse = errors["brain"]["mse_mm2"]
+    assert mse["reference"] == 0.0 and errors["boundary_reference_mm"]["max"] < 1e-9
+    assert 0.0 < mse["posterior_mean"] < mse["start"]

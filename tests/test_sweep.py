@@ -20,7 +20,8 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 TINY = {"data.resolution_mm": 3.0, "mesh.edge_length_mm": 26, "sampler.kind": "rwmh",
         "sampler.chains": 2, "sampler.proposal": "isotropic", "init.method": "perturb",
         "sampler.warmup_steps": 20, "sampler.thinning": 1, "sampler.chunk_draws": 10,
-        "sampler.max_draws": 10, "sampler.min_draws": 10, "output.progress": False}
+        "sampler.max_draws": 10, "sampler.min_draws": 10, "output.progress": False,
+        "output.reference": False}
 
 
 def _write(path: Path, spec: dict) -> Path:

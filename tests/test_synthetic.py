@@ -35,3 +35,30 @@ def test_brain_shift_pushes_the_top_nodes_to_the_centre_and_the_interior_follows
                           ({"n_pushed": 0}, r"n_pushed must lie in \[1, 56\], got 0")):
         with pytest.raises(ValueError, match=match):
             brain_shift(mesh, lam, mu, **kwargs)
+
+
+def test_bump_field_is_a_gaussian_toward_the_centre_and_field_truth_samples_it_at_the_nodes():
+    """``bump_field``: ``shift * exp(-|x - c|^2 / (2 r^2))`` along the unit vector from the
+    top nodes' centroid ``c`` to the centre of gravity, at every voxel centre;
+    ``field_truth``: the field at the nodes (trilinear), no Lamé parameters, the largest
+    movers as ``pushed``; a bump that folds is refused."""
+    from bayesreg.images import grid_points
+    from bayesreg.synthetic import bump_field, field_truth
+    from helpers import smooth_image
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    grid = smooth_image(shape=(36, 36, 36), origin=-3.0)
+    field = bump_field(grid, mesh, shift_mm=5.0, n_pushed=16, radius_mm=10.0)
+    c = np.array([15.0, 15.0, 30.0])  # the top face's 16 nodes
+    pts = grid_points(grid)
+    want = 5.0 * np.exp(-0.5 * np.sum((pts - c) ** 2, axis=1) / 100.0)[:, None] * [0.0, 0.0, -1.0]
+    np.testing.assert_allclose(field.data.reshape(-1, 3), want, atol=1e-12)
+    truth = field_truth(mesh, field, n_pushed=8)  # 4 top, 4 below: no ties
+    at_nodes = 5.0 * np.exp(-0.5 * np.sum((mesh.nodes - c) ** 2, axis=1) / 100.0)
+    # trilinear between voxel centres 1 mm apart: second-order error of the Gaussian
+    np.testing.assert_allclose(truth.u[:, 2], -at_nodes, atol=0.02)
+    assert truth.lam_e is None and truth.mu_e is None and not truth.made_by_model
+    assert truth.field is field and len(truth.pushed) == 8
+    assert set(truth.pushed) == set(np.argsort(-at_nodes)[:8])
+    with pytest.raises(ValueError, match="folds the image"):
+        bump_field(grid, mesh, shift_mm=20.0, radius_mm=10.0)

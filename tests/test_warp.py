@@ -1,12 +1,13 @@
 """FE fields on image grids (bayesreg.warp): point location, interpolation matrices, the
-moments of interpolated draws, and the inverse warp of an image by a mesh displacement."""
+moments of interpolated draws, and the inverse warp of an image by a mesh displacement or
+a dense field."""
 
 import numpy as np
 import pytest
 
 from bayesreg.images import Image, grid_points, interpolate_numpy
 from bayesreg.warp import (grid_moments, grid_moments_from, interpolation_matrix, locate, locate_voxels,
-                           warp_image)
+                           warp_image, warp_image_field)
 from conftest import box_mesh
 from helpers import fake_run, smooth_image, world_grid
 
@@ -130,3 +131,24 @@ def test_grid_moments_equal_the_moments_of_interpolated_draws():
     np.testing.assert_array_equal(s2, sd)
     with pytest.raises(ValueError, match="cov"):
         grid_moments_from(mesh, grid, draws.mean(0), cov[:2])
+
+
+def test_warp_image_field_inverts_a_dense_affine_field_and_refuses_a_fold():
+    """``m(y) = f(x)`` with ``x + u(x) = y`` for a dense affine field (trilinear exact), at
+    every voxel whose preimage lies inside the grid; a folding field and one off ``f``'s
+    grid are refused with their reason."""
+    f = smooth_image()
+    pts = grid_points(f)
+    a = np.array([[0.05, 0.01, 0.0], [-0.02, 0.03, 0.01], [0.0, 0.02, -0.04]])
+    t = np.array([0.7, -0.4, 0.3])
+    field = Image((pts @ a.T + t).reshape(*f.data.shape, 3), f.affine)
+    m = warp_image_field(f, field)
+    x = np.linalg.solve(np.eye(3) + a, (pts - t).T).T
+    lo, hi = pts.min(0), pts.max(0)
+    inside = np.all((x >= lo) & (x <= hi), axis=1)
+    assert inside.mean() > 0.8
+    np.testing.assert_allclose(m.data.ravel()[inside], interpolate_numpy(f, x[inside]), atol=1e-5)
+    with pytest.raises(ValueError, match=r"folds at \d+ voxel"):
+        warp_image_field(f, Image((pts @ (-1.5 * np.eye(3)).T).reshape(field.data.shape), f.affine))
+    with pytest.raises(ValueError, match="must lie on f's grid"):
+        warp_image_field(f, Image(field.data[1:], f.affine))

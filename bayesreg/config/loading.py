@@ -244,7 +244,7 @@ def load_config(path=None, *, overrides: list[str] | None = None, base_dir=None)
         raise ConfigError(format_errors(exc, source)) from None
     if base_dir is not None:
         for part, k in (("data", "fixed"), ("data", "moving"), ("data", "labels"), ("data", "subject"),
-                        ("data", "brainweb_dir"), ("mesh", "file")):
+                        ("data", "brainweb_dir"), ("mesh", "file"), ("synthetic", "field")):
             p = getattr(getattr(cfg, part), k)
             if isinstance(p, Path) and not p.is_absolute():
                 setattr(getattr(cfg, part), k, (Path(base_dir) / p).resolve())

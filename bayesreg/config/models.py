@@ -201,18 +201,27 @@ class SyntheticConfig(_Strict):
 
     enabled: bool = Field(True, description="make m from f and a known deformation (the paper's "
                           "experiment); false: register data.moving")
-    truth: Literal["constrained", "smooth"] = Field(
+    truth: Literal["constrained", "smooth", "bump", "field"] = Field(
         "constrained", description="constrained: the pushed nodes fixed, every other boundary node "
         "at the minimum elastic energy subject to the skull constraint (paper Sec. 4.1); smooth: "
-        "the push fades over the boundary with falloff_mm (no minimisation)")
+        "the push fades over the boundary with falloff_mm (no minimisation); both are FE fields "
+        "of the lam, mu below.  Truths the model does not make (a dense voxel field, no lam, mu: "
+        "the mismatch case): bump, a Gaussian bump of the whole image of peak shift_mm and sd "
+        "falloff_mm at the top of the brain toward its centre of gravity "
+        "(bayesreg.synthetic.bump_field); field, the displacement field of synthetic.field")
+    field: Path | None = Field(
+        None, description="truth: field: a displacement-field NIfTI (ITK/ANTs/Slicer or "
+        "bayesreg's displacement_*.nii.gz, fixed to moving: m(x + u(x)) = f(x)) in f's world "
+        "frame, resampled onto f's grid (linear; zero beyond its grid); relative to the config "
+        "file's folder")
     shift_mm: Float = Field(15.0, gt=0, description="displacement of the pushed nodes toward the "
-                            "brain's centre of gravity")
+                            "brain's centre of gravity (bump: the peak displacement)")
     n_pushed: Int = Field(20, ge=1, description="pushed nodes: the n_pushed boundary nodes with the "
                           "largest world z (top of the head)")
     pushed_nodes: list[Int] | None = Field(None, description="explicit mesh node indices instead")
     falloff_mm: Float = Field(30.0, gt=0, description="smooth truth: the push of the other "
                               "boundary nodes fades as exp(-d^2 / (2 falloff^2)) with their "
-                              "distance d to the nearest pushed node")
+                              "distance d to the nearest pushed node; bump: the Gaussian's sd")
     clearance_mm: Float | None = Field(
         None, ge=0, description="constrained truth: distance kept from the skull region (default "
         "half a voxel diagonal, so no node's nearest voxel is skull)")
@@ -231,6 +240,32 @@ class SyntheticConfig(_Strict):
                              description="the truth's Lamé mu per tissue (paper Sec. 4.1)")
 
     _partial = model_validator(mode="before")(classmethod(_fill_from_defaults))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _null_unused(cls, data):
+        # lam: null / mu: null remove an FE truth's values (a config that extends one, --set)
+        if isinstance(data, dict) and data.get("truth") in ("bump", "field"):
+            data = {k: v for k, v in data.items() if not (k in ("lam", "mu") and v is None)}
+        return data
+
+    @model_validator(mode="after")
+    def _truth_keys(self):
+        if (self.truth == "field") != (self.field is not None):
+            raise ValueError("synthetic.truth: field and synthetic.field go together (the field "
+                             "file is the truth)")
+        if self.truth in ("bump", "field"):
+            unused = ("lam", "mu", "pushed_nodes", "clearance_mm", "tol_mm", "min_volume_ratio",
+                      "outside") + (("shift_mm", "falloff_mm") if self.truth == "field" else ())
+            given = [k for k in unused if k in self.model_fields_set
+                     and getattr(self, k) != type(self).model_fields[k].default]
+            if given:
+                raise ValueError(f"synthetic.{', synthetic.'.join(given)} {'is' if len(given) == 1 else 'are'}"
+                                 f" not used by synthetic.truth: {self.truth} (a dense field the "
+                                 "model did not make: no lam, mu); remove "
+                                 f"{'it' if len(given) == 1 else 'them'} (null over a config "
+                                 "that extends another)")
+        return self
 
 
 class BetaPrior(_Strict):
@@ -337,6 +372,14 @@ class ModelConfig(_Strict):
         "Cholesky factorisation per change of lam, mu), which removes the paper's drift of the "
         "parameters toward zero and lets every parameter be free; paper: Eq. 12 as published, "
         "without it (then fix one parameter, Sec. 3.3)")
+    interior: Literal["solve", "sample"] = Field(
+        "solve", description="solve: the interior nodes at the FE solve K_ii u_i = -K_ib u_b, "
+        "only boundary nodes sampled (paper Sec. 3.3: the interior at its conditional mean "
+        "under the elastic prior); sample: every node sampled, the interior under the same "
+        "elastic prior exp(-E_r / T_r) (given the boundary, N(-K_ii^-1 K_ib u_b, T_r K_ii^-1)) "
+        "and moved by the images, so that deformations the FE solve cannot make (a bump, "
+        "real brain shift) are reachable; needs prior_normaliser: exact (the normaliser of "
+        "the whole K)")
     initial_lam: TissueValues = Field(TissueValues(csf=1.0, gm=5.0, wm=5.0),
                                       description="the chains' central start of lambda per tissue "
                                       "(uniform: their volume-weighted mean)")
@@ -530,6 +573,11 @@ class OutputConfig(_Strict):
     overwrite: bool = Field(False, description="replace an existing run directory that "
                             "bayesreg wrote (the CLI's --overwrite)")
     progress: bool = Field(True, description="show progress bars (tqdm)")
+    reference: bool = Field(
+        True, description="synthetic runs: also register f to m with scikit-image's optical "
+        "flow (init.registration, TV-L1 by default) and report it beside the posterior mean, "
+        "the point estimate to beat (displacement_reference.nii.gz; errors.json: brain, "
+        "boundary_reference_mm); seconds at 2 mm, about a minute at 1 mm")
     checkpoint: bool = Field(
         True, description="write the draws chunk by chunk and the sampler state after each chunk "
         "(checkpoint/ in the run directory), so that a killed run keeps its draws and "
@@ -592,6 +640,10 @@ class Config(_Strict):
             raise ValueError("data.moving is not used with synthetic.enabled: true (m is f warped "
                              "by the synthetic deformation); remove it or set synthetic.enabled: "
                              "false")
+        if self.model.interior == "sample" and self.model.prior_normaliser != "exact":
+            raise ValueError("model.interior: sample needs model.prior_normaliser: exact (with "
+                             "every node sampled, the paper's unnormalised prior drives the "
+                             "free parameters to zero)")
         self._initial_in_support()
         if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:
             raise ValueError("init.start 'between' needs a synthetic truth (synthetic.enabled); "

@@ -1,0 +1,115 @@
+"""Deformations the model did not make: a finished run against TV-L1 and the FE bound.
+
+For each run directory of a synthetic case (best a truth the model did not make,
+``synthetic.truth: bump`` or ``field``), prints one row: the brain-voxel MSE (mm^2) and
+boundary 95th percentile (mm) of the posterior mean, of its start and of scikit-image's
+TV-L1 on the same images (the run's ``errors.json``), the 90% coverage where the truth moves
+the tissue at least 1 mm, the GM and WM ``lam/mu`` medians and which parameters sit on their
+prior's edge; then the **bound of the model's interior**: the smallest brain-voxel MSE any FE
+field can reach whose interior solves ``K u = 0`` (boundary values chosen by least squares
+against the truth itself) at the run's posterior-median parameters and over a scan of one
+common ``lam/mu``, and that of free nodal values (the mesh's own resolution limit).  The
+bound says how much of the error is the model's, not the sampler's.
+
+Usage (from the repository root)::
+
+    bayesreg run configs/quickstart.yaml --out runs/bump \\
+        --set synthetic.truth=bump --set synthetic.lam=null --set synthetic.mu=null \\
+        --set synthetic.shift_mm=8 --set synthetic.falloff_mm=20 --set init.start=registration
+    python benchmarks/mismatch.py runs/bump [more run directories]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+import bayesreg
+from bayesreg.checkpoint import Checkpoint
+from bayesreg.fem import stiffness_matrix
+from bayesreg.labels import TISSUE_LABELS
+from bayesreg.warp import interpolation_matrix
+
+
+def elastic_fit(mesh, w, target, lam_t, mu_t):
+    """Least-squares best FE field ``(V, 3)`` on the voxels of ``w`` (``(V, N)``) whose
+    interior solves ``K u = 0`` for tissue values ``lam_t``, ``mu_t`` ``(3,)``."""
+    k = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, lam_t[mesh.tissue], mu_t[mesh.tissue]))
+    n, b = len(mesh.nodes), np.asarray(mesh.boundary)
+    i = np.setdiff1d(np.arange(n), b)
+    bd = (3 * b[:, None] + np.arange(3)).ravel()
+    idf = (3 * i[:, None] + np.arange(3)).ravel()
+    p = np.zeros((3 * n, 3 * len(b)))
+    p[bd, np.arange(3 * len(b))] = 1.0
+    p[idf] = -spla.splu(sp.csc_matrix(k[idf][:, idf])).solve(k[idf][:, bd].toarray())
+    m = sp.kron(w, sp.identity(3)).tocsr() @ p
+    u_b = np.linalg.lstsq(m, target.ravel(), rcond=None)[0]
+    return (m @ u_b).reshape(-1, 3)
+
+
+def row(path: Path) -> dict:
+    info = json.loads((path / "run.json").read_text())
+    errors = info["errors"]
+    ckpt = Checkpoint(path)
+    data = ckpt.load_problem()
+    mesh, truth = data.mesh, data.truth
+    w, in_mesh = interpolation_matrix(mesh, data.f)
+    brain = np.isin(data.labels.data.ravel(), TISSUE_LABELS) & np.ravel(in_mesh)
+    w = sp.csr_matrix(w)[brain]
+    true_v = (truth.field.data.reshape(-1, 3)[brain] if truth.field is not None
+              else w @ truth.u)
+
+    def mse(v):
+        return float(np.mean(np.sum((v - true_v) ** 2, axis=1)))
+
+    free = spla.spsolve((w.T @ w + 1e-9 * sp.identity(w.shape[1])).tocsc(), w.T @ true_v)
+    ratio = {k: v["median"] for k, v in errors["ratio"].items()}
+    lam_t = np.array([ratio.get(t, 1.0) for t in ("csf", "gm", "wm")])
+    bound_post = mse(elastic_fit(mesh, w, true_v, lam_t, np.ones(3)))
+    scan = {r: mse(elastic_fit(mesh, w, true_v, np.full(3, r), np.ones(3)))
+            for r in (1e-3, 0.1, 1.0, 10.0, 100.0)}
+    edge = [k for k, v in (info.get("identification") or {}).items() if v.get("at_prior_edge")]
+    return {
+        "run": path.name, "t_s_prior": info["config"]["model"].get("t_s_prior"),
+        "mse": errors["brain"]["mse_mm2"], "q95_boundary": {
+            "posterior_mean": errors["boundary_posterior_mean_mm"]["q95"],
+            "start": errors["boundary_initial_mm"]["q95"],
+            "reference": errors.get("boundary_reference_mm", {}).get("q95")},
+        "coverage_moving_90": (errors.get("coverage_moving") or {}).get("0.9"),
+        "coverage_boundary_90": errors["coverage_boundary"]["0.9"],
+        "ratio": ratio, "at_prior_edge": edge, "bound_posterior_median": bound_post,
+        "bound_scan": scan, "bound_free_nodes": mse(w @ free),
+        "converged": info["sampler"]["converged"], "sampling_s": info["timings_s"].get("sampling_s"),
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    args = ap.parse_args(argv)
+    bayesreg.configure_jax()
+    rows = [row(p) for p in args.runs]
+    print("| run | T_s | brain MSE mm^2: posterior / start / TV-L1 | boundary q95 mm: posterior / TV-L1 "
+          "| 90% coverage moving / boundary | lam/mu GM, WM | on prior edge | FE bound: at posterior "
+          "median / best common ratio / free nodes |")
+    print("|" + "---|" * 9)
+    for r in rows:
+        m, q = r["mse"], r["q95_boundary"]
+        best = min(r["bound_scan"].items(), key=lambda kv: kv[1])
+        ts = "fixed" if r["t_s_prior"] is None else f"Gamma({r['t_s_prior']['shape']}, {r['t_s_prior']['rate']})"
+        print(f"| {r['run']} | {ts} | {m['posterior_mean']:.4f} / {m['start']:.4f} / {m['reference']:.4f} "
+              f"| {q['posterior_mean']:.3f} / {q['reference']:.3f} | {r['coverage_moving_90']:.2f} / "
+              f"{r['coverage_boundary_90']:.2f} | {r['ratio'].get('gm', float('nan')):.3g}, "
+              f"{r['ratio'].get('wm', float('nan')):.3g} | {', '.join(r['at_prior_edge']) or '-'} "
+              f"| {r['bound_posterior_median']:.4f} / {best[1]:.4f} (lam/mu {best[0]:g}) / "
+              f"{r['bound_free_nodes']:.4f} |")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
