@@ -67,6 +67,20 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     unwarped = np.abs(data.m.data.ravel()[brain] - data.f.data.ravel()[brain])
     assert warped.mean() < 0.25 * unwarped.mean(), (warped.mean(), unwarped.mean())
 
+    # the same field from a file (ITK/ANTs form, LPS float32) on the same mesh: the same truth
+    from bayesreg.transforms import save_displacement
+
+    field_file = save_displacement(truth.field.data, truth.field.affine, tmp_path / "u.nii.gz")
+    mesh_file = tmp_path / "mesh.vtu"
+    meshio.write(mesh_file, meshio.Mesh(data.mesh.nodes, [("tetra", data.mesh.tets)]))
+    again = make_data(load_config("configs/quickstart.yaml", overrides=[
+        "data.resolution_mm=3.0", f"mesh.file={mesh_file}", "synthetic.truth=field",
+        f"synthetic.field={field_file}", "synthetic.lam=null", "synthetic.mu=null",
+        "synthetic.shift_mm=null", "synthetic.falloff_mm=null"]))
+    assert again.truth_info["truth"] == "field" and len(again.truth_info["sha256"]) == 64
+    np.testing.assert_allclose(again.truth.u, truth.u, atol=1e-5)
+    np.testing.assert_allclose(again.m.data, data.m.data, atol=1e-4)
+
     ckpt = Checkpoint(tmp_path)
     ckpt.save_problem(data)
     back = ckpt.load_problem().truth

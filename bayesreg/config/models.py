@@ -196,6 +196,11 @@ class MeshConfig(_Strict):
         return self
 
 
+# keys of the FE truths that bump and field do not use (the last two: field alone)
+_FE_TRUTH_KEYS = ("lam", "mu", "pushed_nodes", "clearance_mm", "tol_mm", "min_volume_ratio",
+                  "outside", "shift_mm", "falloff_mm")
+
+
 class SyntheticConfig(_Strict):
     """A synthetic case: ``m`` is ``f`` warped exactly by a known FE deformation (Sec. 4.1)."""
 
@@ -244,9 +249,10 @@ class SyntheticConfig(_Strict):
     @model_validator(mode="before")
     @classmethod
     def _null_unused(cls, data):
-        # lam: null / mu: null remove an FE truth's values (a config that extends one, --set)
+        # null removes a key the truth does not use (a config that extends one, --set):
+        # lam: null, mu: null for bump and field, also shift_mm: null etc. for field
         if isinstance(data, dict) and data.get("truth") in ("bump", "field"):
-            data = {k: v for k, v in data.items() if not (k in ("lam", "mu") and v is None)}
+            data = {k: v for k, v in data.items() if not (k in _FE_TRUTH_KEYS and v is None)}
         return data
 
     @model_validator(mode="after")
@@ -255,8 +261,7 @@ class SyntheticConfig(_Strict):
             raise ValueError("synthetic.truth: field and synthetic.field go together (the field "
                              "file is the truth)")
         if self.truth in ("bump", "field"):
-            unused = ("lam", "mu", "pushed_nodes", "clearance_mm", "tol_mm", "min_volume_ratio",
-                      "outside") + (("shift_mm", "falloff_mm") if self.truth == "field" else ())
+            unused = _FE_TRUTH_KEYS[:7] + (_FE_TRUTH_KEYS[7:] if self.truth == "field" else ())
             given = [k for k in unused if k in self.model_fields_set
                      and getattr(self, k) != type(self).model_fields[k].default]
             if given:
