@@ -38,7 +38,9 @@ from bayesreg.warp import interpolation_matrix
 
 def elastic_fit(mesh, w, target, lam_t, mu_t):
     """Least-squares best FE field ``(V, 3)`` on the voxels of ``w`` (``(V, N)``) whose
-    interior solves ``K u = 0`` for tissue values ``lam_t``, ``mu_t`` ``(3,)``."""
+    interior solves ``K u = 0`` for tissue values ``lam_t``, ``mu_t`` ``(3,)`` (normal
+    equations ``P^T W^T W P u_b = P^T W^T t``, ``P`` the map from boundary values to every
+    node: ``W^T W`` is sparse, so no ``(3V, 3 n_b)`` matrix is formed)."""
     k = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, lam_t[mesh.tissue], mu_t[mesh.tissue]))
     n, b = len(mesh.nodes), np.asarray(mesh.boundary)
     i = np.setdiff1d(np.arange(n), b)
@@ -47,9 +49,10 @@ def elastic_fit(mesh, w, target, lam_t, mu_t):
     p = np.zeros((3 * n, 3 * len(b)))
     p[bd, np.arange(3 * len(b))] = 1.0
     p[idf] = -spla.splu(sp.csc_matrix(k[idf][:, idf])).solve(k[idf][:, bd].toarray())
-    m = sp.kron(w, sp.identity(3)).tocsr() @ p
-    u_b = np.linalg.lstsq(m, target.ravel(), rcond=None)[0]
-    return (m @ u_b).reshape(-1, 3)
+    wtw = sp.kron(w.T @ w, sp.identity(3)).tocsr()
+    rhs = p.T @ (w.T @ target).ravel()
+    u_b = np.linalg.lstsq(p.T @ (wtw @ p), rhs, rcond=None)[0]
+    return (w @ (p @ u_b).reshape(-1, 3))
 
 
 def row(path: Path) -> dict:

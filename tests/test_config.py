@@ -331,6 +331,7 @@ def test_truths_the_model_did_not_make_refuse_the_fe_truths_keys(tmp_path):
     assert "go together" in _error(["synthetic.field=u.nii.gz"])
     shipped = load_config("configs/mismatch_bump.yaml")  # the quickstart with a bump
     assert shipped.synthetic.truth == "bump" and shipped.init.start == "registration"
+    assert shipped.model.interior == "sample" and shipped.model.fixed is None
     p = tmp_path / "c.yaml"
     p.write_text("synthetic:\n  truth: field\n  field: fields/u.nii.gz\n")
     assert load_config(p).synthetic.field == (tmp_path / "fields" / "u.nii.gz").resolve()
