@@ -383,8 +383,9 @@ class ModelConfig(_Strict):
         "under the elastic prior); sample: every node sampled, the interior under the same "
         "elastic prior exp(-E_r / T_r) (given the boundary, N(-K_ii^-1 K_ib u_b, T_r K_ii^-1)) "
         "and moved by the images, so that deformations the FE solve cannot make (a bump, "
-        "real brain shift) are reachable; needs prior_normaliser: exact (the normaliser of "
-        "the whole K)")
+        "real brain shift) are reachable, but the images then no longer identify the ratios "
+        "(the interior's obeying the FE solve is what carries them); needs prior_normaliser: "
+        "exact (the normaliser of the whole K)")
     initial_lam: TissueValues = Field(TissueValues(csf=1.0, gm=5.0, wm=5.0),
                                       description="the chains' central start of lambda per tissue "
                                       "(uniform: their volume-weighted mean)")
