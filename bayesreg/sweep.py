@@ -218,7 +218,10 @@ def run_row(run_dir) -> dict:
 
     Sampler: ``converged`` (its stop rule met), ``rhat_rank_max``, ``rhat_classic_max``,
     ``ess_bulk_min``, ``divergences``, ``draws_per_chain``; start: ``start_median_mm``
-    (boundary nodes, chains' start to the truth); Table 1: ``t1_median``, ``t1_q95``,
+    (boundary nodes, chains' start to the truth); ``brain_mse_posterior_mean``,
+    ``brain_mse_start``, ``brain_mse_reference`` (mm^2 over the brain's voxels; the
+    reference is TV-L1 on the same images) and ``coverage_moving_90`` (where the truth moves
+    the tissue at least 1 mm), from ``errors.json``; Table 1: ``t1_median``, ``t1_q95``,
     ``t1_max`` (mm); Table 2: ``t2_brain``, ``t2_csf``, ``t2_gm``, ``t2_wm`` (mm^2);
     ``coverage_90`` (boundary components inside their 90% intervals); per elastic group
     ``G`` with a true ratio: ``ratio_G_median``, ``ratio_G_q05``, ``ratio_G_q95``,
@@ -239,9 +242,15 @@ def run_row(run_dir) -> dict:
     for k in ("energy", "n_active"):
         if k in truth:
             row[f"truth_{k}"] = truth[k]
-    start = (info.get("errors") or {}).get("boundary_initial_mm") or {}
+    errors = info.get("errors") or {}
+    start = errors.get("boundary_initial_mm") or {}
     if "median" in start:
         row["start_median_mm"] = start["median"]
+    brain = errors.get("brain") or {}
+    for field, mse in (brain.get("mse_mm2") or {}).items():  # posterior_mean, start, reference
+        row[f"brain_mse_{field}"] = mse
+    if errors.get("coverage_moving"):
+        row["coverage_moving_90"] = errors["coverage_moving"]["0.9"]
     if not (run_dir / "displacement_true.nii.gz").is_file():
         return row
     data = load_run(run_dir)

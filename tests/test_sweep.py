@@ -110,6 +110,9 @@ def test_a_sweep_on_a_local_cluster_isolates_a_failure_and_resumes(tmp_path, cap
         assert float(table[k]["rhat_rank_max"]) == pytest.approx(info["sampler"]["rhat_rank_max"])
         assert float(table[k]["t1_median"]) > 0 and float(table[k]["t2_brain"]) > 0
         assert table[k]["ratio_gm_inside"] in ("True", "False")
+        mse = info["errors"]["brain"]["mse_mm2"]  # (no TV-L1 here: output.reference false)
+        assert float(table[k]["brain_mse_posterior_mean"]) == pytest.approx(mse["posterior_mean"])
+        assert table[k].get("brain_mse_reference", "") == ""
     md = (out / "sweep.md").read_text()
     assert "1 failed" in md and "Table 1 median (mm)" in md and "| 0.160 |" in md
     err = capsys.readouterr().err
