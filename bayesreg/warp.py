@@ -296,9 +296,9 @@ def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, to
 
     The inverse map is found per voxel centre ``y`` by the fixed-point iteration
     ``x <- y - u(x)`` from ``x = y`` (``u`` trilinear between voxel centres, continued by
-    its nearest face beyond the grid), which converges where ``|grad u| < 1``.  Before that, the Jacobian determinant
-    of ``x -> x + u(x)`` (central differences) must be positive at every voxel: a folding
-    field has no inverse.
+    its nearest face beyond the grid), which converges where ``|grad u| < 1``.  Before
+    that, the Jacobian determinant of ``x -> x + u(x)`` (central differences) must be
+    positive at every voxel: a folding field has no inverse.
 
     Parameters
     ----------
@@ -335,6 +335,7 @@ def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, to
     if folded:
         raise ValueError(f"the displacement field folds at {folded} voxel(s) (Jacobian "
                          "determinant <= 0): it has no inverse")
+
     def u_at(points):  # trilinear, continued by the nearest face beyond the grid
         c = world_to_voxel(f.affine, points).T
         return np.stack([ndi.map_coordinates(data[..., k], c, order=1, mode="nearest")
