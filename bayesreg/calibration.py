@@ -133,13 +133,11 @@ def calibration_problem(spec: CalibrationSpec) -> CalibrationProblem:
     prior = {"lam": (pl.a, pl.b, pl.r1, pl.r2), "mu": (pm.a, pm.b, pm.r1, pm.r2)}
     phi_ref = [pl.r1 + (pl.r2 - pl.r1) * pl.a / (pl.a + pl.b)] * 2 + \
         [pm.r1 + (pm.r2 - pm.r1) * pm.a / (pm.a + pm.b)]
+    gamma = None if mdl.t_s_prior is None else (mdl.t_s_prior.shape, mdl.t_s_prior.rate)
     post = build_posterior(mesh, build_ssd(mesh.nodes, mesh.tets, m, m,
                                            quadrature_level=p.quadrature_level),
                            skull, t_s=mdl.t_s, t_r=mdl.t_r, layout=layout, element_group=group,
-                           prior=prior, phi_ref=phi_ref, rigid_sd=mdl.rigid_sd_mm,
-                           t_s_prior=(None if mdl.t_s_prior is None
-                                      else (mdl.t_s_prior.shape, mdl.t_s_prior.rate)))
-    gamma = None if mdl.t_s_prior is None else (mdl.t_s_prior.shape, mdl.t_s_prior.rate)
+                           prior=prior, phi_ref=phi_ref, rigid_sd=mdl.rigid_sd_mm, t_s_prior=gamma)
     return CalibrationProblem(mesh, post, layout, group, mdl.prior_normaliser == "exact", gamma,
                               mdl.data_t_s)
 

@@ -40,7 +40,7 @@ __all__ = ["Initialisation", "initialise", "start_center", "start_check", "regis
            "laplace_precision", "gauss_newton_precision", "schur_complement", "proposal_scale"]
 
 
-def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarray, dict]:
+def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tuple[np.ndarray, dict]:
     """Central start ``(dim,)`` of the chains and how it was made.
 
     ``u_b``: ``init.fraction * truth`` (``init.start: between``, paper Sec. 4.2; identity
@@ -55,12 +55,15 @@ def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarr
     check : callable, optional
         The jitted start check of :func:`start_check` (built here if not given; pass the
         one :func:`initial_positions` uses so that one program serves both).
+    flow : Image, optional
+        ``init.start: registration``: the :func:`registration_field` if already computed
+        (made here, and its time recorded, otherwise).
 
     Returns
     -------
     theta : (dim,) ndarray
     info : dict
-        ``{"start", "shrink"}`` (and the registration time)
+        ``{"start", "shrink"}`` (and the time of a registration made here)
 
     Raises
     ------
@@ -72,10 +75,11 @@ def start_center(problem: Problem, cfg: Config, *, check=None) -> tuple[np.ndarr
     info: dict = {"start": cfg.init.start}
     base_u = np.zeros((nb, 3))
     if cfg.init.start == "registration":
-        t = time.perf_counter()
-        flow = registration_field(problem, cfg.init.registration)
+        if flow is None:
+            t = time.perf_counter()
+            flow = registration_field(problem, cfg.init.registration)
+            info["registration_s"] = time.perf_counter() - t
         base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
-        info["registration_s"] = time.perf_counter() - t
     elif problem.truth is not None:
         base_u = cfg.init.fraction * problem.truth.u[mesh.boundary]
     theta = np.concatenate([base_u.ravel(), problem.phi_init])
@@ -319,12 +323,13 @@ class Initialisation(NamedTuple):
     info: dict
 
 
-def initialise(problem: Problem, cfg: Config) -> Initialisation:
-    """Central start (:func:`start_center`), optional mode search, dispersed starts, kernels."""
+def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
+    """Central start (:func:`start_center`, given ``flow``), optional mode search, dispersed
+    starts, kernels."""
     rng = np.random.default_rng(cfg.seed)
     t = time.perf_counter()
     check = start_check(problem, cfg)
-    center, info = start_center(problem, cfg, check=check)
+    center, info = start_center(problem, cfg, check=check, flow=flow)
     info["method"] = cfg.init.method
     info["proposal"] = cfg.sampler.proposal
     if cfg.init.method == "mode":

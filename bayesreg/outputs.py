@@ -112,7 +112,15 @@ def _versions():
 MOVING_MM = 1.0  # "where tissue moves": nodes the truth moves at least this far, mm
 
 
-def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=None) -> dict | None:
+def thinned_nodal_draws(problem, result) -> np.ndarray:
+    """At most about ``VOXEL_DRAWS`` evenly spaced nodal draws ``(S, N, 3)`` mm of the pooled
+    chains (:func:`bayesreg.fields.nodal_draws`)."""
+    n_draws = result.positions.shape[0] * result.positions.shape[1]
+    return nodal_draws(problem, result, slice(None, None, max(1, n_draws // VOXEL_DRAWS)))
+
+
+def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=None,
+                draws=None) -> dict | None:
     """Error of the posterior mean against the synthetic truth, mm (``None`` without truth).
 
     Parameters
@@ -131,6 +139,8 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         A point-estimate registration's dense field ``(I, J, K, 3)`` mm on ``f``'s grid
         (the run's TV-L1, :func:`bayesreg.initialisation.registration_field`), compared
         beside the posterior mean.
+    draws : (S, N, 3) ndarray, optional
+        The thinned nodal draws of :func:`thinned_nodal_draws`, if already computed.
 
     Returns
     -------
@@ -181,10 +191,9 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         u_mean = nodal_mean(problem, result)
     # every node's components where the truth moves the node: thinned nodal draws
     moving = np.linalg.norm(truth.u, axis=1) >= MOVING_MM
-    n_draws = result.positions.shape[0] * result.positions.shape[1]
     cov_moving = None
     if moving.any():
-        draws = nodal_draws(problem, result, slice(None, None, max(1, n_draws // VOXEL_DRAWS)))
+        draws = thinned_nodal_draws(problem, result) if draws is None else draws
         cov_moving = {str(k): float(v) for k, v in coverage(
             draws[:, moving].reshape(len(draws), -1), truth.u[moving].ravel()).items()}
         cov_moving["n_components"] = int(3 * moving.sum())
@@ -401,7 +410,7 @@ def verdict(s: dict) -> str:
 
 def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: SamplerResult,
                   init: Initialisation, timings: dict, init_info: dict | None = None, *,
-                  resumed: bool = False) -> RunResult:
+                  resumed: bool = False, reference=None) -> RunResult:
     """Write every output of a run (see module docstring) and commit the directory.
 
     Parameters
@@ -421,6 +430,10 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         How the starts were made (``run.json["init"]``).
     resumed : bool
         The run was resumed from a checkpoint.
+    reference : Image, optional
+        The :func:`~bayesreg.initialisation.registration_field` of ``init.registration``
+        if already computed (a registration start's); made here otherwise (synthetic runs
+        with ``output.reference``).
 
     Returns
     -------
@@ -515,9 +528,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     grid = problem.f.data.shape[:3]
     mean_img, sd_img = grid_moments_from(mesh, problem.f, u_mean, cov, located=located)
     del cov
-    n_draws = c * d
-    norm_sd, norm_iqr = voxel_norm_spread(
-        w, nodal_draws(problem, result, slice(None, None, max(1, n_draws // VOXEL_DRAWS))))
+    thinned = thinned_nodal_draws(problem, result)  # the voxel spread's and the coverage's
+    norm_sd, norm_iqr = voxel_norm_spread(w, thinned)
     aff = problem.f.affine
     vol = {"displacement_mean": mean_img, "displacement_sd": sd_img,
            "displacement_norm_sd": norm_sd.reshape(grid), "displacement_norm_iqr": norm_iqr.reshape(grid),
@@ -537,12 +549,16 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
 
-    reference = None
-    if problem.truth is not None and cfg.output.reference:  # the point estimate to beat
-        reference = registration_field(problem, cfg.init.registration)
+    if problem.truth is None or not cfg.output.reference:
+        reference = None
+    else:  # the point estimate to beat
+        if reference is None:
+            reference = registration_field(problem, cfg.init.registration)
         save_displacement(reference.data, aff, run_dir.file("displacement_reference.nii.gz"),
                           description=f"{cfg.init.registration} reference: {FIXED_TO_MOVING}")
-    errors = error_table(problem, result, u_init, u_mean, grid=(w, in_mesh), reference=reference)
+    errors = error_table(problem, result, u_init, u_mean, grid=(w, in_mesh), reference=reference,
+                         draws=thinned)
+    del thinned
     if errors is not None and reference is not None:
         errors["reference"] = f"skimage.registration.optical_flow_{cfg.init.registration}"
     identification = (contraction(layout, post.prior, pos[..., 3 * nb:]) if post.n_free else {})

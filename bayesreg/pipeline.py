@@ -16,7 +16,7 @@ import numpy as np
 
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, load_config, override_config
-from bayesreg.initialisation import Initialisation, initialise
+from bayesreg.initialisation import Initialisation, initialise, registration_field
 from bayesreg.jaxconfig import configure_jax
 from bayesreg.outputs import RunResult, write_outputs
 from bayesreg.posterior import elastic_groups
@@ -194,9 +194,16 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         if cfg.output.checkpoint and not saved:
             ckpt.save_problem(problem.data)
         init = ckpt.load_init() if resume is not None else None
+        flow = None  # a registration start's optical flow: also the outputs' reference
         if init is None:
             with stages.stage("starts"):
-                init = initialise(problem, cfg)
+                if cfg.init.start == "registration":
+                    t = time.perf_counter()
+                    flow = registration_field(problem, cfg.init.registration)
+                    t = time.perf_counter() - t
+                init = initialise(problem, cfg, flow=flow)
+                if flow is not None:
+                    init.info.update(registration_s=t, init_s=init.info["init_s"] + t)
                 stages.tell(starts_line(init.info, len(init.x0)))
             if cfg.output.checkpoint:
                 ckpt.save_init(init)
@@ -221,7 +228,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
                    **result.timings, "total_before_outputs_s": time.perf_counter() - t0}
         with stages.stage("outputs"):
             res = write_outputs(run_dir, cfg, problem, result, init, timings, init_info,
-                                resumed=resume is not None)
+                                resumed=resume is not None, reference=flow)
         ckpt.clear_progress()
         return res
     except KeyboardInterrupt as exc:

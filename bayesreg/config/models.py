@@ -196,9 +196,9 @@ class MeshConfig(_Strict):
         return self
 
 
-# keys of the FE truths that bump and field do not use (the last two: field alone)
-_FE_TRUTH_KEYS = ("lam", "mu", "pushed_nodes", "clearance_mm", "tol_mm", "min_volume_ratio",
-                  "outside", "shift_mm", "falloff_mm")
+# keys of the FE truths that a dense truth does not use
+_DENSE_UNUSED = ("lam", "mu", "pushed_nodes", "clearance_mm", "tol_mm", "min_volume_ratio", "outside")
+_UNUSED_BY = {"bump": _DENSE_UNUSED, "field": _DENSE_UNUSED + ("shift_mm", "falloff_mm")}
 
 
 class SyntheticConfig(_Strict):
@@ -251,8 +251,9 @@ class SyntheticConfig(_Strict):
     def _null_unused(cls, data):
         # null removes a key the truth does not use (a config that extends one, --set):
         # lam: null, mu: null for bump and field, also shift_mm: null etc. for field
-        if isinstance(data, dict) and data.get("truth") in ("bump", "field"):
-            data = {k: v for k, v in data.items() if not (k in _FE_TRUTH_KEYS and v is None)}
+        if isinstance(data, dict) and isinstance(data.get("truth"), str):
+            unused = _UNUSED_BY.get(data["truth"], ())
+            data = {k: v for k, v in data.items() if not (k in unused and v is None)}
         return data
 
     @model_validator(mode="after")
@@ -260,9 +261,8 @@ class SyntheticConfig(_Strict):
         if (self.truth == "field") != (self.field is not None):
             raise ValueError("synthetic.truth: field and synthetic.field go together (the field "
                              "file is the truth)")
-        if self.truth in ("bump", "field"):
-            unused = _FE_TRUTH_KEYS[:7] + (_FE_TRUTH_KEYS[7:] if self.truth == "field" else ())
-            given = [k for k in unused if k in self.model_fields_set
+        if self.truth in _UNUSED_BY:
+            given = [k for k in _UNUSED_BY[self.truth] if k in self.model_fields_set
                      and getattr(self, k) != type(self).model_fields[k].default]
             if given:
                 raise ValueError(f"synthetic.{', synthetic.'.join(given)} {'is' if len(given) == 1 else 'are'}"
