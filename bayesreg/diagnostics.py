@@ -3,6 +3,8 @@
 ArviZ's default R-hat is the rank-normalised split R-hat (Vehtari et al. 2021); the classic
 Gelman-Rubin R-hat of the paper's stopping rule is :mod:`bayesreg.convergence`.
 :func:`coverage` checks the calibration of credible intervals against a synthetic truth.
+:func:`sampler_health` gives the gradient kernels' per-chain checks that Stan prints
+(divergent transitions, trajectories cut at the maximum tree depth, E-BFMI).
 :func:`arviz_fast_ess` (from :mod:`bayesreg.convergence`, where the samplers' stop rule
 uses it too) runs ArviZ's ESS with the end of Geyer's initial sequence found in one
 vectorised search instead of ArviZ's Python loop over lags.
@@ -16,7 +18,7 @@ import numpy as np
 from bayesreg.convergence import arviz_fast_ess, geyer_ess
 
 __all__ = ["coverage", "to_datatree", "group_draws", "contraction", "IDENTIFIED_MIN", "EDGE", "geyer_ess",
-           "arviz_fast_ess"]
+           "arviz_fast_ess", "sampler_health", "EBFMI_MIN"]
 
 
 def coverage(draws, truth, levels=(0.5, 0.9, 0.95), *, block: int = 64) -> dict[float, float]:
@@ -202,4 +204,107 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
             log_ratio = log_ratio + sign * np.log(flat[:, k])
         if prior_var > 0:
             out[f"ratio_{gname}"] = entry("log", prior_var, float(np.var(log_ratio)))
+    return out
+
+
+EBFMI_MIN = 0.3
+"""E-BFMI below which a chain's momentum resampling explores the energy too slowly
+(Betancourt, *A conceptual introduction to Hamiltonian Monte Carlo*, arXiv:1701.02434,
+2017, Sec. 6.1; Stan's and ArviZ's threshold)."""
+
+
+def sampler_health(divergences, *, steps_per_draw: int = 1, tree_depth=None,
+                   max_tree_depth: int | None = None, energy=None) -> dict:
+    """Per-chain checks of a gradient kernel's draws, as Stan reports them after sampling.
+
+    A divergent transition (an energy error above the kernel's threshold, or a trajectory
+    that met ``-inf``: the skull's hard constraint, a failed solve) means the step size is
+    too large for some region, which the chain then under-visits: its means may be biased
+    however well R-hat and ESS look.  A trajectory cut at ``max_tree_depth`` means NUTS
+    stopped before its U-turn: a correct but slow chain (the step size is small for the
+    posterior's extent).  E-BFMI (the energy's lag-1 change against its spread, from
+    :func:`arviz_stats.bfmi`) below :data:`EBFMI_MIN` means momentum resampling cannot move
+    the chain through the energy levels the posterior spans (heavy tails, a funnel).
+
+    Parameters
+    ----------
+    divergences : (C, D) array_like of int
+        Divergent transitions per recorded draw (with thinning, per interval of
+        ``steps_per_draw`` transitions).
+    steps_per_draw : int
+        Transitions per recorded draw (the thinning).
+    tree_depth : (C, D) array_like of int, optional
+        NUTS's tree depth (trajectory doublings) of each recorded draw's transition.
+    max_tree_depth : int, optional
+        The kernel's maximum tree depth (needed with ``tree_depth``).
+    energy : (C, D) array_like, optional
+        The Hamiltonian at each recorded draw; E-BFMI is skipped if it is absent or not
+        finite.
+
+    Returns
+    -------
+    dict
+        ``divergent_fraction`` (per chain: divergent transitions / transitions),
+        ``max_depth_fraction`` (per chain, or ``None`` without ``tree_depth``), ``e_bfmi``
+        (per chain, or ``None``) and ``warnings``: one plain line per failed check, naming
+        the chains (empty when all pass).
+
+    Raises
+    ------
+    ValueError
+        ``divergences`` not 2-D, another array of another shape, or ``tree_depth`` without
+        ``max_tree_depth``.
+
+    References
+    ----------
+    Stan Development Team, *Stan Reference Manual*, "Diagnostic information" (divergent
+    transitions, maximum tree depth, E-BFMI); Betancourt (2017), Sec. 6.
+    """
+    div = np.asarray(divergences)
+    if div.ndim != 2:
+        raise ValueError(f"divergences must be (chains, draws), got shape {div.shape}")
+    n = div.shape[1] * max(int(steps_per_draw), 1)
+    frac = div.sum(axis=1) / max(n, 1)
+    out = {"divergent_fraction": [float(f) for f in frac], "max_depth_fraction": None,
+           "e_bfmi": None, "warnings": []}
+    warn = out["warnings"]
+
+    def chains(mask):
+        idx = np.flatnonzero(mask)
+        return ("chain " if len(idx) == 1 else "chains ") + ", ".join(str(c) for c in idx)
+
+    if div.sum() > 0:
+        worst = int(np.argmax(frac))
+        warn.append(f"{int(div.sum())} divergent transitions ({chains(frac > 0)}; up to "
+                    f"{frac[worst]:.1%} in chain {worst}): the chains under-visit a region, means "
+                    "may be biased (a larger sampler.target_acceptance, a smooth skull barrier: "
+                    "model.skull_barrier_mm)")
+    if tree_depth is not None:
+        depth = np.asarray(tree_depth)
+        if depth.shape != div.shape:
+            raise ValueError(f"tree_depth must have the shape of divergences {div.shape}, got {depth.shape}")
+        if max_tree_depth is None:
+            raise ValueError("tree_depth needs max_tree_depth")
+        sat = np.mean(depth >= max_tree_depth, axis=1)
+        out["max_depth_fraction"] = [float(f) for f in sat]
+        if np.any(sat > 0):
+            worst = int(np.argmax(sat))
+            warn.append(f"trajectories cut at the maximum tree depth {max_tree_depth} in "
+                        f"{chains(sat > 0)} (up to {sat[worst]:.1%} of draws, chain {worst}): "
+                        "correct but slow (a larger sampler.max_tree_depth)")
+    if energy is not None:
+        e = np.asarray(energy, np.float64)
+        if e.shape != div.shape:
+            raise ValueError(f"energy must have the shape of divergences {div.shape}, got {e.shape}")
+        if e.shape[1] >= 2 and np.all(np.isfinite(e)):
+            from arviz_stats import bfmi
+
+            with np.errstate(divide="ignore", invalid="ignore"):  # a constant energy: NaN
+                b = np.asarray(bfmi(e), np.float64).reshape(-1)
+            out["e_bfmi"] = [float(x) for x in b]
+            low = ~(b >= EBFMI_MIN)  # NaN counts as low
+            if np.any(low):
+                warn.append(f"E-BFMI below {EBFMI_MIN} in {chains(low)} (lowest "
+                            f"{np.nanmin(b) if np.any(np.isfinite(b)) else float('nan'):.2f}): "
+                            "momentum resampling explores the energy slowly (heavy tails)")
     return out

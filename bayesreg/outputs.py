@@ -57,7 +57,7 @@ from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.chains import available_cores
 from bayesreg.config import Config
 from bayesreg.convergence import StopRule, gelman_rubin
-from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, to_datatree
+from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, sampler_health, to_datatree
 from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
 from bayesreg.initialisation import Initialisation, registration_field
@@ -350,6 +350,7 @@ def format_report(errors: dict | None, info: dict) -> str:
         lines.append(f"on the prior's edge: {', '.join(edge)} (posterior median in the outer 1% of "
                      "the prior's support: a misfit the model cannot make, paid with the "
                      "parameters?)")
+    lines.extend(f"sampler check: {w}" for w in (s.get("health") or {}).get("warnings", []))
     lines.append(verdict(s))
     return "\n".join(lines)
 
@@ -631,6 +632,11 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         # 1 - posterior / prior variance per free parameter (logit scale) and ratio (log)
         "identification": identification,
     }
+    if gradient:  # Stan's per-chain checks: divergences, tree depth cut, E-BFMI
+        info["sampler"]["health"] = sampler_health(
+            result.divergences, steps_per_draw=s_info.thinning,
+            tree_depth=result.tree_depth if s_info.kind == "nuts" else None,
+            max_tree_depth=cfg.sampler.max_tree_depth, energy=result.energy)
     info["sampler"]["verdict"] = verdict(info["sampler"])
     write_text_atomic(run_dir.file("errors.json"), dumps_json(errors, indent=2))
     write_text_atomic(run_dir.file("run.json"), dumps_json(info, indent=2))

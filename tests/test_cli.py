@@ -92,6 +92,10 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     assert info["sampler"]["blocks"] == ["u_b", "elastic"]
     assert all(0.0 < a < 1.0 for a in info["sampler"]["acceptance"])
     assert info["sampler"]["solve_failures"] == 0
+    health = info["sampler"]["health"]  # NUTS: Stan's per-chain checks, one line each printed
+    assert len(health["divergent_fraction"]) == len(health["max_depth_fraction"]) == 3
+    assert len(health["e_bfmi"]) == 3 and health["divergent_fraction"][0] >= 0
+    assert all(f"sampler check: {w}" in printed for w in health["warnings"])
     assert info["versions"]["jax"]
 
     import arviz as az

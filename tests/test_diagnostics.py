@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import arviz as az
-from bayesreg.diagnostics import arviz_fast_ess, coverage
+from bayesreg.diagnostics import EBFMI_MIN, arviz_fast_ess, coverage, sampler_health
 
 LEVELS = (0.5, 0.9, 0.95)
 K, C, D = 2000, 4, 500  # components, chains, draws per chain
@@ -201,3 +201,41 @@ def test_contraction_is_zero_for_prior_draws_and_near_one_for_a_narrow_posterior
     flags = {k: e["at_prior_edge"] for k, e in contraction(layout, priors, edge).items()
              if "at_prior_edge" in e}
     assert flags == {"lam_csf": True, "mu_csf": False, "lam_gm": True}
+
+
+def test_sampler_health_counts_divergences_tree_depth_and_e_bfmi_per_chain():
+    """Fractions per chain against counts by hand; E-BFMI against its definition
+    (Betancourt 2017, Eq. 6.1: the mean squared lag-1 change of the energy over its
+    variance): about 2 for independent energies, far below 0.3 for a random walk."""
+    rng = np.random.default_rng(0)
+    c, d, thin = 3, 400, 2
+    div = np.zeros((c, d), int)
+    div[1, :100] = 1  # 100 of 800 transitions
+    div[2, :10] = 2   # 20 of 800
+    depth = np.full((c, d), 4)
+    depth[0, ::4] = 6  # a quarter of chain 0's draws at the maximum
+    energy = rng.normal(size=(c, d))
+    energy[2] = np.cumsum(energy[2])  # chain 2: a random walk in energy
+    h = sampler_health(div, steps_per_draw=thin, tree_depth=depth, max_tree_depth=6, energy=energy)
+    assert h["divergent_fraction"] == pytest.approx([0.0, 100 / 800, 20 / 800])
+    assert h["max_depth_fraction"] == pytest.approx([0.25, 0.0, 0.0])
+    by_hand = [np.mean(np.diff(e) ** 2) / np.var(e) for e in energy]
+    assert h["e_bfmi"] == pytest.approx(by_hand, rel=0.01)
+    assert h["e_bfmi"][0] == pytest.approx(2.0, abs=0.3) and h["e_bfmi"][2] < EBFMI_MIN
+    warn = h["warnings"]
+    assert len(warn) == 3
+    assert warn[0].startswith("120 divergent transitions (chains 1, 2; up to 12.5% in chain 1)")
+    assert "maximum tree depth 6 in chain 0 (up to 25.0%" in warn[1]
+    assert warn[2].startswith(f"E-BFMI below {EBFMI_MIN} in chain 2")
+    # a healthy run: no lines; without tree depth or energy (HMC, MALA) only divergences
+    calm = sampler_health(np.zeros((2, 50), int), tree_depth=np.full((2, 50), 3), max_tree_depth=6,
+                          energy=rng.normal(size=(2, 50)))
+    assert calm["warnings"] == [] and calm["max_depth_fraction"] == [0.0, 0.0]
+    bare = sampler_health(np.zeros((2, 50), int), energy=np.full((2, 50), np.nan))
+    assert bare["max_depth_fraction"] is None and bare["e_bfmi"] is None and bare["warnings"] == []
+    with pytest.raises(ValueError, match="max_tree_depth"):
+        sampler_health(div, tree_depth=depth)
+    with pytest.raises(ValueError, match="shape"):
+        sampler_health(div, energy=energy[:, :10])
+    with pytest.raises(ValueError, match="chains, draws"):
+        sampler_health(div.ravel())

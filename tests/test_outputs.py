@@ -94,3 +94,8 @@ def test_the_printed_summary_gives_medians_and_intervals_and_ends_with_the_verdi
     assert f"{np.median(csf):.4g}" in row and f"{np.quantile(csf, 0.95):.4g}" in row
     assert f"{csf.mean():.4g}" not in row and "sd" not in text.splitlines()[-3]
     assert "median" in text and text.splitlines()[-1].startswith("verdict: NOT converged")
+    # a gradient kernel's failed per-chain checks print just above the verdict
+    info["sampler"]["health"] = {"warnings": ["12 divergent transitions (chain 1; up to 3.0% in chain 1)"]}
+    lines = outputs.format_report({"ratio": ratio}, info).splitlines()
+    assert lines[-2] == "sampler check: 12 divergent transitions (chain 1; up to 3.0% in chain 1)"
+    assert lines[-1].startswith("verdict: NOT converged")

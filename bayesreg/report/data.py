@@ -79,9 +79,10 @@ class RunData(NamedTuple):
     info : dict
         ``run.json``
     u_b : (C, D, B, 3) ndarray
-        boundary displacement draws, mm
+        boundary displacement draws, mm (the mesh surface's nodes: of a run that sampled
+        every node, ``model.interior: sample``, the surface's draws alone)
     boundary : (B,) int ndarray
-        mesh node index of each sampled boundary node
+        mesh node index of each boundary node in ``u_b``
     lam, mu, ratio : (C, D, G) ndarray
         Lamé parameter draws and ``lam/mu`` per group
     groups : tuple of str
@@ -207,6 +208,7 @@ def load_run(path) -> RunData:
     import meshio
 
     from bayesreg.diagnostics import group_draws
+    from bayesreg.mesh import boundary_nodes
 
     path = Path(path)
     if not path.is_dir():
@@ -240,6 +242,11 @@ def load_run(path) -> RunData:
             raise ValueError(f"posterior.nc of run {path} lacks {missing}")
         u_b = np.asarray(post["u_b"].transpose("chain", "draw", "node", "axis").values, float)
         boundary = np.asarray(post["node"].values, int)
+        # a run that sampled every node (model.interior: sample): the surface's alone, as
+        # the paper's tables and figures mean by boundary
+        surface = np.isin(boundary, boundary_nodes(tets))
+        if not surface.all():
+            u_b, boundary = u_b[:, :, surface], boundary[surface]
         lam, mu = (group_draws(tree, v) for v in ("lam", "mu"))
         ratio = (np.asarray(post["ratio"].transpose("chain", "draw", "group").values, float)
                  if "ratio" in post else lam / mu)

@@ -67,6 +67,7 @@ def _run_summary(run: RunData) -> dict:
         "steps_per_s_per_chain": s.get("steps_per_s_per_chain"),
         # the run's verdict line (older runs: made from their figures)
         "verdict": s.get("verdict") or (verdict(s) if "rhat_rank_max" in s else None),
+        "checks": (s.get("health") or {}).get("warnings", []),
     }
 
 
@@ -112,6 +113,7 @@ def _markdown(runs, summaries, t1, t2, cov, ratios, fig5) -> str:
             "*Uniform Elastic Parameters* for `elastic: uniform`; – where the paper has no value.",
             ""]
     verdicts = [f"- **{lab}**: {s['verdict'].removeprefix('verdict: ')}"
+                + "".join(f"; sampler check: {w}" for w in s.get("checks", []))
                 for lab, s in summaries.items() if s.get("verdict")]
     if verdicts:
         out += ["Convergence (the run's stop rule, and today's: rank-normalised R-hat <= 1.01, "
