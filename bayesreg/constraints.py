@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["SkullConstraint", "skull_constraint", "with_barrier", "points_forbidden",
-           "skull_distance", "skull_barrier"]
+           "skull_distance", "skull_barrier", "barrier_clear", "BARRIER_FLOOR"]
 
 
 class SkullConstraint(NamedTuple):
@@ -39,6 +39,10 @@ class SkullConstraint(NamedTuple):
         ``w``; ``(0, 3)`` when the barrier is off).
     barrier_width : ()
         Width ``w`` (mm) of the barrier, 0 = off.
+    barrier_wall : () bool
+        Whether points at the barrier's own singularity are forbidden
+        (:func:`barrier_clear`): true for sampling; the mode search turns it off, so that
+        its line search meets the barrier's huge finite values there and steps back.
     """
 
     forbidden: jax.Array
@@ -46,6 +50,7 @@ class SkullConstraint(NamedTuple):
     voxel_size: jax.Array
     barrier_offsets: jax.Array
     barrier_width: jax.Array
+    barrier_wall: jax.Array = True
 
 
 def skull_constraint(forbidden, *, barrier_mm: float = 0.0) -> SkullConstraint:
@@ -71,6 +76,7 @@ def skull_constraint(forbidden, *, barrier_mm: float = 0.0) -> SkullConstraint:
         voxel_size=jnp.asarray(spacing),
         barrier_offsets=jnp.zeros((0, 3), dtype=jnp.int32),
         barrier_width=jnp.asarray(0.0),
+        barrier_wall=jnp.asarray(True),
     )
     return with_barrier(skull, barrier_mm)
 
@@ -159,10 +165,45 @@ def skull_distance(skull: SkullConstraint, points):
     return -tau * jax.nn.logsumexp(z, axis=-1)
 
 
+BARRIER_FLOOR = 1e-6
+"""Fraction of the barrier's width below which :func:`skull_barrier` stops following its
+formula and :func:`barrier_clear` forbids (the barrier's own wall)."""
+
+
+def barrier_clear(skull: SkullConstraint, points):
+    """Whether every point is clear of the barrier's own wall: ``d > BARRIER_FLOOR * w``
+    (``d`` = :func:`skull_distance`), or the barrier or its wall
+    (:attr:`SkullConstraint.barrier_wall`) is off.
+
+    ``d`` is a soft minimum, up to ``(w / 20) log 27`` below the true distance, so a point
+    that the hard rule allows can have ``d <= 0``, where the barrier cannot follow its
+    formula (``-> -inf`` as ``d -> 0``).  The posterior forbids such points as it forbids
+    the skull (``log p = -inf``), so the barrier's singularity is the model's wall in front
+    of the hard one (at most ``0.165 w`` in front of it): the log-density has no flat
+    plateau there, which, clamped, held a chain at ``log p = -1e12`` with a zero gradient
+    (a BrainWeb brain, one chain of three).
+
+    Parameters
+    ----------
+    skull : SkullConstraint
+    points : (P, 3) array
+        Deformed node positions, world mm.
+
+    Returns
+    -------
+    () bool array
+    """
+    if skull.barrier_offsets.shape[0] == 0:
+        return jnp.asarray(True)
+    d = skull_distance(skull, points)
+    return jnp.all(d > BARRIER_FLOOR * skull.barrier_width) | ~jnp.asarray(skull.barrier_wall)
+
+
 def skull_barrier(skull: SkullConstraint, points):
     """Smooth barrier against the skull: ``-sum (w / d - 1)^2`` over the points with
     ``0 < d < w`` (``d`` = :func:`skull_distance`, ``w = barrier_width``), 0 beyond ``w``,
-    ``-> -inf`` as ``d -> 0``; C1 in the points.
+    ``-> -inf`` as ``d -> 0``; C1 in the points.  Below ``BARRIER_FLOOR * w`` (where
+    :func:`barrier_clear` forbids, so the posterior never uses it) it is held finite.
 
     An optional change of the model (``model.skull_barrier_mm``; 0 = off, the paper's hard
     constraint alone): it bends the log-density down within ``w`` of the skull so that
@@ -187,5 +228,5 @@ def skull_barrier(skull: SkullConstraint, points):
         return jnp.zeros(())
     d = skull_distance(skull, points)
     near = d < w
-    d_safe = jnp.where(near, jnp.maximum(d, 1e-6 * jnp.maximum(w, 1e-12)), 1.0)
+    d_safe = jnp.where(near, jnp.maximum(d, BARRIER_FLOOR * jnp.maximum(w, 1e-12)), 1.0)
     return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0))

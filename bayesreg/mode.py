@@ -73,10 +73,13 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     :data:`MODE_BARRIER_MM` barrier (:func:`bayesreg.constraints.skull_barrier`): on the hard
     wall alone the line search stalls as soon as the gradient points into the skull, while
     the barrier's maximum is strictly feasible and within the barrier of the constrained
-    one; the chains sample the model as given.  With ``exact`` the search runs without the
-    normaliser (it depends on the parameters only, and its gradient costs about eight dense
-    factorisations), then the parameters alone are optimised with it (at most 100 steps);
-    with every node sampled (no interior, ``model.interior: sample``) it runs with it.
+    one; the chains sample the model as given.  The barrier's own wall
+    (:func:`bayesreg.constraints.barrier_clear`) is off in the search: there the barrier's
+    huge finite values shorten the step, where ``-inf`` would stop the search.  With
+    ``exact`` the search runs without the normaliser (it depends on the parameters only,
+    and its gradient costs about eight dense factorisations), then the parameters alone are
+    optimised with it (at most 100 steps); with every node sampled (no interior,
+    ``model.interior: sample``) it runs with it.
 
     Parameters
     ----------
@@ -105,6 +108,9 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     if search_barrier == 0.0:
         search_barrier = MODE_BARRIER_MM
         post = with_skull_barrier(post, search_barrier)
+    # the barrier's own wall off: its huge finite values make the line search step back,
+    # where -inf would stop the search (the sampled posterior keeps the wall)
+    post = post._replace(skull=post.skull._replace(barrier_wall=jnp.asarray(False)))
     nb3 = 3 * post.n_boundary
     theta0 = np.asarray(theta0, dtype=np.float64)
     zeros = jnp.zeros((post.op.n_interior, 3))

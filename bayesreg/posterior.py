@@ -13,7 +13,8 @@ support or non-positive, an inverted element in the deformed mesh.  A CG solve t
 not converge also gives ``-inf`` (the proposal is rejected) and is flagged in :class:`Aux`
 so that the driver counts and reports it: it is never silently accepted.  An optional
 smooth barrier (``barrier_mm`` of :func:`build_posterior`) bends the log-density down near
-the skull for gradient kernels; the hard constraint stays.
+the skull for gradient kernels; the hard constraint stays, and a node at the barrier's own
+singularity (:func:`bayesreg.constraints.barrier_clear`) is forbidden too.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
 node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.  The exact
@@ -33,7 +34,7 @@ import numpy as np
 
 from bayesreg._checks import check_last_axis, check_shape
 from bayesreg.constraints import (
-    SkullConstraint, points_forbidden, skull_barrier, skull_constraint, with_barrier)
+    SkullConstraint, barrier_clear, points_forbidden, skull_barrier, skull_constraint, with_barrier)
 from bayesreg.fem import element_strain_energy, shape_gradients
 from bayesreg.images import check_image
 from bayesreg.jaxconfig import require_x64
@@ -582,6 +583,7 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
             & info.converged
             & jnp.all(det > 0)
             & ~jnp.any(points_forbidden(post.skull, post.nodes + u))
+            & barrier_clear(post.skull, post.nodes + u)  # the barrier's own wall, if any
             & jnp.isfinite(e_s)
             & jnp.isfinite(e_r)
         )

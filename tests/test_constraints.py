@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.constraints import points_forbidden, skull_distance
+from bayesreg.constraints import barrier_clear, points_forbidden, skull_distance
 from bayesreg.images import Image
 from bayesreg.parameters import ParamLayout
 from bayesreg.posterior import build_posterior, with_skull_barrier
@@ -66,6 +66,40 @@ def test_skull_barrier_matches_its_formula_near_a_planar_wall(small):
     dd = (soft(p + [1e-7, 0, 0]) - soft(p - [1e-7, 0, 0])) / 2e-7
     assert dd == pytest.approx(-1.0, abs=0.02)  # the lateral cubes bend it slightly
     assert float(g[3 * k] - g0[3 * k]) == pytest.approx(2 * (w / d - 1) * w / d**2 * dd, rel=1e-5)
+
+
+def test_the_barriers_own_wall_is_forbidden_where_its_soft_distance_reaches_zero(small):
+    """At a voxel corner 0.02 mm in front of the wall the soft minimum over the four cubes
+    there is ``0.02 - tau log 4 < 0`` while the hard rule allows the point: with the barrier
+    the posterior forbids it (``-inf``, as the skull; clamped, it was a flat plateau near
+    ``-1e12`` that held a chain), without the barrier it is allowed; 0.1 mm in front the
+    barrier follows its formula and the point is clear."""
+    mesh, post, theta = small
+    w = 1.0
+    barred = with_skull_barrier(post, w)
+    k = int(np.argmax(mesh.nodes[mesh.boundary, 0]))
+    x0 = np.asarray(mesh.nodes[mesh.boundary[k]])
+    tau = w / 20.0
+    for dx, clear in ((0.02, False), (0.2, True)):
+        p = np.array([36.5 - dx, np.floor(x0[1]) + 0.5, np.floor(x0[2]) + 0.5])  # a voxel corner
+        t = theta.copy()
+        t[3 * k: 3 * k + 3] = p - x0
+        assert not bool(points_forbidden(barred.skull, jnp.asarray(p[None]))[0])
+        d = float(skull_distance(barred.skull, jnp.asarray(p[None]))[0])
+        assert d == pytest.approx(dx - tau * np.log(4), abs=2e-3)
+        assert bool(barrier_clear(barred.skull, jnp.asarray(p[None]))) is clear
+        assert bool(barrier_clear(post.skull, jnp.asarray(p[None])))  # no barrier: no wall of its own
+        # the mode search's barrier: the wall off, the huge finite values kept
+        off = barred.skull._replace(barrier_wall=jnp.asarray(False))
+        assert bool(barrier_clear(off, jnp.asarray(p[None])))
+        lp0, lp1 = float(log_p(post, t)[0]), float(log_p(barred, t)[0])
+        assert np.isfinite(lp0)
+        if clear:
+            assert lp1 - lp0 == pytest.approx(-(w / d - 1.0) ** 2, rel=1e-9)
+        else:
+            assert lp1 == -np.inf
+            g = np.asarray(jax.grad(lambda th: log_p(barred, th)[0])(jnp.asarray(t)))
+            assert np.all(np.isfinite(g))
 
 
 def test_skull_distance_is_never_positive_where_the_hard_rule_forbids():
