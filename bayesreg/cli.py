@@ -65,7 +65,8 @@ def _parser():
     r.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     r.add_argument("--resume", metavar="RUN_DIR",
                    help="continue the unfinished run in RUN_DIR (same draws as an uninterrupted run)")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (the line per finished stage stays)")
     r.add_argument("--strict", action="store_true",
                    help="exit with status 3 when chains never moved (their draws are their start), "
                         "4 when the stop rule was not met by sampler.max_draws")
@@ -81,7 +82,8 @@ def _parser():
                         "(default: configs/ of the working folder or of the source tree)")
     q.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a value in both configs (repeatable)")
-    q.add_argument("--no-progress", action="store_true", help="no progress bar")
+    q.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (the line per finished stage stays)")
 
     w = sub.add_parser("report", help="tables and figures of finished runs, or a sweep's tables")
     w.add_argument("runs", nargs="+", metavar="[LABEL=]RUN_DIR",

@@ -182,7 +182,9 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         ckpt = Checkpoint(run_dir.path)
     if progress is not None:
         cfg.output.progress = progress
-    stages = Stages(progress=cfg.output.progress)
+    # one line per finished stage, whatever output.progress (the bars) says: a batch log
+    # shows how far a killed run came
+    stages = Stages(progress=True)
     resumable = False  # whether the checkpoint holds a problem and starts to resume from
     try:
         if resume is None and cfg.output.checkpoint:

@@ -578,7 +578,8 @@ class OutputConfig(_Strict):
                       "overrides it)")
     overwrite: bool = Field(False, description="replace an existing run directory that "
                             "bayesreg wrote (the CLI's --overwrite)")
-    progress: bool = Field(True, description="show progress bars (tqdm)")
+    progress: bool = Field(True, description="show progress bars (tqdm); the one line per "
+                           "finished stage (bayesreg: mesh done ...) is printed either way")
     reference: bool = Field(
         True, description="synthetic runs: also register f to m with scikit-image's optical "
         "flow (init.registration, TV-L1 by default) and report it beside the posterior mean, "
