@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["SkullConstraint", "skull_constraint", "with_barrier", "points_forbidden",
-           "skull_distance", "skull_barrier", "barrier_clear", "BARRIER_FLOOR"]
+           "skull_distance", "skull_barrier", "BARRIER_FLOOR"]
 
 
 class SkullConstraint(NamedTuple):
@@ -41,7 +41,7 @@ class SkullConstraint(NamedTuple):
         Width ``w`` (mm) of the barrier, 0 = off.
     barrier_wall : () bool
         Whether points at the barrier's own singularity are forbidden
-        (:func:`barrier_clear`): true for sampling; the mode search turns it off, so that
+        (:func:`skull_barrier`'s ``clear``): true for sampling; the mode search turns it off, so that
         its line search meets the barrier's huge finite values there and steps back.
     """
 
@@ -167,43 +167,14 @@ def skull_distance(skull: SkullConstraint, points):
 
 BARRIER_FLOOR = 1e-6
 """Fraction of the barrier's width below which :func:`skull_barrier` stops following its
-formula and :func:`barrier_clear` forbids (the barrier's own wall)."""
-
-
-def barrier_clear(skull: SkullConstraint, points):
-    """Whether every point is clear of the barrier's own wall: ``d > BARRIER_FLOOR * w``
-    (``d`` = :func:`skull_distance`), or the barrier or its wall
-    (:attr:`SkullConstraint.barrier_wall`) is off.
-
-    ``d`` is a soft minimum, up to ``(w / 20) log 27`` below the true distance, so a point
-    that the hard rule allows can have ``d <= 0``, where the barrier cannot follow its
-    formula (``-> -inf`` as ``d -> 0``).  The posterior forbids such points as it forbids
-    the skull (``log p = -inf``), so the barrier's singularity is the model's wall in front
-    of the hard one (at most ``0.165 w`` in front of it): the log-density has no flat
-    plateau there, which, clamped, held a chain at ``log p = -1e12`` with a zero gradient
-    (a BrainWeb brain, one chain of three).
-
-    Parameters
-    ----------
-    skull : SkullConstraint
-    points : (P, 3) array
-        Deformed node positions, world mm.
-
-    Returns
-    -------
-    () bool array
-    """
-    if skull.barrier_offsets.shape[0] == 0:
-        return jnp.asarray(True)
-    d = skull_distance(skull, points)
-    return jnp.all(d > BARRIER_FLOOR * skull.barrier_width) | ~jnp.asarray(skull.barrier_wall)
+formula and forbids (the barrier's own wall)."""
 
 
 def skull_barrier(skull: SkullConstraint, points):
     """Smooth barrier against the skull: ``-sum (w / d - 1)^2`` over the points with
     ``0 < d < w`` (``d`` = :func:`skull_distance`, ``w = barrier_width``), 0 beyond ``w``,
-    ``-> -inf`` as ``d -> 0``; C1 in the points.  Below ``BARRIER_FLOOR * w`` (where
-    :func:`barrier_clear` forbids, so the posterior never uses it) it is held finite.
+    ``-> -inf`` as ``d -> 0``; C1 in the points; and whether every point is clear of the
+    barrier's own wall, ``d > BARRIER_FLOOR * w``.
 
     An optional change of the model (``model.skull_barrier_mm``; 0 = off, the paper's hard
     constraint alone): it bends the log-density down within ``w`` of the skull so that
@@ -213,6 +184,14 @@ def skull_barrier(skull: SkullConstraint, points):
     distance would read clearance at the corners of the voxel staircase where the rule
     already forbids).
 
+    ``d`` is a soft minimum, up to ``(w / 20) log 27`` below the true distance, so a point
+    that the hard rule allows can have ``d <= 0``, where the barrier cannot follow its
+    formula.  The posterior forbids points that are not clear as it forbids the skull
+    (``log p = -inf``), so the barrier's singularity is the model's wall in front of the
+    hard one (at most ``0.165 w`` in front of it): the log-density has no flat plateau
+    there, which, clamped, held a chain at ``log p = -1e12`` with a zero gradient (a
+    BrainWeb brain, one chain of three).  Below the floor the value is held finite.
+
     Parameters
     ----------
     skull : SkullConstraint
@@ -221,12 +200,17 @@ def skull_barrier(skull: SkullConstraint, points):
 
     Returns
     -------
-    () array
+    barrier : () array
+    clear : () bool array
+        True also where the barrier or its wall (:attr:`SkullConstraint.barrier_wall`) is
+        off.
     """
     w = skull.barrier_width
     if skull.barrier_offsets.shape[0] == 0:
-        return jnp.zeros(())
+        return jnp.zeros(()), jnp.asarray(True)
     d = skull_distance(skull, points)
     near = d < w
-    d_safe = jnp.where(near, jnp.maximum(d, BARRIER_FLOOR * jnp.maximum(w, 1e-12)), 1.0)
-    return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0))
+    floor = BARRIER_FLOOR * jnp.maximum(w, 1e-12)
+    d_safe = jnp.where(near, jnp.maximum(d, floor), 1.0)
+    clear = jnp.all(d > floor) | ~jnp.asarray(skull.barrier_wall)
+    return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0)), clear

@@ -74,7 +74,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     wall alone the line search stalls as soon as the gradient points into the skull, while
     the barrier's maximum is strictly feasible and within the barrier of the constrained
     one; the chains sample the model as given.  The barrier's own wall
-    (:func:`bayesreg.constraints.barrier_clear`) is off in the search: there the barrier's
+    (:func:`bayesreg.constraints.skull_barrier`) is off in the search: there the barrier's
     huge finite values shorten the step, where ``-inf`` would stop the search.  With
     ``exact`` the search runs without the normaliser (it depends on the parameters only,
     and its gradient costs about eight dense factorisations), then the parameters alone are

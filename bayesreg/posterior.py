@@ -14,7 +14,7 @@ not converge also gives ``-inf`` (the proposal is rejected) and is flagged in :c
 so that the driver counts and reports it: it is never silently accepted.  An optional
 smooth barrier (``barrier_mm`` of :func:`build_posterior`) bends the log-density down near
 the skull for gradient kernels; the hard constraint stays, and a node at the barrier's own
-singularity (:func:`bayesreg.constraints.barrier_clear`) is forbidden too.
+singularity (:func:`bayesreg.constraints.skull_barrier`) is forbidden too.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
 node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.  The exact
@@ -34,7 +34,7 @@ import numpy as np
 
 from bayesreg._checks import check_last_axis, check_shape
 from bayesreg.constraints import (
-    SkullConstraint, barrier_clear, points_forbidden, skull_barrier, skull_constraint, with_barrier)
+    SkullConstraint, points_forbidden, skull_barrier, skull_constraint, with_barrier)
 from bayesreg.fem import element_strain_energy, shape_gradients
 from bayesreg.images import check_image
 from bayesreg.jaxconfig import require_x64
@@ -578,16 +578,16 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
         det = jnp.einsum(
             "mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]
         )
+        barrier, clear = skull_barrier(post.skull, post.nodes + u)  # clear: of its own wall
         ok = (
             in_support
             & info.converged
             & jnp.all(det > 0)
             & ~jnp.any(points_forbidden(post.skull, post.nodes + u))
-            & barrier_clear(post.skull, post.nodes + u)  # the barrier's own wall, if any
+            & clear
             & jnp.isfinite(e_s)
             & jnp.isfinite(e_r)
         )
-        barrier = skull_barrier(post.skull, post.nodes + u)
     logp = (similarity_log_likelihood(post, e_s) - e_r * post.inv_t_r + log_prior + barrier
             + rigid_log_prior(post, u_b))
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.constraints import barrier_clear, points_forbidden, skull_distance
+from bayesreg.constraints import points_forbidden, skull_barrier, skull_distance
 from bayesreg.images import Image
 from bayesreg.parameters import ParamLayout
 from bayesreg.posterior import build_posterior, with_skull_barrier
@@ -87,11 +87,11 @@ def test_the_barriers_own_wall_is_forbidden_where_its_soft_distance_reaches_zero
         assert not bool(points_forbidden(barred.skull, jnp.asarray(p[None]))[0])
         d = float(skull_distance(barred.skull, jnp.asarray(p[None]))[0])
         assert d == pytest.approx(dx - tau * np.log(4), abs=2e-3)
-        assert bool(barrier_clear(barred.skull, jnp.asarray(p[None]))) is clear
-        assert bool(barrier_clear(post.skull, jnp.asarray(p[None])))  # no barrier: no wall of its own
+        assert bool(skull_barrier(barred.skull, jnp.asarray(p[None]))[1]) is clear
+        assert bool(skull_barrier(post.skull, jnp.asarray(p[None]))[1])  # no barrier: no wall of its own
         # the mode search's barrier: the wall off, the huge finite values kept
         off = barred.skull._replace(barrier_wall=jnp.asarray(False))
-        assert bool(barrier_clear(off, jnp.asarray(p[None])))
+        assert bool(skull_barrier(off, jnp.asarray(p[None]))[1])
         lp0, lp1 = float(log_p(post, t)[0]), float(log_p(barred, t)[0])
         assert np.isfinite(lp0)
         if clear:
