@@ -171,17 +171,17 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
     out = np.empty((len(indices), n, 3))
     cache: dict[bytes, tuple] = {}
     for k, s in enumerate(np.asarray(indices)):
-        key = np.concatenate([rp.lam[s], rp.mu[s]]).tobytes()
-        if key not in cache and len(di):
-            if len(cache) > 8:
-                cache.clear()
-            kk = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, rp.lam[s][rp.group],
-                                                rp.mu[s][rp.group]))
-            cache[key] = (spla.splu(sp.csc_matrix(kk[di][:, di])), kk[di][:, db])
-        lu, k_ib = cache.get(key, (None, None))
         full = np.empty(3 * n)
         full[db] = rp.u_b[s].ravel()
         if len(di):  # (none where every node is sampled: model.interior: sample)
+            key = np.concatenate([rp.lam[s], rp.mu[s]]).tobytes()
+            if key not in cache:
+                if len(cache) > 8:
+                    cache.clear()
+                kk = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, rp.lam[s][rp.group],
+                                                    rp.mu[s][rp.group]))
+                cache[key] = (spla.splu(sp.csc_matrix(kk[di][:, di])), kk[di][:, db])
+            lu, k_ib = cache[key]
             full[di] = lu.solve(-(k_ib @ full[db]))
         out[k] = full.reshape(n, 3)
     return out

@@ -315,14 +315,14 @@ def format_report(errors: dict | None, info: dict) -> str:
                      f"divergences {s['divergences']}  prior normaliser {s['prior_normaliser']}")
     if errors and "boundary_posterior_mean_mm" in errors:
         lines.append("error vs truth (mm)           median    95th     max")
-        for key, label in (("boundary_initial_mm", "boundary, initial"),
-                           ("boundary_posterior_mean_mm", "boundary, posterior mean"),
-                           ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")):
-            e = errors[key]
-            lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
+        rows = [("boundary_initial_mm", "boundary, initial"),
+                ("boundary_posterior_mean_mm", "boundary, posterior mean"),
+                ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")]
         if "boundary_reference_mm" in errors:
-            e = errors["boundary_reference_mm"]
-            label = f"boundary, {errors.get('reference', 'reference').rsplit('_', 1)[-1]}"
+            rows.append(("boundary_reference_mm",
+                         f"boundary, {errors.get('reference', 'reference').rsplit('_', 1)[-1]}"))
+        for key, label in rows:
+            e = errors[key]
             lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
         lines.append(f"  MSE all nodes {_f(errors['mse_all_nodes_mm2'], '.4f')} mm^2")
         brain = errors.get("brain")
