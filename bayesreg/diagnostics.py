@@ -136,7 +136,7 @@ def _beta_moments(a, b, r1, r2, fn):
     return m, d.expect(lambda x: (fn(r1 + (r2 - r1) * x) - m) ** 2)
 
 
-def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
+def contraction(layout, priors, phi, *, groups: int = 16, phi_true=None) -> dict:
     """How far the images moved each elastic parameter and ratio from its prior.
 
     ``contraction = 1 - posterior variance / prior variance`` on the scale the sampler moves
@@ -156,6 +156,11 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
         Draws of the free parameters (natural scale).
     groups : int
         Ratios of at most this many groups.
+    phi_true : (n_free,) array_like, optional
+        The free parameters' truths (a synthetic case made by the model): each free
+        parameter's entry then also says whether its truth lies in that outer 1%
+        (``truth_at_prior_edge``), where a posterior on the edge is the prior's support,
+        not a misfit.
 
     Returns
     -------
@@ -170,7 +175,7 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
     Raises
     ------
     ValueError
-        ``phi`` not ``(C, D, n_free)``.
+        ``phi`` not ``(C, D, n_free)``, or ``phi_true`` not ``(n_free,)``.
     """
     from scipy.special import polygamma
 
@@ -180,6 +185,13 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
         raise ValueError(f"phi must be (C, D, {len(layout.free)}), got {phi.shape}")
     lo = np.maximum(r1, 0.0)
     flat = phi.reshape(-1, phi.shape[-1])
+    if phi_true is not None:
+        phi_true = np.asarray(phi_true, np.float64)
+        if phi_true.shape != (len(layout.free),):
+            raise ValueError(f"phi_true must be ({len(layout.free)},), got {phi_true.shape}")
+
+    def on_edge(x):  # positions in the support, [0, 1]
+        return bool(x < EDGE or x > 1.0 - EDGE)
 
     def entry(scale, prior_var, post_var):
         c = 1.0 - post_var / prior_var if prior_var > 0 else float("nan")
@@ -192,8 +204,9 @@ def contraction(layout, priors, phi, *, groups: int = 16) -> dict:
         x = np.clip((flat[:, k] - lo[k]) / (r2[k] - lo[k]), 1e-300, 1.0 - 1e-16)
         out[name] = entry("logit", float(polygamma(1, a[k]) + polygamma(1, b[k])),
                           float(np.var(np.log(x) - np.log1p(-x))))
-        mid = float(np.median(x))
-        out[name]["at_prior_edge"] = bool(mid < EDGE or mid > 1.0 - EDGE)
+        out[name]["at_prior_edge"] = on_edge(float(np.median(x)))
+        if phi_true is not None:
+            out[name]["truth_at_prior_edge"] = on_edge((phi_true[k] - lo[k]) / (r2[k] - lo[k]))
     for g, gname in enumerate(layout.group_names[:groups]):
         prior_var, log_ratio = 0.0, 0.0
         for sign, p in ((1.0, "lam"), (-1.0, "mu")):
@@ -214,7 +227,8 @@ EBFMI_MIN = 0.3
 
 
 def sampler_health(divergences, *, steps_per_draw: int = 1, tree_depth=None,
-                   max_tree_depth: int | None = None, energy=None) -> dict:
+                   max_tree_depth: int | None = None, energy=None,
+                   skull_barrier_mm: float = 0.0) -> dict:
     """Per-chain checks of a gradient kernel's draws, as Stan reports them after sampling.
 
     A divergent transition (an energy error above the kernel's threshold, or a trajectory
@@ -240,6 +254,10 @@ def sampler_health(divergences, *, steps_per_draw: int = 1, tree_depth=None,
     energy : (C, D) array_like, optional
         The Hamiltonian at each recorded draw; E-BFMI is skipped if it is absent or not
         finite.
+    skull_barrier_mm : float
+        The run's ``model.skull_barrier_mm``: the divergence line suggests the barrier only
+        where it is off (0); with it on, divergences come from nodes pressed against the
+        skull, and the line says to check for them.
 
     Returns
     -------
@@ -275,10 +293,11 @@ def sampler_health(divergences, *, steps_per_draw: int = 1, tree_depth=None,
 
     if div.sum() > 0:
         worst = int(np.argmax(frac))
+        advice = ("a smooth skull barrier: model.skull_barrier_mm" if not skull_barrier_mm > 0
+                  else "with the skull barrier on: nodes pressed against the skull")
         warn.append(f"{int(div.sum())} divergent transitions ({chains(frac > 0)}; up to "
                     f"{frac[worst]:.1%} in chain {worst}): the chains under-visit a region, means "
-                    "may be biased (a larger sampler.target_acceptance, a smooth skull barrier: "
-                    "model.skull_barrier_mm)")
+                    f"may be biased (a larger sampler.target_acceptance; {advice})")
     if tree_depth is not None:
         depth = np.asarray(tree_depth)
         if depth.shape != div.shape:

@@ -345,11 +345,16 @@ def format_report(errors: dict | None, info: dict) -> str:
             flag = "" if c is None or r.get("identified") else "  not identified by the images"
             lines.append(f"  {name:<14} {_f(mid, '9.4g')} {_f(r['q05'], '9.4g')} {_f(r['q95'], '9.4g')} "
                          f"{tr} {_f(c, '12.2f') if c is not None else '           -'}{flag}")
-    edge = [k for k, v in (info.get("identification") or {}).items() if v.get("at_prior_edge")]
+    ident = info.get("identification") or {}
+    edge = [k for k, v in ident.items() if v.get("at_prior_edge") and not v.get("truth_at_prior_edge")]
     if edge:
         lines.append(f"on the prior's edge: {', '.join(edge)} (posterior median in the outer 1% of "
                      "the prior's support: a misfit the model cannot make, paid with the "
                      "parameters?)")
+    edge = [k for k, v in ident.items() if v.get("at_prior_edge") and v.get("truth_at_prior_edge")]
+    if edge:
+        lines.append(f"on the prior's edge with their truths: {', '.join(edge)} (posterior median "
+                     "and truth in the outer 1% of the prior's support)")
     lines.extend(f"sampler check: {w}" for w in (s.get("health") or {}).get("warnings", []))
     lines.append(verdict(s))
     return "\n".join(lines)
@@ -562,7 +567,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     del thinned
     if errors is not None and reference is not None:
         errors["reference"] = f"skimage.registration.optical_flow_{cfg.init.registration}"
-    identification = (contraction(layout, post.prior, pos[..., 3 * nb:]) if post.n_free else {})
+    identification = (contraction(layout, post.prior, pos[..., 3 * nb:], phi_true=problem.phi_true)
+                      if post.n_free else {})
     for name, r in (errors or {}).get("ratio", {}).items():
         if f"ratio_{name}" in identification:
             r["contraction"] = identification[f"ratio_{name}"]["contraction"]
@@ -636,7 +642,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         info["sampler"]["health"] = sampler_health(
             result.divergences, steps_per_draw=s_info.thinning,
             tree_depth=result.tree_depth if s_info.kind == "nuts" else None,
-            max_tree_depth=cfg.sampler.max_tree_depth, energy=result.energy)
+            max_tree_depth=cfg.sampler.max_tree_depth, energy=result.energy,
+            skull_barrier_mm=cfg.model.skull_barrier_mm)
     info["sampler"]["verdict"] = verdict(info["sampler"])
     write_text_atomic(run_dir.file("errors.json"), dumps_json(errors, indent=2))
     write_text_atomic(run_dir.file("run.json"), dumps_json(info, indent=2))

@@ -201,6 +201,13 @@ def test_contraction_is_zero_for_prior_draws_and_near_one_for_a_narrow_posterior
     flags = {k: e["at_prior_edge"] for k, e in contraction(layout, priors, edge).items()
              if "at_prior_edge" in e}
     assert flags == {"lam_csf": True, "mu_csf": False, "lam_gm": True}
+    # with the truths: lam_csf's (0.5 of 100) is on the edge too, lam_gm's (30 of 50) is not
+    known = contraction(layout, priors, edge, phi_true=[0.5, 5.0, 30.0])
+    assert {k: e["truth_at_prior_edge"] for k, e in known.items() if "at_prior_edge" in e} == \
+        {"lam_csf": True, "mu_csf": False, "lam_gm": False}
+    assert "truth_at_prior_edge" not in contraction(layout, priors, edge)["lam_csf"]
+    with pytest.raises(ValueError, match="phi_true"):
+        contraction(layout, priors, edge, phi_true=[1.0, 2.0])
 
 
 def test_sampler_health_counts_divergences_tree_depth_and_e_bfmi_per_chain():
@@ -225,6 +232,9 @@ def test_sampler_health_counts_divergences_tree_depth_and_e_bfmi_per_chain():
     warn = h["warnings"]
     assert len(warn) == 3
     assert warn[0].startswith("120 divergent transitions (chains 1, 2; up to 12.5% in chain 1)")
+    assert "model.skull_barrier_mm" in warn[0]  # the barrier is off: suggested
+    barred = sampler_health(div, steps_per_draw=thin, skull_barrier_mm=1.0)["warnings"][0]
+    assert "model.skull_barrier_mm" not in barred and "pressed against the skull" in barred
     assert "maximum tree depth 6 in chain 0 (up to 25.0%" in warn[1]
     assert warn[2].startswith(f"E-BFMI below {EBFMI_MIN} in chain 2")
     # a healthy run: no lines; without tree depth or energy (HMC, MALA) only divergences

@@ -265,7 +265,10 @@ def test_a_library_failure_names_its_stage_and_what_to_change(reference, tmp_pat
 
     monkeypatch.setattr(bayesreg.problem, "brain_shift", potrf)
     assert main(_args(mesh, tmp_path / "run")) == 2
-    err = capsys.readouterr().err.strip()
+    lines = capsys.readouterr().err.strip().splitlines()
+    # The stages finished before the truth print their lines first; the error is the last one.
+    assert [line.split(" done ")[0] for line in lines[:-1]] == ["bayesreg: data", "bayesreg: mesh"]
+    err = lines[-1]
     assert err.startswith("bayesreg: error: truth: a dense factorisation failed (LAPACK: "
                           "Internal potrf return info = [312] for slices [0].)")
     assert "synthetic.shift_mm" in err and "synthetic.truth: smooth" in err

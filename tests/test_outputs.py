@@ -99,3 +99,19 @@ def test_the_printed_summary_gives_medians_and_intervals_and_ends_with_the_verdi
     lines = outputs.format_report({"ratio": ratio}, info).splitlines()
     assert lines[-2] == "sampler check: 12 divergent transitions (chain 1; up to 3.0% in chain 1)"
     assert lines[-1].startswith("verdict: NOT converged")
+    # a posterior on its prior's edge: a question where the truth is not there, a plain
+    # statement where it is (the quickstart's CSF truths, 0.01 of supports 100 and 10)
+    info["identification"] = {
+        "lam_csf": {"at_prior_edge": True, "truth_at_prior_edge": True},
+        "mu_csf": {"at_prior_edge": True, "truth_at_prior_edge": True},
+        "lam_gm": {"at_prior_edge": True, "truth_at_prior_edge": False},
+        "lam_wm": {"at_prior_edge": False, "truth_at_prior_edge": False},
+        "ratio_csf": {"contraction": 0.0}}
+    lines = outputs.format_report({"ratio": ratio}, info).splitlines()
+    assert lines[-4].startswith("on the prior's edge: lam_gm (") and lines[-4].endswith("parameters?)")
+    assert lines[-3] == ("on the prior's edge with their truths: lam_csf, mu_csf (posterior median "
+                         "and truth in the outer 1% of the prior's support)")
+    del info["identification"]["lam_gm"]  # real data: no truths, the question for each
+    info["identification"]["lam_csf"].pop("truth_at_prior_edge")
+    lines = outputs.format_report({"ratio": ratio}, info).splitlines()
+    assert lines[-4].startswith("on the prior's edge: lam_csf (")
