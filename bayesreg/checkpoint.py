@@ -143,6 +143,7 @@ class Checkpoint:
         raw["model"].setdefault("quadrature_level", 0)
         raw["model"].setdefault("moving_dtype", "float64")
         raw.setdefault("synthetic", {}).setdefault("outside", "background")
+        raw.setdefault("sampler", {}).setdefault("joint", False)
         try:
             return Config.model_validate(raw)
         except ValidationError as exc:

@@ -295,7 +295,8 @@ def sampler_health(divergences, *, steps_per_draw: int = 1, tree_depth=None,
         worst = int(np.argmax(frac))
         advice = ("a smooth skull barrier: model.skull_barrier_mm" if not skull_barrier_mm > 0
                   else "with the skull barrier on: nodes pressed against the skull")
-        warn.append(f"{int(div.sum())} divergent transitions ({chains(frac > 0)}; up to "
+        n_div = int(div.sum())
+        warn.append(f"{n_div} divergent transition{'s' if n_div != 1 else ''} ({chains(frac > 0)}; up to "
                     f"{frac[worst]:.1%} in chain {worst}): the chains under-visit a region, means "
                     f"may be biased (a larger sampler.target_acceptance; {advice})")
     if tree_depth is not None:

@@ -42,7 +42,6 @@ Maps on the image grid are the FE interpolation of the nodal values (zero outsid
 
 from __future__ import annotations
 
-import os
 import platform
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -509,9 +508,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
             split.append(gelman_rubin(x.reshape(c, d, -1), split=True))
     summary["rhat_classic"] = np.concatenate(classic)
     summary["rhat_classic_split"] = np.concatenate(split)
-    tmp = run_dir.file("summary.csv.tmp")
-    summary.to_csv(tmp)
-    os.replace(tmp, run_dir.file("summary.csv"))
+    write_text_atomic(run_dir.file("summary.csv"), summary.to_csv())
 
     # displacement maps: on the mesh and on the image grid (FE interpolation)
     # the nodal statistics over chunks of draws: never all (C*D, N, 3) draws at once

@@ -71,9 +71,10 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
                   resume_draws=resume_draws, chain_method=s.chain_method)
     interior0 = jnp.zeros((post.op.n_interior, 3))
     if s.gradient:
+        target = gradient_target(problem, cfg, init.center, init.sigma[0])
         result = sample_gradient(
-            jax.random.key(cfg.seed), gradient_target(problem, cfg, init.center, init.sigma[0]),
-            init.x0, interior0, kind=s.kind, step_size=s.step_size, eta_scale=init.sigma[1],
+            jax.random.key(cfg.seed), target, init.x0, interior0, kind=s.kind, step_size=s.step_size,
+            eta_scale=init.sigma[1] if target.n_free else np.zeros(0),
             dense_mass=s.dense_mass, adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
             collapsed_moves=s.collapsed_moves,
             num_integration_steps=s.hmc_steps, jitter_integration_steps=s.hmc_jitter,

@@ -768,7 +768,8 @@ def sample_gradient(
     per_chunk = chunk_draws * thinning
     n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
     info = SamplerInfo(
-        kind=kind, blocks=(("u_b", "elastic", "collapsed")[:n_blocks]),
+        kind=kind, blocks=(("joint",) if target.log_jacobian is not None
+                           else ("u_b", "elastic", "collapsed")[:n_blocks]),
         # the solves counted: with the cached map the trajectory needs none, and the elastic
         # block makes elastic_moves solves plus one evaluation before them; without it every
         # gradient solves (uncounted) and the count per step varies

@@ -5,7 +5,8 @@ over the solver's tolerance and the prior normaliser; :func:`make_logdensity` do
 config.  :func:`dense_preconditioning` decides whether the chains' CG solves use a dense
 ``K_ii^-1`` per chain (``solver.preconditioner``), :func:`rw_preconditioner` and
 :func:`rw_condensation` build the random walk's cached preconditioner and interior map, and
-:func:`gradient_target` the gradient kernels' :class:`~bayesreg.kernels.target.Target`.
+:func:`gradient_target` the gradient kernels' :class:`~bayesreg.kernels.target.Target` (a
+joint one where :func:`use_joint` says so).
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ import numpy as np
 
 from bayesreg.config import Config
 from bayesreg.kernels.rwmh import Condensation, Preconditioner
-from bayesreg.kernels.target import Target, laplace_likelihood, make_target
+from bayesreg.kernels.target import Target, joint_target, laplace_likelihood, make_target
 from bayesreg.normaliser import add_normaliser
+from bayesreg.parameters import from_unconstrained, to_unconstrained
 from bayesreg.posterior import (
     Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
     prior_precision, split_position)
@@ -28,7 +30,7 @@ from bayesreg.problem import Problem
 
 __all__ = ["logdensity_fn", "make_logdensity", "dense_budget_bytes", "dense_preconditioning",
            "cg_preconditioner", "rw_preconditioner", "rw_condensation", "gradient_target",
-           "DENSE_HOST_BUDGET"]
+           "use_joint", "DENSE_HOST_BUDGET"]
 
 
 def logdensity_fn(post: Posterior, *, exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000,
@@ -147,12 +149,28 @@ def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     ``3 n_b`` entries are used)."""
     post = problem.posterior
     nb3 = 3 * post.n_boundary
-    return make_target(post, center_u=center[:nb3], factor=factor,
+    joint = use_joint(problem, cfg)
+    base = make_target(post, center_u=center[:nb3], factor=factor,
                        exact=cfg.model.prior_normaliser == "exact",
-                       condensed=cfg.sampler.use_condensed, rtol=cfg.solver.rtol,
+                       condensed=cfg.sampler.use_condensed and not joint, rtol=cfg.solver.rtol,
                        maxiter=cfg.solver.maxiter, precondition=dense_preconditioning(problem, cfg),
                        likelihood=_likelihood(problem, center, factor) if cfg.sampler.collapsed_moves
                        else None)
+    if not joint:
+        return base
+    return joint_target(base, center_eta=to_unconstrained(post.prior, jnp.asarray(center[nb3:])),
+                        eta_scale=cfg.sampler.sigma_eta,
+                        log_jacobian=lambda eta: from_unconstrained(post.prior, eta)[1])
+
+
+def use_joint(problem: Problem, cfg: Config) -> bool:
+    """Whether the gradient kernel moves the elastic parameters with ``u_b``
+    (``sampler.joint``; default: under the paper's prior without collapsed moves) rather than
+    by Gibbs random-walk moves; only where the problem has free parameters."""
+    s = cfg.sampler
+    joint = (s.joint if s.joint is not None
+             else cfg.model.prior_normaliser == "paper" and not s.collapsed_moves)
+    return bool(s.gradient and joint and problem.posterior.n_free)
 
 
 def _likelihood(problem: Problem, center, factor):

@@ -15,7 +15,7 @@ truth built once and cached in ``benchmarks/.cache/``) through
 Run from the repository root::
 
     python benchmarks/samplers.py                          # the four kernels, the quickstart's model
-    python benchmarks/samplers.py --kinds nuts --set sampler.elastic_moves=8 --tag moves8
+    python benchmarks/samplers.py --kinds nuts --set sampler.joint=false --set sampler.elastic_moves=24 --tag gibbs
 
 Writes ``samplers-<normaliser>[-tag].json`` and ``.md`` in ``--out`` (default
 ``benchmarks/results/``).  Several minutes per kernel on a 2-core CPU.

@@ -25,10 +25,12 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    that map in the acceptance (exact whatever the approximation); they move parameters
    that ``u_b`` pins down given it but not in the marginal.
 
-The elastic parameters move by a random walk rather than inside the gradient kernel because
-they are few (1-6) and because the exact normaliser's gradient costs about eight dense
-factorisations; the boundary displacements, about a thousand strongly correlated
-coordinates, are where the gradient pays.
+With a joint target (:func:`bayesreg.kernels.target.joint_target`) part 1 moves ``u_b`` and
+the elastic parameters together along one trajectory, through the CG solve with implicit
+differentiation, and parts 2 and 3 are empty (the target has no separate parameters).
+That is the default under the paper's prior: Gibbs alternation mixes slowly where ``u_b``
+pins the parameters down.  Under the exact normaliser the parameters move by the random
+walk, because its gradient costs about eight dense factorisations per leapfrog step.
 
 Warm-up: :mod:`bayesreg.kernels.adaptation`; the driver: :func:`bayesreg.sampler.sample_gradient`.
 """
@@ -324,6 +326,8 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             grads = grads + do.astype(grads.dtype)
         else:
             lp_nat = ustate.logdensity + cache.log_norm
+            if target.log_jacobian is not None:  # a joint target: its w holds the logits
+                lp_nat = lp_nat - target.log_jacobian(w)
         state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)
         info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth,
                          energy)

@@ -22,7 +22,7 @@ from bayesreg.posterior import (
     Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
     prior_precision)
 
-__all__ = ["Cache", "Target", "make_target", "laplace_likelihood"]
+__all__ = ["Cache", "Target", "make_target", "joint_target", "laplace_likelihood"]
 
 
 class Cache(NamedTuple):
@@ -85,6 +85,10 @@ class Target(NamedTuple):
         ``eta -> (mean (3 n_b,), chol (3 n_b, 3 n_b))``: a Gaussian approximation
         ``N(mean, (chol chol^T)^-1)`` of ``u_b`` given the parameters (targets made with
         ``likelihood``), what the kernel's collapsed moves transport ``u_b`` with.
+    log_jacobian : callable or None
+        A joint target's (:func:`joint_target`: ``w`` holds the elastic coordinates too, and
+        ``n_free`` is 0): ``w -> ()``, the log-Jacobian inside ``u_logdensity`` that the
+        natural log-density lacks.  ``None`` for a target of ``u_b`` alone.
     """
 
     u_logdensity: Callable
@@ -99,6 +103,7 @@ class Target(NamedTuple):
     condensed: bool = False
     preconditioner: str = "block-jacobi"
     conditional: Callable | None = None
+    log_jacobian: Callable | None = None
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
@@ -200,6 +205,83 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
     return Target(u_logdensity, u_evaluate, evaluate, log_norm, build_cache, theta_of, coordinates,
                   int(post.n_free), build_precond if precondition else None, bool(condensed), name,
                   conditional)
+
+
+def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian) -> Target:
+    """The target of one gradient kernel over ``u_b`` and the elastic parameters together.
+
+    The coordinates are ``z = [w, v]``: ``w`` those of ``base`` (``u_b = c + F w``) and
+    ``v`` the free parameters' logits, ``eta = center_eta + eta_scale * v``.  The log-density
+    is ``base.evaluate``'s over ``(w, eta)`` (with the log-Jacobian of ``eta``, and the
+    exact normaliser where ``base`` has one), from the CG solve of the interior with
+    implicit differentiation (:mod:`bayesreg.solver`), so ``jax.grad`` moves ``u_b`` and
+    the parameters along one trajectory: no Gibbs alternation between the parameters and
+    the ``u_b`` that pins them down.  The returned target has ``n_free = 0`` (the Gibbs
+    kernel then makes no elastic moves) and a :attr:`Target.log_jacobian`.  Its CG
+    preconditioner (``base``'s dense one, if any) is built at ``center_eta`` whatever the
+    chain's parameters: it only has to stay near ``K_ii^-1``, and the tolerance is the same.
+
+    Parameters
+    ----------
+    base : Target
+        :func:`make_target`'s target, with ``n_free > 0``.
+    center_eta : (n_free,) array
+        Unconstrained parameters at ``v = 0`` (the starts' centre).
+    eta_scale : float or (n_free,) array
+        Scale of ``v`` (logit units per unit of ``v``): the mass matrix's adaptation in
+        the warm-up sees ``v`` at about the scale of ``w``.
+    log_jacobian : callable
+        ``eta -> ()``: the log-Jacobian that ``base.evaluate``'s first value adds to its
+        natural log-density (:func:`bayesreg.parameters.from_unconstrained`'s for a
+        posterior's target).
+
+    Returns
+    -------
+    Target
+
+    Raises
+    ------
+    ValueError
+        ``base`` without free parameters, or ``center_eta`` of another length.
+    """
+    n = int(base.n_free)
+    if n == 0:
+        raise ValueError("a joint target needs free elastic parameters")
+    eta_c = jnp.asarray(center_eta, jnp.float64)
+    if eta_c.shape != (n,):
+        raise ValueError(f"center_eta must have shape ({n},), got {eta_c.shape}")
+    scale = jnp.broadcast_to(jnp.asarray(eta_scale, jnp.float64), (n,))
+    empty = jnp.zeros((0,))
+
+    def split(z):
+        return z[:-n], eta_c + scale * z[-n:]
+
+    def evaluate(z, _eta, interior, _log_norm=None, precond=None):
+        w, eta = split(z)
+        if base.build_precond is None:
+            return base.evaluate(w, eta, interior, base.log_norm(eta))
+        return base.evaluate(w, eta, interior, base.log_norm(eta), precond)
+
+    def u_evaluate(z, _eta, cache, interior):
+        lz, _, interior, its, ok = evaluate(z, _eta, interior, None, cache.precond)
+        return lz, interior, its, ok
+
+    def coordinates(theta):
+        w, eta = base.coordinates(theta)
+        return jnp.concatenate([w, (eta - eta_c) / scale]), empty
+
+    build_precond = None
+    if base.build_precond is not None:
+        def build_precond(_eta):
+            return base.build_precond(eta_c)
+
+    return Target(
+        u_logdensity=lambda z, e, cache, interior: u_evaluate(z, e, cache, interior)[0],
+        u_evaluate=u_evaluate, evaluate=evaluate, log_norm=lambda _eta: jnp.zeros(()),
+        build_cache=lambda _eta, _ln: Cache(jnp.zeros((0,)), jnp.zeros(())),
+        position=lambda z, _eta: base.position(*split(z)), coordinates=coordinates, n_free=0,
+        build_precond=build_precond, condensed=False, preconditioner=base.preconditioner,
+        log_jacobian=lambda z: log_jacobian(split(z)[1]))
 
 
 def laplace_likelihood(post: Posterior, theta0, a_lik):
