@@ -74,8 +74,9 @@ def test_joint_target_moves_the_parameters_with_u_b_and_stores_the_natural_densi
     kernel = gk.build_kernel(tg, "nuts", max_num_doublings=4)
     state, _ = gk.init(tg, jnp.asarray(theta), zeros)
     params = gk.GibbsParams(jnp.asarray(0.05), jnp.ones(len(z)), jnp.zeros((0, 0)))
+    step, init_cache = jax.jit(kernel.step), jax.jit(kernel.init_cache)
     for k in range(3):
-        state, info, cache = kernel.step(jax.random.key(k), state, params, kernel.init_cache(state))
+        state, info, cache = step(jax.random.key(k), state, params, init_cache(state))
     assert bool(info.is_accepted[0]) and info.acceptance_rate.shape == (1,)
     assert not np.allclose(np.asarray(state.position[nb3:]), theta[nb3:])  # the parameters moved
     lp_new, _ = log_density(post, state.position, state.interior, rtol=1e-12)
