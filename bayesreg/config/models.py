@@ -500,7 +500,7 @@ class SamplerConfig(_Strict):
         "logits) together in one trajectory, through the interior solve with implicit "
         "differentiation; false: Gibbs, the trajectory moves u_b and elastic_moves random-walk "
         "moves the parameters.  Default: true under model.prior_normaliser paper (on the "
-        "quickstart 2x the effective draws per second of sampling), false under exact (its "
+        "quickstart 2.4-3x the effective draws per second of sampling), false under exact (its "
         "gradient costs about eight dense factorisations per leapfrog step)")
     elastic_moves: Int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
                                "elastic parameters per transition (cheap next to a trajectory)")
