@@ -146,7 +146,8 @@ def rw_condensation(problem: Problem, cfg: Config) -> Condensation:
 def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     """The gradient kernels' target of ``problem`` in the coordinates ``u_b = center + factor w``
     (:func:`bayesreg.kernels.target.make_target`; ``center`` ``(dim,)``, of which the first
-    ``3 n_b`` entries are used)."""
+    ``3 n_b`` entries are used), wrapped by :func:`bayesreg.kernels.target.joint_target`
+    (the parameters' logits centred on ``center``'s) where :func:`use_joint` says so."""
     post = problem.posterior
     nb3 = 3 * post.n_boundary
     joint = use_joint(problem, cfg)

@@ -203,6 +203,15 @@ def test_draw_counts_are_consistent():
     assert cfg.sampler.min_draws == cfg.sampler.chunk_draws == cfg.sampler.max_draws == 1000
 
 
+def test_joint_trajectories_need_a_gradient_kernel_and_exclude_collapsed_moves():
+    """``sampler.joint`` is left unset (the pipeline decides by the prior normaliser) and
+    refused with the random walk or beside collapsed moves."""
+    assert load_config("configs/quickstart.yaml").sampler.joint is None
+    assert "sampler.joint needs a gradient kernel" in _error(["sampler.kind=rwmh", "sampler.joint=true"])
+    assert "sampler.collapsed_moves needs sampler.joint: false" in _error(
+        ["sampler.joint=true", "sampler.collapsed_moves=1"])
+
+
 def test_booleans_are_not_numbers():
     """YAML reads yes/no/true/false as booleans: an integer or float key refuses them."""
     assert "sampler.chains: Input should be a valid integer" in _error(["sampler.chains=true"])

@@ -519,6 +519,9 @@ class SamplerConfig(_Strict):
         if self.collapsed_moves and not (self.gradient and self.proposal == "laplace"):
             raise ValueError("sampler.collapsed_moves needs a gradient kernel (mala, hmc, nuts) "
                              "and sampler.proposal laplace")
+        if self.joint and not self.gradient:
+            raise ValueError("sampler.joint needs a gradient kernel (mala, hmc, nuts): rwmh's "
+                             "blocked: false is the paper's joint proposal")
         if self.collapsed_moves and self.joint:
             raise ValueError("sampler.collapsed_moves needs sampler.joint: false (joint "
                              "trajectories already move the parameters with u_b)")
