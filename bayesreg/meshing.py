@@ -15,9 +15,12 @@ gives a different mesh at every call too); a run stores its mesh, and
 
 from __future__ import annotations
 
-import contextlib
+import signal
+import subprocess
+import sys
 import tempfile
 import warnings
+from pathlib import Path
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -29,7 +32,7 @@ from bayesreg.mesh import (
     Mesh, MeshError, boundary_nodes, compact_nodes, label_elements, mesh_quality, orient_tets)
 from bayesreg.warp import interpolation_matrix
 
-__all__ = ["mesh_brain", "mesh_brain_sized", "carve_skull"]
+__all__ = ["mesh_brain", "mesh_brain_sized", "carve_skull", "tetrahedralize"]
 
 
 def _surface(mask: np.ndarray, affine, sigma_vox: float, step_size: int, sigma_mm: float = 0.0):
@@ -53,6 +56,75 @@ def _surface(mask: np.ndarray, affine, sigma_vox: float, step_size: int, sigma_m
     if vol < 0:
         faces = faces[:, ::-1].copy()
     return world, faces
+
+
+def tetrahedralize(verts, faces, *, edge_length_mm: float, epsilon: float = 2e-2,
+                   num_threads: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild (``pytetwild.tetrahedralize``) of a closed surface, in a child process.
+
+    fTetWild's native library replaces the process's signal handlers: in the calling
+    process, Ctrl-C during the call would end it outright, and after the call it would no
+    longer raise ``KeyboardInterrupt`` (the run could not say what it kept, nor put back a
+    run that ``--overwrite`` replaced).  The child (``bayesreg/_tetwild_worker.py``, a
+    fresh interpreter that imports only NumPy and pytetwild: about half a second) keeps the
+    caller's signal handling intact and turns a crash of the mesher into an error.  Ctrl-C
+    in a terminal reaches both processes; an interrupt of the caller alone (a notebook's)
+    ends the child too; either way ``KeyboardInterrupt`` is raised here.
+
+    Parameters
+    ----------
+    verts : (V, 3) array
+        Surface vertices, world mm.
+    faces : (F, 3) int array
+        Triangles, oriented outward.
+    edge_length_mm : float
+        Target edge length (fTetWild's ``edge_length_abs``), mm.
+    epsilon : float
+        Envelope size relative to the bounding-box diagonal.
+    num_threads : int
+        fTetWild's threads (0: all).
+
+    Returns
+    -------
+    nodes : (N, 3) float64 array
+        World mm.
+    tets : (M, 4) int64 array
+
+    Raises
+    ------
+    MeshError
+        fTetWild failed or crashed (its last lines of output, or the signal, in the message).
+    KeyboardInterrupt
+        The meshing was interrupted (Ctrl-C, SIGTERM under the CLI).
+    """
+    worker = Path(__file__).with_name("_tetwild_worker.py")
+    # fTetWild writes a scratch file (__tracked_surface.stl) into its working folder
+    with tempfile.TemporaryDirectory(prefix="bayesreg-tetwild-") as scratch:
+        src, dst = Path(scratch) / "surface.npz", Path(scratch) / "mesh.npz"
+        np.savez(src, verts=np.asarray(verts, np.float64), faces=np.asarray(faces, np.int32),
+                 edge_length_abs=float(edge_length_mm), epsilon=float(epsilon),
+                 num_threads=int(num_threads))
+        with open(Path(scratch) / "log.txt", "w+b") as log:
+            proc = subprocess.Popen([sys.executable, str(worker), str(src), str(dst)], cwd=scratch,
+                                    stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
+            try:
+                status = proc.wait()
+            except BaseException:  # KeyboardInterrupt (the caller's alone: a notebook's)
+                proc.kill()
+                proc.wait()
+                raise
+            if status in (-signal.SIGINT, 128 + signal.SIGINT):
+                # Ctrl-C reached the mesher (its handler exits with 130) before this process
+                # raised its own KeyboardInterrupt
+                raise KeyboardInterrupt("meshing interrupted")
+            if status != 0 or not dst.is_file():
+                log.seek(0)
+                lines = log.read().decode(errors="replace").strip().splitlines()
+                why = (f"killed by signal {-status}" if status < 0 else f"exit status {status}")
+                tail = "; ".join(lines[-3:]) if lines else "no output"
+                raise MeshError(f"fTetWild failed ({why}): {tail}")
+        with np.load(dst) as out:
+            return out["nodes"], out["tets"]
 
 
 _UNSET = object()
@@ -117,8 +189,6 @@ def mesh_brain(
         coarsen), meshing fails, returns too few elements, or any element is
         inverted/degenerate.
     """
-    import pytetwild
-
     _check_mesh_args(edge_length_mm, smoothing_sigma_mm, epsilon, step_size)
     labels = check_image(labels, "labels")
     data = np.asarray(labels.data)
@@ -134,19 +204,8 @@ def mesh_brain(
             f"intracranial surface ({extent.max():.0f} mm; its box is "
             f"{' x '.join(f'{e:.0f}' for e in extent)} mm): no element can be that long, and "
             "fTetWild spends minutes trying; use a smaller edge length")
-    try:
-        # fTetWild writes a scratch file (__tracked_surface.stl) into the working folder
-        with tempfile.TemporaryDirectory() as scratch, contextlib.chdir(scratch):
-            nodes, tets = pytetwild.tetrahedralize(
-                verts,
-                faces,
-                edge_length_abs=float(edge_length_mm),
-                epsilon=float(epsilon),
-                num_threads=num_threads,
-            )
-    except Exception as exc:  # pragma: no cover - mesher internals
-        raise MeshError(f"fTetWild failed: {exc}") from exc
-    tets = np.asarray(tets, dtype=np.int64)
+    nodes, tets = tetrahedralize(verts, faces, edge_length_mm=float(edge_length_mm),
+                                 epsilon=float(epsilon), num_threads=num_threads)
     if len(tets) < 4:
         raise MeshError(f"fTetWild returned {len(tets)} elements; check the label map and size")
     nodes, tets = compact_nodes(nodes, tets)

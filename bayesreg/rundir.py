@@ -80,6 +80,30 @@ def _unlock(path: Path, fd) -> None:
     os.close(fd)
 
 
+def replaced_leftovers(path) -> list[Path]:
+    """The hidden siblings ``.NAME.replaced-PID-XXXXXXXX`` of the run directory ``path`` that
+    an ``--overwrite`` moved aside and that its process, killed outright, never put back or
+    deleted (sorted; none while that process still runs and holds the directory's lock)."""
+    path = Path(path)
+    prefix = f".{path.name}.replaced-"
+    if not path.parent.is_dir():
+        return []
+    return sorted(p for p in path.parent.iterdir() if p.name.startswith(prefix) and p.is_dir())
+
+
+def leftover_note(path, leftovers) -> str:
+    """What to do with :func:`replaced_leftovers` of ``path``: one sentence naming each."""
+    path = Path(path)
+    where = ", ".join(str(p) for p in leftovers)
+    one = len(leftovers) == 1
+    back = (f"`rm -r {path} && mv {leftovers[0]} {path}` (this discards what is in {path} now)"
+            if one else f"`mv` the one to keep to {path} after removing what is there")
+    return (f"the run that an interrupted --overwrite replaced {'waits' if one else 'wait'} in "
+            f"{where} (its process was killed before it could put it back); put "
+            f"{'it' if one else 'one'} back with {back}, or delete "
+            f"{'it' if one else 'them'}: bayesreg never deletes {'it' if one else 'them'}")
+
+
 class RunDirectory:
     """A run directory, written in place while the run goes and never overwritten silently.
 
@@ -120,19 +144,20 @@ class RunDirectory:
     FileExistsError
         If ``path`` exists, is not empty and neither ``overwrite`` nor ``resume`` is set;
         with ``overwrite``, if it holds none of ``marks``; with ``resume``, if the run there
-        is already finished.
-
-    Warns
-    -----
-    UserWarning
-        A directory replaced by an earlier ``overwrite`` whose process was killed waits in a
-        hidden sibling (named, with how to put it back).
+        is already finished.  The message names any run an interrupted ``overwrite`` left
+        aside (:func:`replaced_leftovers`) and what to do with it.
     NotADirectoryError
         If ``path`` or one of its parents is a file.
     ValueError
         With ``overwrite``, if one of ``inputs`` lies inside the directory to replace (named).
     FileNotFoundError
         With ``resume``, if ``path`` holds no checkpoint.
+
+    Warns
+    -----
+    UserWarning
+        A directory replaced by an earlier ``overwrite`` whose process was killed waits in a
+        hidden sibling (named, with how to put it back: :func:`leftover_note`).
     """
 
     def __init__(self, path, *, overwrite=False, resume=False,
@@ -146,20 +171,22 @@ class RunDirectory:
                 raise NotADirectoryError(f"run directory {self.path}: {p} is a file")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fd = _lock(self.path)
+        # directories replaced by earlier --overwrite runs whose process was killed (SIGKILL,
+        # a power loss): never deleted here, only reported, in the refusal below too
+        self.leftovers = replaced_leftovers(self.path)
         try:
             self._open(resume, marks, inputs)
+        except FileExistsError as exc:
+            self.release()
+            if not self.leftovers:
+                raise
+            raise FileExistsError(f"{exc}; note: {leftover_note(self.path, self.leftovers)}") from None
         except BaseException:
             self.release()
             raise
-        # directories replaced by earlier --overwrite runs whose process was killed: never
-        # deleted here, only reported
-        self.leftovers = sorted(p for p in self.path.parent.glob(f".{self.path.name}.replaced-*")
-                                if p != self._old)
         for p in self.leftovers:
-            warnings.warn(
-                f"run directory {self.path}: the run that an interrupted --overwrite replaced "
-                f"waits in {p}; put it back with `mv {p} {self.path}` (after moving this one "
-                "aside) or delete it: bayesreg never deletes it", UserWarning, stacklevel=2)
+            warnings.warn(f"run directory {self.path}: {leftover_note(self.path, [p])}",
+                          UserWarning, stacklevel=2)
 
     def _open(self, resume, marks, inputs) -> None:
         self._created = not self.path.exists()

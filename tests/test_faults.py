@@ -9,6 +9,7 @@ across processes.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import signal
@@ -180,10 +181,58 @@ def test_a_killed_overwrite_is_refused_to_others_resumes_and_leaves_the_old_run_
     proc.wait()
     aside = list(tmp_path.glob(".run.replaced-*"))
     assert len(aside) == 1
+    # a new run into the directory is refused, naming the run left aside and what to do
+    assert main(_args(mesh, finished)) == 2
+    err = capsys.readouterr().err
+    assert "continue it with --resume" in err and f"waits in {aside[0]}" in err
+    assert f"mv {aside[0]} {finished}" in err and "never deletes it" in err
     with pytest.warns(UserWarning, match=rf"waits in {aside[0]}"):
         assert main(["run", "--resume", str(finished)]) == 0
     np.testing.assert_array_equal(_draws(finished), _draws(ref))
     _same_run(aside[0], ref)  # the old run, untouched
+
+
+def _stage_line(proc: subprocess.Popen, text: str, timeout: float = 240.0) -> list[str]:
+    """Read ``proc``'s stderr until a line holds ``text``; the lines read."""
+    lines, t = [], time.monotonic()
+    while time.monotonic() - t < timeout:
+        line = proc.stderr.readline()
+        assert line, f"the run ended before {text!r}: {lines}"
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"no {text!r} in {timeout} s: {lines}")
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_a_terminal_after_or_during_meshing_puts_the_finished_run_back(reference, tmp_path):
+    """Ctrl-C as a terminal sends it (SIGINT to the foreground process group) while fTetWild
+    meshes, and again in the warm-up after it meshed: each ends with the one line, exit
+    status 130, and the finished run that ``--overwrite`` was replacing back in place.  (The
+    mesher's native library replaces the process's signal handlers; it runs in a child
+    process so that the run's own stay.)"""
+    root, mesh, ref = reference
+    finished = tmp_path / "run"
+    shutil.copytree(ref, finished)
+    args = ["run", CONFIG, "--out", str(finished), "--overwrite", "--set", "seed=5"]
+    for s in TINY:
+        args += ["--set", s]
+    for stage, after in (("mesh", "bayesreg: data done"), ("warm-up", "bayesreg: starts done")):
+        proc = subprocess.Popen([sys.executable, "-m", "bayesreg.cli", *args], text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                start_new_session=True)
+        lines = _stage_line(proc, after)
+        if stage == "warm-up":
+            assert any("bayesreg: mesh done" in line for line in lines), lines
+            time.sleep(2.0)  # into the warm-up (its compilation alone takes longer)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 130, err
+        assert err.strip().splitlines()[-1] == (
+            f"bayesreg: interrupted during the {stage}: the run that was in {finished} is back "
+            "in place (this run's partial results were discarded)"), err
+        _same_run(finished, ref)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
 
 
 @pytest.mark.slow
