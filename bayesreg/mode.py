@@ -15,13 +15,20 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from bayesreg.posterior import Posterior, with_skull_barrier
+from bayesreg.normaliser import add_normaliser
+from bayesreg.posterior import (
+    Posterior, log_normaliser, normaliser_surrogate, split_position, surrogate_normaliser,
+    with_skull_barrier)
 from bayesreg.targets import logdensity_fn
 
-__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM"]
+__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM", "SURROGATE_ROUNDS"]
 
 MODE_BARRIER_MM = 1.0
 """Width (mm) of the skull barrier that :func:`find_mode` adds to a model without one."""
+
+SURROGATE_ROUNDS = 4
+"""At most this many rounds of the parameters' search with the normaliser's surrogate
+(:func:`find_mode`)."""
 
 
 class ModeSearch(NamedTuple):
@@ -42,7 +49,8 @@ class ModeSearch(NamedTuple):
     search_barrier_mm : float
         Width of the skull barrier of the searched objective, mm.
     parameter_iterations_exact : int or None
-        Iterations of the last stage over the parameters with the exact normaliser.
+        Iterations of the last stage over the parameters with the exact normaliser (all its
+        rounds).
     """
 
     theta: np.ndarray
@@ -76,10 +84,17 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     one; the chains sample the model as given.  The barrier's own wall
     (:func:`bayesreg.constraints.skull_barrier`) is off in the search: there the barrier's
     huge finite values shorten the step, where ``-inf`` would stop the search.  With
-    ``exact`` the search runs without the normaliser (it depends on the parameters only,
-    and its gradient costs about eight dense factorisations), then the parameters alone are
-    optimised with it (at most 100 steps); with every node sampled (no interior,
-    ``model.interior: sample``) it runs with it.
+    ``exact`` the search runs without the normaliser (it depends on the parameters only),
+    then the parameters alone are optimised with it, in rounds: each maximises the posterior
+    with the normaliser's smooth surrogate built where the round starts
+    (:func:`bayesreg.posterior.normaliser_surrogate`: exact there in value, its gradient
+    close; an exact gradient costs a selected inversion per step), at most 100 steps, until a round
+    moves no parameter by more than 0.1% (at most :data:`SURROGATE_ROUNDS`); the mode's
+    ``log p`` is then the exact one.  With every node sampled (no interior,
+    ``model.interior: sample``) the whole search runs with the surrogate built at
+    ``theta0``'s parameters (without any normaliser the whole ``K``'s energy drives the
+    parameters onto their lower edge), then the same rounds.  The per-element model, which
+    has no surrogate, takes the exact normaliser's gradient.
 
     Parameters
     ----------
@@ -115,18 +130,31 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     theta0 = np.asarray(theta0, dtype=np.float64)
     zeros = jnp.zeros((post.op.n_interior, 3))
     # the exact normaliser depends on lam, mu only: u_b (and the parameters) are first
-    # optimised without it (its gradient costs about eight dense factorisations), then the
-    # parameters alone with it (below)
-    # every node sampled (model.interior: sample): no solve to save, and without the
-    # normaliser the whole K's energy drives the parameters onto their lower edge: with it
+    # optimised without it, then the parameters alone with it (below)
+    # every node sampled (model.interior: sample): without the normaliser the whole K's
+    # energy drives the parameters onto their lower edge: with it (its surrogate)
     exact_joint = exact and post.op.n_interior == 0
-    logdensity = logdensity_fn(post, exact=exact_joint, rtol=rtol, maxiter=maxiter)
+    plain = logdensity_fn(post, rtol=rtol, maxiter=maxiter)
+    grouped = post.normaliser.grounded.unit is not None
+
+    def with_normaliser(theta, guess, data=None):
+        """``log p`` with the normaliser: with ``data = (surrogate, on)``, its surrogate where
+        ``on`` (``()`` bool; both traced, so that every stage and round shares one compiled
+        step) and none elsewhere; the exact one where ``data`` is ``None``."""
+        lp, aux = plain(theta, guess)
+        phi = split_position(post, theta)[1]
+        if data is None:
+            return add_normaliser(lp, log_normaliser(post, phi)), aux
+        surrogate, on = data
+        ln = surrogate_normaliser(post, surrogate, phi)
+        return add_normaliser(lp, jnp.where(on, ln, 0.0)), aux
+
     joint = optimize_parameters
     free = slice(0, post.dim if joint else nb3)
 
     steps = {}  # one jitted L-BFGS step (and its solver) per objective, shared by its searches
 
-    def maximise(logdensity, theta, sl, maxiter):
+    def maximise(logdensity, theta, sl, maxiter, data=None):
         """L-BFGS (optax, zoom line search) over ``theta[sl]``, the rest of ``theta`` held.
 
         The rest is held by a mask (``stop_gradient`` outside ``sl``): with zero gradient
@@ -137,14 +165,17 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         A step into a hard constraint (``log p = -inf``) is outside the domain for the line
         search, which shortens it (a line search fed a huge value with a zero gradient
         there, as SciPy's L-BFGS-B's, collapses and reports convergence far from the
-        mode)."""
+        mode).  ``data`` is passed to ``logdensity`` as its third argument (traced: one
+        compilation for every ``data`` of one structure), unless ``None``."""
         if logdensity not in steps:
             solver = optax.lbfgs()
 
             @jax.jit
-            def step(x, state, mask):
+            def step(x, state, mask, data):
                 def neg(y):
-                    return -logdensity(jnp.where(mask, y, jax.lax.stop_gradient(y)), zeros)[0]
+                    y = jnp.where(mask, y, jax.lax.stop_gradient(y))
+                    args = (zeros,) if data is None else (zeros, data)
+                    return -logdensity(y, *args)[0]
 
                 v, g = optax.value_and_grad_from_state(neg)(x, state=state)
                 upd, state = solver.update(g, state, x, value=v, grad=g, value_fn=neg)
@@ -154,7 +185,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         step, solver = steps[logdensity]
         mask = np.zeros(len(theta), bool)
         mask[sl] = True
-        step = partial(step, mask=jnp.asarray(mask))
+        step = partial(step, mask=jnp.asarray(mask), data=data)
 
         x = jnp.asarray(theta)
         state = solver.init(x)
@@ -198,9 +229,9 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     margin = 1e-3
 
     def in_log(logdensity):
-        def f(x, guess):
+        def f(x, guess, *data):
             phi = lo + jnp.exp(x[nb3:])
-            return logdensity(jnp.concatenate([x[:nb3], phi]), guess)
+            return logdensity(jnp.concatenate([x[:nb3], phi]), guess, *data)
         return f
 
     def clip(phi):  # parameters kept the relative margin inside their support
@@ -214,19 +245,34 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
 
     iters = iterations
     x = to_log(theta0)
-    objective = in_log(logdensity)
+    objective, data = in_log(plain), None
+    normalised = in_log(with_normaliser)
+    surrogates = exact and grouped and post.n_free
+    if surrogates:  # one objective for every stage: the surrogate (at theta0's parameters) on or off
+        objective = normalised
+        data = (normaliser_surrogate(post, to_theta(x)[nb3:]), jnp.asarray(exact_joint))
+    elif exact_joint:
+        objective = normalised
     if joint and post.n_free:  # stage 1: u_b alone at theta0's parameters
-        x, start, res1 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1))
-        x, _, res = maximise(objective, x, free, max(iters - iters // 2, 1))
+        x, start, res1 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1), data)
+        x, _, res = maximise(objective, x, free, max(iters - iters // 2, 1), data)
         nit = res1.nit + res.nit
     else:
-        x, start, res = maximise(objective, x, free, iters)
+        x, start, res = maximise(objective, x, free, iters, data)
         nit = res.nit
     logp_mode, exact_its = -float(res.fun), None
-    if joint and exact and post.n_free and not exact_joint:
-        x, _, res_p = maximise(in_log(logdensity_fn(post, exact=True, rtol=rtol, maxiter=maxiter)),
-                               x, slice(nb3, post.dim), 100)
-        logp_mode, exact_its = -float(res_p.fun), int(res_p.nit)
+    if joint and exact and post.n_free:
+        # the parameters alone with the normaliser: rounds of its surrogate built where each
+        # starts (the per-element model: the exact gradient, once)
+        exact_its = 0
+        for _ in range(SURROGATE_ROUNDS if surrogates else 1):
+            before = to_theta(x)[nb3:]
+            data = (normaliser_surrogate(post, before), jnp.asarray(True)) if surrogates else None
+            x, _, res_p = maximise(normalised, x, slice(nb3, post.dim), 100, data)
+            exact_its += int(res_p.nit)
+            if np.max(np.abs(np.log(to_theta(x)[nb3:] / before))) < 1e-3:
+                break
+        logp_mode = float(jax.jit(in_log(with_normaliser))(jnp.asarray(x), zeros)[0])  # exact
     theta = to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])
     return ModeSearch(theta, float(start), logp_mode, int(nit), str(res.message), bool(joint),
                       float(search_barrier), exact_its)

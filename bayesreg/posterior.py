@@ -39,7 +39,9 @@ from bayesreg.fem import element_strain_energy, shape_gradients
 from bayesreg.images import check_image
 from bayesreg.jaxconfig import require_x64
 from bayesreg.mesh import Mesh
-from bayesreg.normaliser import NormaliserData, dense_stiffness, log_pdet_schur, normaliser_data
+from bayesreg.normaliser import (
+    NormaliserData, Surrogate, build_surrogate, dense_stiffness, log_pdet_schur, log_pdet_sparse,
+    normaliser_data, surrogate_log_pdet)
 from bayesreg.parameters import BetaPriors, ParamLayout, beta_priors
 from bayesreg.parameters import log_prior as prior_log_density
 from bayesreg.preconditioners import (
@@ -65,6 +67,9 @@ __all__ = [
     "stiffness_blocks",
     "solve_position",
     "log_normaliser",
+    "log_normaliser_dense",
+    "normaliser_surrogate",
+    "surrogate_normaliser",
     "rigid_log_prior",
     "similarity_log_likelihood",
     "similarity_weight",
@@ -343,7 +348,8 @@ def build_posterior(
         skull=skull,
         inv_t_s=jnp.asarray(1.0 / t_s),
         inv_t_r=jnp.asarray(1.0 / t_r),
-        normaliser=normaliser_data(mesh.nodes, mesh.tets, mesh.boundary, perm),
+        normaliser=normaliser_data(mesh.nodes, mesh.tets, mesh.boundary, perm, op.klam, op.kmu,
+                                   element_group, n_groups, grouped=n_groups <= MAX_GROUPED),
         unit_blocks=group_blocks(op, element_group, n_groups) if n_groups <= MAX_GROUPED else None,
         inv_rigid_var=jnp.asarray(0.0 if rigid_sd is None else 1.0 / (n_b * rigid_sd**2)),
         t_s_shape=jnp.asarray(0.0 if t_s_prior is None
@@ -696,7 +702,8 @@ def _solve_position(post: Posterior, theta, u_i0, *, rtol, maxiter):
 
 def log_normaliser(post: Posterior, phi):
     """``(1/2) log pdet S(lam, mu)``: the exact normaliser of the elastic prior on ``u_b``
-    (:mod:`bayesreg.normaliser`: one dense float64 Cholesky factorisation, differentiable).
+    (:func:`bayesreg.normaliser.log_pdet_sparse`: two sparse Cholesky factorisations,
+    differentiable by selected inversion).
 
     Parameters
     ----------
@@ -707,10 +714,44 @@ def log_normaliser(post: Posterior, phi):
     Returns
     -------
     () array
-        ``NaN`` when the factorisation fails (``K`` not positive definite on the complement
-        of the rigid modes: non-positive parameters).
+        ``NaN`` for parameters the factorisation must not see (non-positive, non-finite, or
+        below :data:`bayesreg.normaliser.SAFE_RATIO` of the largest): such a position is
+        rejected.
     """
+    lam_g, mu_g = elastic_groups(post, phi)
+    return log_pdet_sparse(post.normaliser, post.op.klam, post.op.kmu, lam_g, mu_g, post.group)
+
+
+def log_normaliser_dense(post: Posterior, phi):
+    """:func:`log_normaliser` by the dense reference (one dense Cholesky factorisation of
+    ``K``, ``(3N)^3 / 3`` flops: :func:`bayesreg.normaliser.log_pdet_schur`); NaN where it
+    fails."""
     return log_pdet_schur(_dense_k(post, phi), post.normaliser.rigid_b)
+
+
+def normaliser_surrogate(post: Posterior, phi0) -> Surrogate:
+    """The smooth surrogate of :func:`log_normaliser` built at the free parameters ``phi0``
+    ``(n_free,)`` (:func:`bayesreg.normaliser.build_surrogate`; host code, seconds at the
+    paper's size).
+
+    Raises
+    ------
+    ValueError
+        The per-element model (no surrogate), or ``phi0`` where the normaliser fails.
+    """
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi0)))
+    free = np.asarray(post.free_index)  # into [lam_g, mu_g]
+    bounds = np.tile([0.0, np.inf], (2 * lam_g.shape[0], 1))
+    bounds[free, 0], bounds[free, 1] = np.asarray(post.prior.r1), np.asarray(post.prior.r2)
+    return build_surrogate(post.normaliser, post.op.klam, post.op.kmu, post.group, lam_g, mu_g,
+                           free=[int(i) for i in free], bounds=bounds)
+
+
+def surrogate_normaliser(post: Posterior, surrogate: Surrogate, phi):
+    """The surrogate's value of :func:`log_normaliser` at ``phi`` ``(n_free,)`` (smooth;
+    microseconds)."""
+    lam_g, mu_g = elastic_groups(post, phi)
+    return surrogate_log_pdet(surrogate, lam_g, mu_g)
 
 
 def _dense_k(post: Posterior, phi):

@@ -690,7 +690,7 @@ def sample_gradient(
     ws_init, ws_step, ws_final = gw.build_warmup_step(
         kernel, target_acceptance=target_acceptance, dense_mass=dense_mass, adapt_mass=adapt_mass)
     key_warm, key_samp = jax.random.split(rng_key)
-    n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0)
+    n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
     eta0 = np.asarray(eta_scale, np.float64)  # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
     dim_u = x0.shape[1] - target.n_free  # the preconditioned u_b coordinates w
@@ -768,7 +768,7 @@ def sample_gradient(
     per_chunk = chunk_draws * thinning
     n_warm = int(np.ceil(warmup_steps / per_chunk)) if warmup_steps else 0
     info = SamplerInfo(
-        kind=kind, blocks=(("joint",) if target.log_jacobian is not None
+        kind=kind, blocks=(("joint", "normaliser")[:n_blocks] if target.log_jacobian is not None
                            else ("u_b", "elastic", "collapsed")[:n_blocks]),
         # the solves counted: with the cached map the trajectory needs none, and the elastic
         # block makes elastic_moves solves plus one evaluation before them; without it every

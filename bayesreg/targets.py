@@ -23,8 +23,8 @@ from bayesreg.kernels.target import Target, joint_target, laplace_likelihood, ma
 from bayesreg.normaliser import add_normaliser
 from bayesreg.parameters import from_unconstrained, to_unconstrained
 from bayesreg.posterior import (
-    Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
-    prior_precision, split_position)
+    Posterior, condensation, log_density, log_density_condensed, log_normaliser,
+    normaliser_surrogate, preconditioner, prior_precision, split_position, surrogate_normaliser)
 from bayesreg.preconditioners import DENSE_MAX_DOFS
 from bayesreg.problem import Problem
 
@@ -159,19 +159,31 @@ def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
                        else None)
     if not joint:
         return base
+    surrogate = None
+    if cfg.model.prior_normaliser == "exact" and post.normaliser.grounded.unit is not None:
+        # the trajectories see a smooth surrogate built at the starts' centre; one exact
+        # normaliser per transition corrects it (kernels.gibbs)
+        s_data = normaliser_surrogate(post, np.asarray(center[nb3:]))
+
+        def surrogate(eta):
+            return surrogate_normaliser(post, s_data, from_unconstrained(post.prior, eta)[0])
     return joint_target(base, center_eta=to_unconstrained(post.prior, jnp.asarray(center[nb3:])),
                         eta_scale=cfg.sampler.sigma_eta,
-                        log_jacobian=lambda eta: from_unconstrained(post.prior, eta)[1])
+                        log_jacobian=lambda eta: from_unconstrained(post.prior, eta)[1],
+                        surrogate=surrogate)
 
 
 def use_joint(problem: Problem, cfg: Config) -> bool:
     """Whether the gradient kernel moves the elastic parameters with ``u_b``
-    (``sampler.joint``; default: under the paper's prior without collapsed moves) rather than
-    by Gibbs random-walk moves; only where the problem has free parameters."""
+    (``sampler.joint``; default: without collapsed moves, and under the exact normaliser
+    where it has a surrogate: not the per-element model) rather than by Gibbs random-walk
+    moves; only where the problem has free parameters."""
     s = cfg.sampler
-    joint = (s.joint if s.joint is not None
-             else cfg.model.prior_normaliser == "paper" and not s.collapsed_moves)
-    return bool(s.gradient and joint and problem.posterior.n_free)
+    post = problem.posterior
+    grouped = post.normaliser.grounded.unit is not None
+    default = not s.collapsed_moves and (cfg.model.prior_normaliser == "paper" or grouped)
+    joint = s.joint if s.joint is not None else default
+    return bool(s.gradient and joint and post.n_free)
 
 
 def _likelihood(problem: Problem, center, factor):

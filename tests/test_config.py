@@ -13,9 +13,11 @@ def test_quickstart_config_is_valid():
     # random walk stays in configs/paper_*.yaml
     assert cfg.sampler.kind == "nuts" and cfg.sampler.thinning == 1 and cfg.sampler.use_condensed
     assert cfg.model.quadrature_level == 1 and cfg.model.skull_barrier_mm == 1.0
-    assert cfg.model.prior_normaliser == "paper" and cfg.model.fixed is not None
+    # the calibrated model (the exact normaliser), mu_GM fixed to pin the scale
+    assert cfg.model.prior_normaliser == "exact" and cfg.model.fixed is not None
     paper = load_config("configs/paper_three_compartment.yaml")
     assert paper.sampler.kind == "rwmh" and paper.model.quadrature_level == 0
+    assert paper.model.prior_normaliser == "paper"  # the reproduction keeps Eq. 12 as published
 
 
 def test_unknown_key_is_named(tmp_path):
@@ -85,8 +87,10 @@ def test_paper_configs_gradient_variants_differ_only_in_the_sampler(model):
     nuts = load_config(f"configs/paper_{model}_nuts.yaml")
     assert base.sampler.kind == "rwmh" and nuts.sampler.kind == "nuts"
     assert nuts.synthetic == base.synthetic and nuts.mesh == base.mesh
-    assert nuts.model.model_copy(update={"skull_barrier_mm": 0.0, "quadrature_level": 0}) == base.model
-    assert nuts.model.prior_normaliser == "paper" and base.model.skull_barrier_mm == 0.0
+    assert nuts.model.model_copy(update={"skull_barrier_mm": 0.0, "quadrature_level": 0,
+                                         "prior_normaliser": "paper"}) == base.model
+    assert nuts.model.prior_normaliser == "exact" and base.model.prior_normaliser == "paper"
+    assert base.model.skull_barrier_mm == 0.0 and nuts.sampler.joint is None
     assert nuts.model.skull_barrier_mm == 1.0
     assert base.model.quadrature_level == 0 and nuts.model.quadrature_level == 1
 
@@ -204,8 +208,9 @@ def test_draw_counts_are_consistent():
 
 
 def test_joint_trajectories_need_a_gradient_kernel_and_exclude_collapsed_moves():
-    """``sampler.joint`` is left unset (the pipeline decides by the prior normaliser) and
-    refused with the random walk or beside collapsed moves."""
+    """``sampler.joint`` is left unset (the pipeline decides: true but with collapsed moves or
+    the per-element model under the exact normaliser) and refused with the random walk or
+    beside collapsed moves."""
     assert load_config("configs/quickstart.yaml").sampler.joint is None
     assert "sampler.joint needs a gradient kernel" in _error(["sampler.kind=rwmh", "sampler.joint=true"])
     assert "sampler.collapsed_moves needs sampler.joint: false" in _error(

@@ -122,9 +122,10 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
             window_end, end_window, lambda a: a,
             (da, mm, mm_eta, ws.eta_base, ws.log_eta_scale, jnp.asarray(ws.log_collapsed_scale)))
         gain = 1.0 / ((count + 1).astype(jnp.float64) ** 0.6)
-        if info.acceptance_rate.shape[0] > 1:
+        # (a joint target's second column is the normaliser's correction: nothing to adapt)
+        if n_free and info.acceptance_rate.shape[0] > 1:
             log_eta = log_eta + gain * (jnp.nan_to_num(info.acceptance_rate[1]) - ELASTIC_TARGET_ACCEPTANCE)
-        if info.acceptance_rate.shape[0] > 2:  # collapsed moves
+        if n_free and info.acceptance_rate.shape[0] > 2:  # collapsed moves
             log_col = log_col + gain * (jnp.nan_to_num(info.acceptance_rate[2]) - ELASTIC_TARGET_ACCEPTANCE)
         ws = WarmupState(da, mm, jnp.exp(da.log_step_size), mm.inverse_mass_matrix, mm_eta, base,
                          log_eta, count, log_col)

@@ -89,6 +89,11 @@ class Target(NamedTuple):
         A joint target's (:func:`joint_target`: ``w`` holds the elastic coordinates too, and
         ``n_free`` is 0): ``w -> ()``, the log-Jacobian inside ``u_logdensity`` that the
         natural log-density lacks.  ``None`` for a target of ``u_b`` alone.
+    correction : callable or None
+        A joint target whose trajectories see a surrogate of the exact normaliser
+        (:func:`joint_target` ``surrogate``): ``w -> ()``, the exact normaliser less the
+        surrogate at ``w``'s parameters (NaN where the exact one fails), what the kernel's
+        Metropolis correction after each trajectory uses (:mod:`bayesreg.kernels.gibbs`).
     """
 
     u_logdensity: Callable
@@ -104,6 +109,7 @@ class Target(NamedTuple):
     preconditioner: str = "block-jacobi"
     conditional: Callable | None = None
     log_jacobian: Callable | None = None
+    correction: Callable | None = None
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
@@ -207,7 +213,7 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
                   conditional)
 
 
-def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian) -> Target:
+def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian, surrogate=None) -> Target:
     """The target of one gradient kernel over ``u_b`` and the elastic parameters together.
 
     The coordinates are ``z = [w, v]``: ``w`` those of ``base`` (``u_b = c + F w``) and
@@ -220,6 +226,15 @@ def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian) -> Target
     kernel then makes no elastic moves) and a :attr:`Target.log_jacobian`.  Its CG
     preconditioner (``base``'s dense one, if any) is built at ``center_eta`` whatever the
     chain's parameters: it only has to stay near ``K_ii^-1``, and the tolerance is the same.
+
+    With a ``surrogate`` of ``base``'s normaliser, the log-density (and so every leapfrog
+    step) holds the surrogate instead, and the target's :attr:`Target.correction` gives the
+    exact normaliser less the surrogate: the kernel accepts each trajectory's end with the
+    Metropolis probability ``min(1, exp(correction(z') - correction(z)))``, which makes the
+    chain's stationary distribution the exact posterior whatever the surrogate (the
+    trajectory is a reversible kernel of the surrogate posterior; Liu 2001, Sec. 9.4;
+    Christen and Fox 2005), at one exact normaliser per transition instead of one exact
+    gradient per leapfrog step.
 
     Parameters
     ----------
@@ -234,6 +249,9 @@ def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian) -> Target
         ``eta -> ()``: the log-Jacobian that ``base.evaluate``'s first value adds to its
         natural log-density (:func:`bayesreg.parameters.from_unconstrained`'s for a
         posterior's target).
+    surrogate : callable, optional
+        ``eta -> ()``: a smooth, cheap approximation of ``base.log_norm``
+        (:func:`bayesreg.posterior.surrogate_normaliser`).
 
     Returns
     -------
@@ -256,11 +274,19 @@ def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian) -> Target
     def split(z):
         return z[:-n], eta_c + scale * z[-n:]
 
+    log_norm = base.log_norm if surrogate is None else surrogate
+
     def evaluate(z, _eta, interior, _log_norm=None, precond=None):
         w, eta = split(z)
         if base.build_precond is None:
-            return base.evaluate(w, eta, interior, base.log_norm(eta))
-        return base.evaluate(w, eta, interior, base.log_norm(eta), precond)
+            return base.evaluate(w, eta, interior, log_norm(eta))
+        return base.evaluate(w, eta, interior, log_norm(eta), precond)
+
+    correction = None
+    if surrogate is not None:
+        def correction(z):
+            eta = split(z)[1]
+            return base.log_norm(eta) - surrogate(eta)
 
     def u_evaluate(z, _eta, cache, interior):
         lz, _, interior, its, ok = evaluate(z, _eta, interior, None, cache.precond)
@@ -281,7 +307,7 @@ def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian) -> Target
         build_cache=lambda _eta, _ln: Cache(jnp.zeros((0,)), jnp.zeros(())),
         position=lambda z, _eta: base.position(*split(z)), coordinates=coordinates, n_free=0,
         build_precond=build_precond, condensed=False, preconditioner=base.preconditioner,
-        log_jacobian=lambda z: log_jacobian(split(z)[1]))
+        log_jacobian=lambda z: log_jacobian(split(z)[1]), correction=correction)
 
 
 def laplace_likelihood(post: Posterior, theta0, a_lik):

@@ -14,7 +14,7 @@ from bayesreg.report.figures import (
     plot_boundary_node, plot_dataset, plot_errors, plot_ratios, plot_uncertainty, slice_index)
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
 from bayesreg._files import dumps_json, write_text_atomic
-from bayesreg.outputs import verdict
+from bayesreg.outputs import normaliser_note, verdict
 from bayesreg.rundir import RunDirectory
 
 __all__ = ["write_report"]
@@ -67,7 +67,8 @@ def _run_summary(run: RunData) -> dict:
         "steps_per_s_per_chain": s.get("steps_per_s_per_chain"),
         # the run's verdict line (older runs: made from their figures)
         "verdict": s.get("verdict") or (verdict(s) if "rhat_rank_max" in s else None),
-        "checks": (s.get("health") or {}).get("warnings", []),
+        "checks": (s.get("health") or {}).get("warnings", []) + [
+            n for n in [normaliser_note(run.info)] if n],
     }
 
 
