@@ -363,6 +363,11 @@ class ModelConfig(_Strict):
         "(4 * 8^k points, up to 8^k times the cost of E_s).  Four points per element alias an "
         "image of finer voxels into local modes of the boundary nodes; level 1 removes most "
         "of them (the paper's configs keep 0, the paper's rule)")
+    interpolation: Literal["linear", "cubic"] = Field(
+        "linear", description="how E_s (Eq. 1) reads the images at the quadrature points: "
+        "linear (trilinear, the paper's: the gradient of E_s jumps at every voxel face, where "
+        "the tissue edges hold the information) or cubic (B-spline with its prefilter, C2: a "
+        "smooth potential for the gradient samplers, several times the cost per point)")
     moving_dtype: Literal["float32", "float64"] = Field(
         "float32", description="storage precision of the moving image m that E_s (Eq. 1) "
         "samples: float32 rounds its values once (relative 2^-24) and halves the bytes that "
