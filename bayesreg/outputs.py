@@ -56,7 +56,7 @@ from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.chains import available_cores
 from bayesreg.config import Config
 from bayesreg.convergence import StopRule, gelman_rubin
-from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, sampler_health, to_datatree
+from bayesreg.diagnostics import arviz_fast_ess, contraction, coverage, normaliser_note, sampler_health, to_datatree
 from bayesreg.fields import VOXEL_DRAWS, nodal_draws, nodal_mean, nodal_spread, voxel_norm_spread
 from bayesreg.images import Image, save_nifti
 from bayesreg.initialisation import Initialisation, registration_field
@@ -71,8 +71,7 @@ from bayesreg.registration import displacement_at
 from bayesreg.transforms import FIXED_TO_MOVING, save_displacement
 from bayesreg.warp import grid_moments_from, interpolation_matrix, locate_grid
 
-__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "normaliser_note", "verdict",
-           "summary_table"]
+__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "verdict", "summary_table"]
 
 
 class RunResult(NamedTuple):
@@ -355,26 +354,10 @@ def format_report(errors: dict | None, info: dict) -> str:
     if edge:
         lines.append(f"on the prior's edge with their truths: {', '.join(edge)} (posterior median "
                      "and truth in the outer 1% of the prior's support)")
-    note = normaliser_note(info)
-    if note:
-        lines.append(f"model check: {note}")
+    lines.extend(f"model check: {n}" for n in [normaliser_note(info)] if n)
     lines.extend(f"sampler check: {w}" for w in (s.get("health") or {}).get("warnings", []))
     lines.append(verdict(s))
     return "\n".join(lines)
-
-
-def normaliser_note(info: dict) -> str | None:
-    """The bias a run's model brings, for a run (``run.json``) with the paper's unnormalised
-    elastic prior and free elastic parameters; ``None`` otherwise."""
-    model = (info.get("config") or {}).get("model") or {}
-    which = model.get("prior_normaliser", (info.get("sampler") or {}).get("prior_normaliser"))
-    free = [k for k in (info.get("identification") or {}) if k.startswith(("lam", "mu"))]
-    if which != "paper" or not (free or (info.get("errors") or {}).get("ratio")):
-        return None
-    return ("the paper's unnormalised elastic prior (model.prior_normaliser: paper, Eq. 12 as "
-            "published) pulls lam and mu toward soft tissue: on bayesreg calibrate's problem its "
-            "90% intervals held 0-1% of the lam/mu truths, against 89-93% with "
-            "model.prior_normaliser: exact (docs: Is the posterior calibrated?)")
 
 
 def verdict(s: dict) -> str:

@@ -147,7 +147,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
     >>> tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26", "sampler.kind=rwmh",
     ...         "sampler.chains=2", "sampler.proposal=isotropic", "init.method=perturb",
     ...         "sampler.warmup_steps=20", "sampler.thinning=1", "sampler.chunk_draws=10",
-    ...         "sampler.max_draws=10", "sampler.min_draws=10"]
+    ...         "sampler.max_draws=10", "sampler.min_draws=10", "output.reference=false"]
     >>> result = bayesreg.run("configs/quickstart.yaml", out=getfixture("tmp_path") / "run",
     ...                       overrides=tiny, progress=False)
     >>> result.posterior.posterior["u_b"].dims

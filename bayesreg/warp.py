@@ -234,12 +234,13 @@ def grid_moments_from(mesh: Mesh, grid: Image, mean, cov, *, located=None):
 
 
 def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "background",
-               extend_k: int = 8) -> Image:
+               extend_k: int = 8, order: int = 1) -> Image:
     """Intra-operative image ``m`` with ``m(x + u(x)) = f(x)`` for the FE map ``x -> x + u(x)``.
 
     For every voxel centre ``y`` of ``m`` (same grid as ``f``) the deformed element
     containing ``y`` is found; its barycentric coordinates give ``x`` in the undeformed
-    element and ``m(y) = f(x)`` (trilinear).  Voxels covered by no deformed element take
+    element and ``m(y) = f(x)`` (``f`` read by a spline of ``order``: 1 trilinear, 3 cubic
+    B-spline with its prefilter).  Voxels covered by no deformed element take
     ``background`` (``outside="background"``) or, with ``outside="extend"``,
     ``f(y - u~(y))``, ``u~`` the inverse-square-distance mean of the displacements of the
     ``extend_k`` deformed boundary nodes nearest ``y``: the displacement continued outside
@@ -260,6 +261,10 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "backg
     outside : {"background", "extend"}
     extend_k : int
         Boundary nodes averaged by ``"extend"``.
+    order : {1, 3}
+        Spline order of ``f``'s interpolation (SciPy's ``map_coordinates``).  The synthetic
+        truths use 3 (:data:`bayesreg.problem.SYNTHETIC_ORDER`): trilinear resampling blurs
+        ``f`` unevenly where the map stretches it, a misfit no deformation explains.
 
     Raises
     ------
@@ -279,7 +284,7 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "backg
     inside = elem >= 0
     x = np.einsum("pa,pad->pd", bary[inside], mesh.nodes[mesh.tets[elem[inside]]])
     out = np.full(len(pts), float(background))
-    out[inside] = interpolate_numpy(f, x, order=1, cval=background)
+    out[inside] = interpolate_numpy(f, x, order=order, cval=background)
     if outside == "extend" and not np.all(inside):
         b = np.asarray(mesh.boundary)
         k = min(int(extend_k), len(b))
@@ -287,11 +292,12 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "backg
         dist, j = dist.reshape(len(dist), k), j.reshape(len(j), k)
         w = 1.0 / np.maximum(dist, 1e-9) ** 2
         u_ext = np.einsum("pk,pkd->pd", w, u[b][j]) / w.sum(axis=1, keepdims=True)
-        out[~inside] = interpolate_numpy(f, pts[~inside] - u_ext, order=1, cval=background)
+        out[~inside] = interpolate_numpy(f, pts[~inside] - u_ext, order=order, cval=background)
     return Image(out.reshape(f.data.shape), f.affine)
 
 
-def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, tol_mm=1e-4) -> Image:
+def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, tol_mm=1e-4,
+                     order: int = 1) -> Image:
     """Intra-operative image ``m`` with ``m(y) = f(x)``, ``x + u(x) = y``, for a dense field.
 
     The inverse map is found per voxel centre ``y`` by the fixed-point iteration
@@ -311,6 +317,8 @@ def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, to
     max_iter : int
     tol_mm : float
         Largest allowed ``|x + u(x) - y|`` at the end, mm.
+    order : {1, 3}
+        Spline order of ``f``'s interpolation, as :func:`warp_image`'s.
 
     Returns
     -------
@@ -357,7 +365,7 @@ def warp_image_field(f: Image, field: Image, *, background=0.0, max_iter=100, to
     if residual > tol_mm:
         raise ValueError(f"inverting the displacement field did not converge: largest residual "
                          f"{residual:.3g} mm after {max_iter} iterations (tolerance {tol_mm:g} mm)")
-    return Image(interpolate_numpy(f, x, order=1, cval=background).reshape(f.data.shape[:3]),
+    return Image(interpolate_numpy(f, x, order=order, cval=background).reshape(f.data.shape[:3]),
                  f.affine)
 
 

@@ -89,7 +89,8 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     assert info["sampler"]["chains"] == 3 and info["sampler"]["draws_per_chain"] >= 10
     assert info["mesh"]["n_inverted"] == 0 and info["mesh"]["n_tets"] > 100
     assert info["config"]["sampler"]["max_draws"] == 40
-    assert info["sampler"]["blocks"] == ["joint"]  # the paper's prior: joint trajectories
+    # joint trajectories on the normaliser's surrogate, corrected once per transition
+    assert info["sampler"]["blocks"] == ["joint", "normaliser"]
     assert all(0.0 < a < 1.0 for a in info["sampler"]["acceptance"])
     assert info["sampler"]["solve_failures"] == 0
     health = info["sampler"]["health"]  # NUTS: Stan's per-chain checks, one line each printed

@@ -354,7 +354,8 @@ def test_truths_the_model_did_not_make_refuse_the_fe_truths_keys(tmp_path):
 
 
 def test_sampling_the_interior_needs_the_exact_normaliser():
-    assert "model.interior: sample needs model.prior_normaliser: exact" in _error(["model.interior=sample"])
+    assert "model.interior: sample needs model.prior_normaliser: exact" in _error(
+        ["model.interior=sample", "model.prior_normaliser=paper"])
     cfg = load_config("configs/quickstart.yaml", overrides=[
         "model.interior=sample", "model.prior_normaliser=exact", "model.fixed=null"])
     assert cfg.model.interior == "sample"

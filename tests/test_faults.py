@@ -204,6 +204,23 @@ def _stage_line(proc: subprocess.Popen, text: str, timeout: float = 240.0) -> li
     raise AssertionError(f"no {text!r} in {timeout} s: {lines}")
 
 
+def _wait_for_child(proc: subprocess.Popen, name: str, timeout: float = 120.0) -> None:
+    """Wait until ``proc`` has a child process whose command line names ``name``."""
+    import psutil
+
+    t = time.monotonic()
+    while time.monotonic() - t < timeout:
+        assert proc.poll() is None, proc.communicate()
+        for child in psutil.Process(proc.pid).children():
+            try:
+                if name in " ".join(child.cmdline()):
+                    return
+            except psutil.Error:  # (gone meanwhile)
+                pass
+        time.sleep(0.01)
+    raise AssertionError(f"no child process {name!r} in {timeout} s")
+
+
 @pytest.mark.slow
 def test_ctrl_c_in_a_terminal_after_or_during_meshing_puts_the_finished_run_back(reference, tmp_path):
     """Ctrl-C as a terminal sends it (SIGINT to the foreground process group) while fTetWild
@@ -222,7 +239,9 @@ def test_ctrl_c_in_a_terminal_after_or_during_meshing_puts_the_finished_run_back
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 start_new_session=True)
         lines = _stage_line(proc, after)
-        if stage == "warm-up":
+        if stage == "mesh":  # while fTetWild runs (its process a child of the run's)
+            _wait_for_child(proc, "_tetwild_worker")
+        else:
             assert any("bayesreg: mesh done" in line for line in lines), lines
             time.sleep(2.0)  # into the warm-up (its compilation alone takes longer)
         os.killpg(proc.pid, signal.SIGINT)

@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "bayesreg"
 # ``__init__`` is the package's name ("bayesreg" for the top-level one).
 LAYERS = [
     ["_checks", "_files", "jaxconfig", "stages", "config.models", "config.loading",
-     "config.calibration", "config"],
+     "config.calibration", "config", "_tetwild_worker"],
     ["images"],
     ["interpolation"],
     ["labels"],
