@@ -40,6 +40,23 @@ from bayesreg import mesh as mesh_mod  # noqa: E402
 from bayesreg.mesh import Mesh, boundary_nodes, orient_tets  # noqa: E402
 
 
+# Files of the longest tests (end-to-end runs, notebooks, a Dask cluster), collected first:
+# pytest-xdist hands tests out in collection order, so that two workers then finish
+# together instead of one running a two-minute test alone at the end.
+_LONG_FIRST = ("test_sweep.py", "test_cli.py", "test_faults.py", "test_calibration.py",
+               "pipeline.py", "test_gibbs.py", "test_normaliser.py", "test_rwmh.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The files of :data:`_LONG_FIRST` first, in that order (a stable sort: each file's own
+    order kept; the same order in every worker, as xdist requires)."""
+    def rank(item):
+        name = item.nodeid.split("::")[0].rsplit("/", 1)[-1]
+        return _LONG_FIRST.index(name) if name in _LONG_FIRST else len(_LONG_FIRST)
+
+    items.sort(key=rank)
+
+
 def pytest_unconfigure(config):
     """Remove the session's compilation cache (in the process that created it: the controller,
     or the single process of ``-n 0``)."""
