@@ -280,10 +280,9 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
                 break
         # the exact log p: the last round's value with its surrogate swapped for the exact
         # normaliser (no program compiled for the whole exact log-density)
-        logp_mode = -float(res_p.fun)
         if surrogates:
             phi = jnp.asarray(to_theta(x)[nb3:])
-            logp_mode += float(_normaliser_gap(post, data[0], phi))
+            logp_mode = -float(res_p.fun) + float(_normaliser_gap(post, data[0], phi))
         else:
             logp_mode = float(jax.jit(in_log(with_normaliser))(jnp.asarray(x), zeros)[0])
     theta = to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])

@@ -13,6 +13,7 @@ import os
 import re
 import shutil
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,7 +98,7 @@ def brain():
     return t1, labels, mesh
 
 
-_ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+_ROOT = Path(__file__).resolve().parents[1]
 
 #: The tiny end-to-end runs' images and mesh size (the quickstart's brain at 3 mm, 26 mm edges).
 TINY_DATA = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26"]

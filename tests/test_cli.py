@@ -503,7 +503,7 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
     the parameters (Laplace proposal), sample stats and adapted values written."""
     out = tmp_path / "run"
     tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps",
-                                                 "sampler.proposal"))]
+                                                 "sampler.proposal", "sampler.max_draws"))]
     sets = tiny + [f"mesh.file={tiny_mesh}", f"sampler.kind={kind}", "sampler.thinning=1",
                    "sampler.warmup_steps=20", "sampler.max_draws=10", "model.prior_normaliser=exact",
                    "model.fixed=null",
