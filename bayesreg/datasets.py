@@ -11,6 +11,7 @@ the 0.5 mm signals over each voxel of the working grid, and optional Rician nois
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -39,8 +40,17 @@ def mni152(resolution_mm: float = 2.0, *, margin_mm: float = 20.0):
     -------
     t1, gm, wm, mask : Image
         T1 intensities, grey/white-matter probability maps in [0, 1], brain mask (0/1),
-        all on one grid.
+        all on one grid.  Fresh copies on every call: the resampled template is kept per
+        process for each ``(resolution_mm, margin_mm)`` (a few of them), so that a second
+        run in a notebook or a test session does not resample it again.
     """
+    kept = _mni152_kept(float(resolution_mm), float(margin_mm))
+    return tuple(Image(o.data.copy(), o.affine.copy()) for o in kept)
+
+
+@functools.lru_cache(maxsize=4)
+def _mni152_kept(resolution_mm: float, margin_mm: float):
+    """:func:`mni152`'s images, computed once per process and arguments (never handed out)."""
     from nilearn import datasets
 
     imgs = [

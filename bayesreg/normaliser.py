@@ -340,6 +340,9 @@ def surrogate_log_pdet(s: Surrogate, lam_g, mu_g):
     return value + s.offset + _axis_terms(s, u) + 0.5 * du @ s.hess @ du
 
 
+_log_pdet_jit = jax.jit(log_pdet_sparse)
+
+
 def _unit_matrices(p: SparsePattern) -> list:
     """The full symmetric sparse ``A_t`` (SciPy CSR) of each unit parameter of ``p``."""
     rows, cols, unit = np.asarray(p.rows), np.asarray(p.cols), np.asarray(p.unit)
@@ -409,7 +412,9 @@ def build_surrogate(data: NormaliserData, klam, kmu, group, lam_g0, mu_g0, *, fr
     n_p = theta0.shape[0]
     n_g = n_p // 2
     c_k, c_i = _eigen_part(data.grounded, theta0), _eigen_part(data.interior, theta0)
-    exact = jax.jit(lambda th: log_pdet_sparse(data, klam, kmu, th[:n_g], th[n_g:], group))
+
+    def exact(th):  # one compiled program for every surrogate of a mesh's shapes
+        return _log_pdet_jit(data, klam, kmu, th[:n_g], th[n_g:], group)
 
     def eig_part(th):
         v = 0.5 * np.sum(np.log(c_k @ th)) - (0.5 * np.sum(np.log(c_i @ th)) if len(c_i) else 0.0)

@@ -13,6 +13,7 @@ import os
 import re
 import shutil
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,9 +30,11 @@ _SESSION_CACHE = None
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _SESSION_CACHE = tempfile.mkdtemp(prefix="bayesreg-test-jax-cache-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _SESSION_CACHE
-    # JAX's default threshold is 1 s; the shared fixtures' log-densities and solves compile
-    # faster than that, and are worth caching too
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.3")
+    # JAX's default threshold is 1 s; every program is worth caching here, down to the
+    # single operations run eagerly on the shared fixtures (each ~30 ms of XLA on a 2-core
+    # CPU, hundreds per fixture, else compiled again in every worker)
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 
 import bayesreg  # noqa: E402
 
@@ -93,6 +96,35 @@ def brain():
     mesh = mesh_brain(labels, edge_length_mm=20.0)
     labels, _ = carve_skull(labels, mesh)
     return t1, labels, mesh
+
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+#: The tiny end-to-end runs' images and mesh size (the quickstart's brain at 3 mm, 26 mm edges).
+TINY_DATA = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26"]
+
+
+@pytest.fixture(scope="session")
+def tiny_mesh(tmp_path_factory) -> str:
+    """One mesh file (``.vtu``) of :data:`TINY_DATA` for the whole session, every xdist worker
+    included: fTetWild gives another mesh on each call, and one mesh lets the end-to-end runs
+    share their compiled programs (the persistent cache above is keyed by array shapes).  The
+    first worker to finish meshing publishes its file (an atomic hard link); the others use it.
+    """
+    import meshio
+
+    from bayesreg.config import load_config
+    from bayesreg.problem import make_data
+
+    root = tmp_path_factory.getbasetemp()
+    shared = (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "tiny_mesh.vtu"
+    if not shared.exists():
+        data = make_data(load_config(_ROOT / "configs" / "quickstart.yaml", overrides=TINY_DATA))
+        mine = root / "tiny_mesh_own.vtu"
+        meshio.write(mine, meshio.Mesh(data.mesh.nodes, [("tetra", data.mesh.tets)]))
+        with contextlib.suppress(FileExistsError):
+            os.link(mine, shared)
+    return str(shared)
 
 
 @pytest.fixture(scope="session")

@@ -54,7 +54,7 @@ def test_chunk_pieces_on_a_cpu_equal_whole_chunks(monkeypatch):
     logdensity, mean, cov, n_i = quadratic_problem()
     kernel = rwmh.build_kernel(logdensity)
     x0 = mean + 0.1 * np.random.default_rng(5).normal(size=(3, len(mean)))
-    states = jax.vmap(lambda x: rwmh.init(x, logdensity, jnp.zeros((n_i, 3))))(jnp.asarray(x0))
+    states = jax.jit(jax.vmap(lambda x: rwmh.init(x, logdensity, jnp.zeros((n_i, 3)))))(jnp.asarray(x0))
     sig = (jnp.full(len(mean), 0.05),)
     keys = jax.random.split(jax.random.key(3), 3)
     expect = chains.build_chunk(kernel, 6, 3, 3, method="vectorized").run(keys, states, sig)

@@ -13,23 +13,23 @@ from bayesreg.cli import main
 from bayesreg.config import load_config
 
 # the quickstart (NUTS) on tiny settings: a coarse mesh on 3 mm images, a short mode search
-# and warm-up, 4 elastic moves per transition (24 in the config)
+# and warm-up, 2 elastic moves per transition (24 in the config)
 TINY = [
     "data.resolution_mm=3.0",
     "mesh.edge_length_mm=26",
-    "sampler.warmup_steps=50",
+    "sampler.warmup_steps=30",
     "sampler.max_draws=20",
     "sampler.min_draws=10",
     "sampler.chunk_draws=10",
-    "sampler.max_tree_depth=4",
-    "sampler.elastic_moves=4",
+    "sampler.max_tree_depth=3",
+    "sampler.elastic_moves=2",
     "init.optimizer_iterations=40",
     "output.progress=false",
     "output.reference=false",  # (TV-L1 beside the posterior: the tiny run below checks it)
 ]
 # the paper's random-walk configs on tiny settings
 TINY_RW = [s for s in TINY if not s.startswith(("sampler.warmup_steps", "sampler.max_tree_depth"))]
-TINY_RW += ["sampler.warmup_steps=200", "sampler.thinning=5"]
+TINY_RW += ["sampler.warmup_steps=40", "sampler.thinning=2"]
 
 OUTPUTS = [
     "posterior.nc", "summary.csv", "displacement_mean.nii.gz", "displacement_sd.nii.gz",
@@ -40,7 +40,7 @@ OUTPUTS = [
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
+def tiny_run(tmp_path_factory, tiny_mesh):
     """The quickstart through the CLI on tiny settings (4 chunks of 10 draws per chain), with
     a copy of its run directory as it stood after chunk 2 (a run killed there).
 
@@ -64,7 +64,8 @@ def tiny_run(tmp_path_factory):
             shutil.copytree(out, killed)
 
     args = ["run", "configs/quickstart.yaml", "--out", str(out)]
-    for s in TINY + ["sampler.max_draws=40", "sampler.min_draws=40", "output.reference=true"]:
+    for s in TINY + [f"mesh.file={tiny_mesh}", "sampler.max_draws=40", "sampler.min_draws=40",
+                     "output.reference=true"]:
         args += ["--set", s]
     printed = io.StringIO()
     with (pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed),
@@ -426,11 +427,16 @@ def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
 
 
 @pytest.mark.slow
-def test_quickstart_notebook_executes(tmp_path):
+def test_quickstart_notebook_executes(tmp_path, tiny_mesh):
     import nbformat
     from nbclient import NotebookClient
 
     nb = nbformat.read("notebooks/01_quickstart.ipynb", as_version=4)
+    # on the session's tiny mesh instead of meshing its own: the run's compiled programs are
+    # then the tiny runs' above, from the session's cache
+    cells = [c for c in nb.cells if c.cell_type == "code" and '"mesh.edge_length_mm=26"' in c.source]
+    assert len(cells) == 1
+    cells[0].source = cells[0].source.replace('"mesh.edge_length_mm=26"', repr(f"mesh.file={tiny_mesh}"))
     NotebookClient(nb, timeout=600, kernel_name="python3",
                    resources={"metadata": {"path": "notebooks"}}).execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
@@ -446,7 +452,7 @@ REPORT_FILES = [
 ]
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, capsys):
     """`bayesreg reproduce` on tiny settings writes the report; notebook 02 redraws it."""
     import nbformat
@@ -487,18 +493,20 @@ def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, c
     assert n_png >= 7  # Fig. 2-5, uncertainty and the ArviZ plot per run
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 # MALA: NUTS runs end to end in the tiny quickstart above (and in the notebook); the two
 # kinds share the driver, and each recovers a known joint in tests/test_kernels.py
 @pytest.mark.parametrize("kind", ["mala"])
-def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_path, capsys, kind):
+def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_path, capsys, kind,
+                                                                          tiny_mesh):
     """A gradient kernel end to end: exact normaliser, no fixed parameter, collapsed moves of
     the parameters (Laplace proposal), sample stats and adapted values written."""
     out = tmp_path / "run"
     tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps",
-                                                 "sampler.proposal"))]
-    sets = tiny + [f"sampler.kind={kind}", "sampler.thinning=1", "sampler.warmup_steps=40",
-                   "sampler.max_tree_depth=4", "model.prior_normaliser=exact", "model.fixed=null",
+                                                 "sampler.proposal", "sampler.max_draws"))]
+    sets = tiny + [f"mesh.file={tiny_mesh}", f"sampler.kind={kind}", "sampler.thinning=1",
+                   "sampler.warmup_steps=20", "sampler.max_draws=10", "model.prior_normaliser=exact",
+                   "model.fixed=null",
                    "sampler.proposal=laplace", "sampler.collapsed_moves=1",
                    "init.method=perturb"]  # (the mode search under exact: the tiny run above)
     args = ["run", "configs/quickstart.yaml", "--out", str(out)] + sum((["--set", s] for s in sets), [])

@@ -27,14 +27,16 @@ import bayesreg.outputs
 import bayesreg.problem
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.cli import main
-from bayesreg.config import load_config
-from bayesreg.problem import make_data
+
+# one pytest-xdist worker runs this file (pyproject's --dist loadgroup): the module's
+# reference run is made once, not once in each worker
+pytestmark = pytest.mark.xdist_group("faults")
 
 CONFIG = str(Path(__file__).resolve().parents[1] / "configs" / "quickstart.yaml")
 TINY = [
     "data.resolution_mm=3.0", "mesh.edge_length_mm=26", "sampler.kind=rwmh", "sampler.chains=2",
     "sampler.proposal=isotropic", "init.method=perturb", "sampler.warmup_steps=20",
-    "sampler.thinning=20", "sampler.chunk_draws=10", "sampler.max_draws=30",
+    "sampler.thinning=10", "sampler.chunk_draws=10", "sampler.max_draws=30",
     "sampler.min_draws=30", "output.progress=false", "output.reference=false",
 ]
 OUTPUTS = ("run.json", "summary.csv", "posterior.nc", "errors.json")
@@ -56,12 +58,11 @@ def _draws(run_dir) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """``(root, mesh file, reference run directory)``: the uninterrupted run."""
+def reference(tmp_path_factory, tiny_mesh):
+    """``(root, mesh file, reference run directory)``: the uninterrupted run (on the
+    session's tiny mesh)."""
     root = tmp_path_factory.mktemp("faults")
-    data = make_data(load_config(CONFIG, overrides=TINY[:2]))
-    mesh = root / "mesh.vtu"
-    meshio.write(mesh, meshio.Mesh(data.mesh.nodes, [("tetra", data.mesh.tets)]))
+    mesh = Path(tiny_mesh)
     ref = root / "reference"
     assert main(_args(mesh, ref)) == 0
     return root, mesh, ref

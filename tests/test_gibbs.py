@@ -159,6 +159,7 @@ def test_hmc_jitter_breaks_a_periodic_trajectory(jitter):
         assert_moments(xs[None, :, j], 0.0, 1.0, 3.0, n_se=5.0, what=j)
 
 
+@pytest.mark.heavy  # (the same property for the random walk: tests/test_rwmh.py)
 def test_preconditioned_gibbs_kernel_gives_the_draws_of_block_jacobi(small):
     """NUTS-in-Gibbs with the dense preconditioner (built at each chunk start, kept through the
     cache rebuilds after accepted elastic moves) takes the chains where block Jacobi takes
@@ -177,10 +178,10 @@ def test_preconditioned_gibbs_kernel_gives_the_draws_of_block_jacobi(small):
         tg = make_target(post, center_u=np.zeros(nb3), factor=factor, exact=False, condensed=condensed,
                          rtol=1e-12, precondition=precondition)
         kernel = gk.build_kernel(tg, "nuts", max_num_doublings=3, elastic_moves=3)
-        states = jax.vmap(lambda x: gk.init(tg, x, jnp.zeros((post.op.n_interior, 3)))[0])(jnp.asarray(x0))
+        states = jax.jit(jax.vmap(lambda x: gk.init(tg, x, jnp.zeros((post.op.n_interior, 3)))[0]))(jnp.asarray(x0))
         if precondition:
             assert kernel.init_cache(jax.tree.map(lambda a: a[0], states)).precond is not None
-        _, out = build_chunk(kernel, 3, 1, 2, method="threads").run(
+        _, out = build_chunk(kernel, 2, 1, 2, method="threads").run(
             jax.random.split(jax.random.key(3), 2), states, params)
         outs.append(out)
         its.append(float(np.asarray(out[4]).mean()))

@@ -197,7 +197,7 @@ def _prior_only_target(exact: bool, t_r=0.01, tau=0.05):
     return post, target, factor
 
 
-@pytest.mark.parametrize("exact", [True, False])
+@pytest.mark.parametrize("exact", [True, pytest.param(False, marks=pytest.mark.heavy)])
 def test_exact_normaliser_returns_the_prior_when_the_images_say_nothing(exact):
     """With ``T_s = infinity`` (no image term) the posterior of the elastic parameters is
     their prior if and only if the elastic prior on ``u_b`` is normalised: the NUTS-within-

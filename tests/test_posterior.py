@@ -68,7 +68,7 @@ def test_parameters_outside_the_support_are_rejected_without_a_solve(small):
     lp, aux = log_density(post, jnp.asarray(bad), warm)
     assert float(lp) == -np.inf and int(aux.solve.iterations) == 0 and bool(aux.solve.converged)
     np.testing.assert_array_equal(np.asarray(aux.interior), np.asarray(warm))
-    lps, auxs = jax.vmap(lambda t: log_density(post, t, jnp.zeros_like(warm)))(jnp.asarray(np.stack([theta, bad])))
+    lps, auxs = jax.jit(jax.vmap(lambda t: log_density(post, t, jnp.zeros_like(warm))))(jnp.asarray(np.stack([theta, bad])))
     assert np.isfinite(float(lps[0])) and float(lps[1]) == -np.inf
     assert int(auxs.solve.iterations[0]) > 0 and int(auxs.solve.iterations[1]) == 0
     assert np.all(np.asarray(auxs.solve.converged))

@@ -87,7 +87,7 @@ def test_condensed_chunk_in_pieces_equals_whole_chunks(identified, monkeypatch):
                             lambda th: condensation(post, th), 0, moves=2)
     kernel = rwmh.build_kernel(ld, (np.arange(nb3), np.arange(nb3, post.dim)), cond)
     x0 = np.tile(theta, (3, 1)) + 0.02 * np.random.default_rng(1).normal(size=(3, post.dim))
-    states = jax.vmap(lambda x: rwmh.init(x, ld, jnp.zeros((post.op.n_interior, 3))))(jnp.asarray(x0))
+    states = jax.jit(jax.vmap(lambda x: rwmh.init(x, ld, jnp.zeros((post.op.n_interior, 3)))))(jnp.asarray(x0))
     sig = (jnp.full(nb3, 0.02), jnp.abs(jnp.asarray(theta[nb3:])) * 0.05)
     keys = jax.random.split(jax.random.key(5), 3)
     expect = chains.build_chunk(kernel, 8, 2, 3, method="vectorized").run(keys, states, sig)
@@ -100,7 +100,8 @@ def test_condensed_chunk_in_pieces_equals_whole_chunks(identified, monkeypatch):
     assert acc[..., 1].max() > 0  # elastic moves were accepted (the cache was rebuilt)
 
 
-@pytest.mark.parametrize("blocked", [False, True], ids=["joint", "blocked"])
+@pytest.mark.parametrize("blocked", [pytest.param(False, marks=pytest.mark.heavy), True],
+                         ids=["joint", "blocked"])
 def test_preconditioned_kernel_gives_the_draws_of_the_block_jacobi_kernel(identified, monkeypatch, blocked):
     """The dense preconditioner (built at every chunk start, carried through the chunk and
     from piece to piece) leaves the chains where block Jacobi takes them: the same proposals,
@@ -114,7 +115,7 @@ def test_preconditioned_kernel_gives_the_draws_of_the_block_jacobi_kernel(identi
     sig = ((jnp.full(nb3, 0.02), jnp.abs(jnp.asarray(theta[nb3:])) * 0.05) if blocked else
            (jnp.concatenate([jnp.full(nb3, 0.01), jnp.abs(jnp.asarray(theta[nb3:])) * 0.02]),))
     x0 = np.tile(theta, (3, 1)) + 0.02 * np.random.default_rng(1).normal(size=(3, post.dim))
-    states = jax.vmap(lambda x: rwmh.init(x, ld, jnp.zeros((post.op.n_interior, 3))))(jnp.asarray(x0))
+    states = jax.jit(jax.vmap(lambda x: rwmh.init(x, ld, jnp.zeros((post.op.n_interior, 3)))))(jnp.asarray(x0))
     keys = jax.random.split(jax.random.key(6), 3)
     def chunk(kernel, method):
         return chains.build_chunk(kernel, 8, 3, 3, method=method).run(keys, states, sig)
