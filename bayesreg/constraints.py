@@ -34,7 +34,8 @@ import scipy.ndimage as ndi
 from bayesreg.interpolation import CUBIC_PAD, cubic_clamped
 
 __all__ = ["SkullConstraint", "skull_constraint", "with_barrier", "points_forbidden",
-           "skull_distance", "skull_barrier", "SignedDistance", "BARRIER_FLOOR", "GRID_PAD"]
+           "skull_distance", "skull_barrier", "SignedDistance", "BARRIER_FLOOR", "GRID_PAD",
+           "signed_volumes", "inversion_barrier"]
 
 #: Forbidden voxels added around the grid: outside the image grid is forbidden, and ``d``
 #: keeps growing there for a few voxels (then it is held).
@@ -191,6 +192,45 @@ def skull_barrier(skull: SkullConstraint, points):
     clear = jnp.all(s > floor) | ~jnp.asarray(skull.barrier_wall) | ~(w > 0)
     value = -jnp.sum(jnp.where(near, (w / s_safe - 1.0) ** 3, 0.0))
     return jnp.where(w > 0, value, 0.0), clear
+
+
+def signed_volumes(points, tets):
+    """Six times the signed volume of each tetrahedron, ``(M,)`` mm^3, of world points
+    ``(N, 3)`` mm and ``tets`` ``(M, 4)``: positive for the mesh's orientation, ``<= 0``
+    for an inverted (or flat) element, the other hard constraint (paper Sec. 3.2)."""
+    x = points[tets]
+    return jnp.einsum("mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0])
+
+
+def inversion_barrier(points, tets, volumes0, ratio: float):
+    """Smooth barrier against inverted elements: ``-sum (r / J - 1)^3`` over the elements
+    whose volume ratio ``J = V / V_0`` is below ``r = ratio``, 0 elsewhere (C2 at ``J = r``),
+    ``-> -inf`` as ``J -> 0``.
+
+    Not part of the model (whose constraint is the hard ``J > 0``): the mode search
+    (:func:`bayesreg.mode.find_mode`) adds it, so that its steps turn before an element
+    collapses instead of stalling on a sliver whose gradient points through the wall.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Deformed nodes, world mm.
+    tets : (M, 4) int array
+    volumes0 : (M,) array
+        :func:`signed_volumes` at rest (> 0).
+    ratio : float
+        ``r`` in (0, 1).
+
+    Returns
+    -------
+    () array
+        ``0`` when no element is below ``r``; elements with ``J <= 0`` contribute a finite
+        value (the hard constraint rejects them).
+    """
+    j = signed_volumes(points, tets) / volumes0
+    near = j < ratio
+    j_safe = jnp.where(near, jnp.maximum(j, 1e-12 * ratio), 1.0)
+    return -jnp.sum(jnp.where(near, (ratio / j_safe - 1.0) ** 3, 0.0))
 
 
 class SignedDistance:

@@ -4,6 +4,7 @@ rule and the barrier a smooth function of it, the same for the truth (NumPy) and
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.ndimage as ndi
 import pytest
 
 from bayesreg.constraints import points_forbidden, skull_barrier, skull_distance
@@ -98,6 +99,16 @@ def test_one_smooth_signed_distance_for_the_truth_and_the_samplers():
     d = np.asarray(skull_distance(skull, jnp.asarray(pts)))
     dh, gh, hh = host(pts, hessian=True)
     np.testing.assert_allclose(d, dh, atol=1e-12)
+    # SciPy's reference: the EDT between voxel centres less half a voxel on the grid padded by
+    # 5 forbidden voxels (the pocket forbidden), read as a cubic B-spline without prefilter
+    pad = np.pad(mask | np.pad(np.ones((3, 3, 3), bool), ((12, 1), (5, 8), (5, 8))), 5,
+                 constant_values=True)
+    h = 0.5 * spacing.min()
+    samples = np.where(pad, ndi.distance_transform_edt(pad, sampling=spacing) - h,
+                       h - ndi.distance_transform_edt(~pad, sampling=spacing))
+    cv = np.clip((pts - affine[:3, 3]) / spacing + 5.0, 0.0, np.array(pad.shape) - 1.0)
+    ref = ndi.map_coordinates(samples, cv.T, order=3, prefilter=False, mode="nearest")
+    np.testing.assert_allclose(d, ref, atol=1e-10)
     gj = np.asarray(jax.vmap(jax.grad(lambda q: skull_distance(skull, q)))(jnp.asarray(pts)))
     np.testing.assert_allclose(gj, gh, atol=1e-10)
     inside = np.all((pts > -7.0) & (pts < np.array([22.0, 22.0, 13.0])), axis=1)
@@ -127,3 +138,29 @@ def test_one_smooth_signed_distance_for_the_truth_and_the_samplers():
     assert np.all(d[~in_grid & np.any(np.abs(c - 7.5) > 9.0, axis=1)] > 0)  # beyond the grid
     open_skull = skull_constraint(Image(mask.astype(np.uint8), affine))
     assert np.all(np.asarray(skull_distance(open_skull, jnp.asarray(pts[away & pocket]))) < 0)
+
+
+def test_inversion_barrier_follows_its_formula_in_the_volume_ratio():
+    """One unit tetrahedron squashed along z to the volume ratio ``J = s``: the barrier is
+    ``-(r / J - 1)^3`` below ``r``, 0 above with a zero derivative at ``r`` (C2), finite for an
+    inverted element (the hard constraint rejects it), and a sum over elements."""
+    from bayesreg.constraints import inversion_barrier, signed_volumes
+
+    nodes = jnp.asarray([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    tets = jnp.asarray([[0, 1, 2, 3]])
+    v0 = signed_volumes(nodes, tets)
+    assert float(v0[0]) == pytest.approx(1.0)  # six times the volume 1/6
+    r = 0.1
+
+    def barrier(s):
+        return inversion_barrier(nodes * jnp.asarray([1.0, 1.0, s]), tets, v0, r)
+
+    for s in (0.5, 0.1, 0.05, 0.01, 1e-4):
+        expected = -((r / s - 1.0) ** 3) if s < r else 0.0
+        assert float(barrier(s)) == pytest.approx(expected, rel=1e-12, abs=1e-15)
+    assert float(jax.grad(barrier)(r)) == pytest.approx(0.0, abs=1e-12)
+    assert float(jax.grad(barrier)(0.05)) == pytest.approx(3 * (r / 0.05 - 1) ** 2 * r / 0.05**2, rel=1e-10)
+    assert np.isfinite(float(barrier(-0.5)))
+    two = jnp.asarray([[0, 1, 2, 3], [0, 1, 2, 3]])
+    squashed = nodes * jnp.asarray([1.0, 1.0, 0.05])
+    assert float(inversion_barrier(squashed, two, jnp.concatenate([v0, v0]), r)) == pytest.approx(-2.0)
