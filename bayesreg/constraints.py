@@ -1,13 +1,25 @@
-"""The skull as a hard constraint, and the optional smooth barrier in front of it (Sec. 3.2).
+"""The skull: one smooth signed distance for the truth, the mode search and the sampler.
 
-A node that ends in the forbidden (skull) region, or outside the image grid, makes the
-log-density ``-inf``.  The rule is the nearest voxel's label (:func:`points_forbidden`,
-SciPy's order-0 interpolation).  An optional barrier of width ``w``
-(:func:`skull_barrier`) bends the log-density down within ``w`` of the forbidden voxel
-cubes so that gradient trajectories turn before they reach the wall, which stays in place:
-no stored draw can violate the constraint.
+The forbidden region (the skull, and everything outside the image grid) becomes a smooth
+signed distance ``d(x)`` in world mm, ``d > 0`` inside it (:func:`skull_constraint`): the
+Euclidean distance transform between voxel centres of the two classes, shifted by half a
+voxel so that ``d = 0`` on the voxel faces that separate them (where the nearest-voxel
+rule puts the wall), evaluated as a uniform cubic B-spline with these samples as its
+coefficients (a quasi-interpolant: C2, and it reproduces linear functions, so a
+face-aligned wall stays exact while the staircase's corners are rounded).  Allowed voxels
+not connected to the mesh at rest (given ``nodes``) count as forbidden: a node cannot pass
+through the skull into a pocket beyond it.
 
-All distances are in world mm; the forbidden region lives on a voxel grid with its affine.
+* The hard constraint (paper Sec. 3.2) is its sign: a point with ``d >= 0`` is forbidden
+  (:func:`points_forbidden`), ``log p = -inf``.
+* The optional barrier of width ``w`` (:func:`skull_barrier`) is a smooth function of the
+  clearance ``-d``: ``-(w / (-d) - 1)^3`` for ``0 < -d < w``, 0 beyond (C2), ``-> -inf`` at
+  the wall, so that gradient trajectories turn before it.
+* The paper's constrained truth (:mod:`bayesreg.contact`) is made against the same ``d``
+  (:class:`SignedDistance`: the same spline in NumPy with its gradient and Hessian), and
+  the mode search sees it too: no stage sees a voxel staircase another does not.
+
+All distances are in world mm; the grid carries its affine.
 """
 
 from __future__ import annotations
@@ -17,43 +29,56 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.ndimage as ndi
+
+from bayesreg.interpolation import CUBIC_PAD, cubic_clamped
 
 __all__ = ["SkullConstraint", "skull_constraint", "with_barrier", "points_forbidden",
-           "skull_distance", "skull_barrier", "BARRIER_FLOOR"]
+           "skull_distance", "skull_barrier", "SignedDistance", "BARRIER_FLOOR", "GRID_PAD",
+           "signed_volumes", "inversion_barrier"]
+
+#: Forbidden voxels added around the grid: outside the image grid is forbidden, and ``d``
+#: keeps growing there for a few voxels (then it is held).
+GRID_PAD = 5
 
 
 class SkullConstraint(NamedTuple):
-    """The forbidden region and the barrier in front of it (a pytree of arrays).
+    """The forbidden region as a smooth signed distance, and the barrier in front of it.
 
     Attributes
     ----------
-    forbidden : (I, J, K) bool
-        Forbidden voxels (the skull) on the label grid.
+    coef : (I + 2 GRID_PAD + 6, ...)
+        Cubic B-spline coefficients of ``d`` (mm): the signed distance samples of the grid
+        padded by :data:`GRID_PAD` forbidden voxels, themselves padded for
+        :func:`bayesreg.interpolation.cubic_clamped`.
     inv_affine : (4, 4)
-        World-to-voxel matrix of that grid.
-    voxel_size : (3,)
-        Spacing of the grid, mm (the column norms of its affine).
-    barrier_offsets : (K, 3) int
-        Voxel offsets around a point's nearest voxel whose cubes the barrier looks at
-        (``{-R..R}^3``, ``R = max(1, ceil(w / min voxel_size))``: every cube nearer than
-        ``w``; ``(0, 3)`` when the barrier is off).
+        World mm to the voxel coordinates of the padded grid (the image's own plus
+        :data:`GRID_PAD`).
     barrier_width : ()
         Width ``w`` (mm) of the barrier, 0 = off.
     barrier_wall : () bool
         Whether points at the barrier's own singularity are forbidden
-        (:func:`skull_barrier`'s ``clear``): true for sampling; the mode search turns it off, so that
-        its line search meets the barrier's huge finite values there and steps back.
+        (:func:`skull_barrier`'s ``clear``): true for sampling; the mode search turns it off,
+        so that its line search meets the barrier's huge finite values there and steps back.
     """
 
-    forbidden: jax.Array
+    coef: jax.Array
     inv_affine: jax.Array
-    voxel_size: jax.Array
-    barrier_offsets: jax.Array
     barrier_width: jax.Array
     barrier_wall: jax.Array = True
 
 
-def skull_constraint(forbidden, *, barrier_mm: float = 0.0) -> SkullConstraint:
+def _admissible(mask: np.ndarray, inv_affine: np.ndarray, nodes) -> np.ndarray:
+    """The allowed voxels 6-connected to those that hold ``nodes`` (at rest)."""
+    comp, _ = ndi.label(~mask)
+    idx = np.floor(np.asarray(nodes, np.float64) @ inv_affine[:3, :3].T + inv_affine[:3, 3] + 0.5)
+    idx = idx.astype(np.int64)
+    ok = np.all((idx >= 0) & (idx < np.array(mask.shape)), axis=1)
+    seeds = np.unique(comp[tuple(idx[ok].T)])
+    return np.isin(comp, seeds[seeds > 0])
+
+
+def skull_constraint(forbidden, *, barrier_mm: float = 0.0, nodes=None) -> SkullConstraint:
     """The constraint of a forbidden-region image (``data > 0`` is forbidden).
 
     Parameters
@@ -62,6 +87,9 @@ def skull_constraint(forbidden, *, barrier_mm: float = 0.0) -> SkullConstraint:
         3D image with a finite invertible affine.
     barrier_mm : float
         Width of the barrier (:func:`with_barrier`), mm; 0 = off.
+    nodes : (N, 3) array, optional
+        The mesh at rest, world mm: allowed voxels not 6-connected to those holding a node
+        are forbidden too.
 
     Raises
     ------
@@ -69,12 +97,21 @@ def skull_constraint(forbidden, *, barrier_mm: float = 0.0) -> SkullConstraint:
         Through :func:`with_barrier`: a negative or non-finite width.
     """
     affine = np.asarray(forbidden.affine, dtype=np.float64)
+    inv = np.linalg.inv(affine)
+    mask = np.asarray(forbidden.data) > 0
+    if nodes is not None:
+        mask = ~_admissible(mask, inv, nodes)
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    f = np.pad(mask, GRID_PAD, constant_values=True)
+    half = 0.5 * spacing.min()
+    inside = ndi.distance_transform_edt(f, sampling=spacing)
+    outside = ndi.distance_transform_edt(~f, sampling=spacing)
+    grid = np.where(f, inside - half, -(outside - half))
+    shift = np.eye(4)
+    shift[:3, 3] = GRID_PAD
     skull = SkullConstraint(
-        forbidden=jnp.asarray(np.asarray(forbidden.data) > 0),
-        inv_affine=jnp.asarray(np.linalg.inv(affine)),
-        voxel_size=jnp.asarray(spacing),
-        barrier_offsets=jnp.zeros((0, 3), dtype=jnp.int32),
+        coef=jnp.asarray(np.pad(grid, CUBIC_PAD, mode="edge")),
+        inv_affine=jnp.asarray(shift @ inv),
         barrier_width=jnp.asarray(0.0),
         barrier_wall=jnp.asarray(True),
     )
@@ -82,10 +119,7 @@ def skull_constraint(forbidden, *, barrier_mm: float = 0.0) -> SkullConstraint:
 
 
 def with_barrier(skull: SkullConstraint, barrier_mm: float) -> SkullConstraint:
-    """``skull`` with a barrier of width ``barrier_mm`` (mm; 0 = off) in place of its own:
-    sets :attr:`SkullConstraint.barrier_width` and the voxel offsets searched,
-    ``{-R..R}^3`` with ``R = max(1, ceil(w / min voxel_size))`` (a cube at offset ``k`` is at
-    least ``(k - 1) h`` away, so every cube nearer than ``w`` is searched).
+    """``skull`` with a barrier of width ``barrier_mm`` (mm; 0 = off) in place of its own.
 
     Raises
     ------
@@ -94,75 +128,30 @@ def with_barrier(skull: SkullConstraint, barrier_mm: float) -> SkullConstraint:
     """
     if not (barrier_mm >= 0 and np.isfinite(barrier_mm)):
         raise ValueError(f"the skull barrier width must be finite and >= 0 mm, got {barrier_mm}")
-    offsets = np.zeros((0, 3), dtype=np.int32)
-    if barrier_mm > 0:
-        r = max(1, int(np.ceil(barrier_mm / float(np.min(np.asarray(skull.voxel_size))) - 1e-12)))
-        rng = np.arange(-r, r + 1)
-        offsets = np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), -1).reshape(-1, 3)
-    return skull._replace(barrier_offsets=jnp.asarray(offsets, dtype=jnp.int32),
-                          barrier_width=jnp.asarray(float(barrier_mm)))
+    return skull._replace(barrier_width=jnp.asarray(float(barrier_mm)))
 
 
-def _voxel_coordinates(skull: SkullConstraint, points):
-    """Continuous voxel coordinates ``(..., 3)`` of world points on the forbidden grid."""
-    return points @ skull.inv_affine[:3, :3].T + skull.inv_affine[:3, 3]
+def skull_distance(skull: SkullConstraint, points):
+    """The smooth signed distance ``d`` (mm, ``> 0`` inside the forbidden region) at world
+    points ``(..., 3)`` mm (module docstring); differentiable (C2).
 
-
-def _voxel_forbidden(skull: SkullConstraint, idx):
-    """Whether the voxels ``idx`` ``(..., 3)`` int are forbidden (outside the grid counts)."""
-    shape = jnp.array(skull.forbidden.shape)
-    inside = jnp.all((idx >= 0) & (idx < shape), axis=-1)
-    idc = jnp.clip(idx, 0, shape - 1)
-    return ~inside | skull.forbidden[idc[..., 0], idc[..., 1], idc[..., 2]]
+    Returns
+    -------
+    (...,) array
+    """
+    a = skull.inv_affine
+    return cubic_clamped(skull.coef, points @ a[:3, :3].T + a[:3, 3])
 
 
 def points_forbidden(skull: SkullConstraint, points):
-    """Whether each world point ``(..., 3)`` mm breaks the hard constraint: its nearest voxel
-    is forbidden or outside the grid (the rule of SciPy's order-0 interpolation).
+    """Whether each world point ``(..., 3)`` mm breaks the hard constraint: ``d >= 0``
+    (in the skull, outside the image grid, or in a pocket beyond the skull).
 
     Returns
     -------
     (...) bool array
     """
-    idx = jnp.floor(_voxel_coordinates(skull, points) + 0.5).astype(jnp.int32)  # nearest voxel
-    return _voxel_forbidden(skull, idx)
-
-
-def skull_distance(skull: SkullConstraint, points):
-    """Smoothed distance (mm) from each point to the forbidden region as the hard
-    constraint sees it: the union of the cubes (voxel cells) of the forbidden voxels.
-
-    ``d = -tau log sum_k exp(-d_k / tau)`` over the forbidden cubes ``k`` among the
-    :attr:`SkullConstraint.barrier_offsets` around the point's nearest voxel (voxels
-    outside the grid count as forbidden, as in the hard rule), ``d_k`` the Euclidean
-    distance to cube ``k`` in mm, ``tau = w / 20``.  The soft minimum is C-infinity where
-    the cubes' distances are (outside every cube) and never exceeds the true distance, so
-    ``d <= 0`` whenever the nearest-voxel rule says "forbidden"; the cubes searched cover
-    every cube nearer than ``w``.  Exact for an affine with orthogonal columns (cubes are
-    boxes of :attr:`SkullConstraint.voxel_size`); approximate for an oblique one.
-
-    Parameters
-    ----------
-    skull : SkullConstraint
-        With ``barrier_width > 0``.
-    points : (P, 3) array
-        World mm.
-
-    Returns
-    -------
-    (P,) array
-        mm (``+inf`` where no forbidden cube is searched).
-    """
-    c = _voxel_coordinates(skull, points)
-    v = jnp.floor(c + 0.5)  # nearest voxel (the hard rule's)
-    cells = v[:, None, :] + skull.barrier_offsets  # (P, K, 3)
-    gap = jnp.maximum(jnp.abs(c[:, None, :] - cells) - 0.5, 0.0) * skull.voxel_size
-    s2 = jnp.sum(gap * gap, axis=-1)
-    dist = jnp.where(s2 > 0, jnp.sqrt(jnp.where(s2 > 0, s2, 1.0)), 0.0)  # 0 inside the cube
-    forb = _voxel_forbidden(skull, cells.astype(jnp.int32))
-    tau = skull.barrier_width / 20.0
-    z = jnp.where(forb, -dist / tau, -jnp.inf)
-    return -tau * jax.nn.logsumexp(z, axis=-1)
+    return skull_distance(skull, points) >= 0.0
 
 
 BARRIER_FLOOR = 1e-6
@@ -171,26 +160,16 @@ formula and forbids (the barrier's own wall)."""
 
 
 def skull_barrier(skull: SkullConstraint, points):
-    """Smooth barrier against the skull: ``-sum (w / d - 1)^2`` over the points with
-    ``0 < d < w`` (``d`` = :func:`skull_distance`, ``w = barrier_width``), 0 beyond ``w``,
-    ``-> -inf`` as ``d -> 0``; C1 in the points; and whether every point is clear of the
-    barrier's own wall, ``d > BARRIER_FLOOR * w``.
+    """Smooth barrier against the skull: ``-sum (w / s - 1)^3`` over the points with
+    clearance ``0 < s < w`` (``s = -d``, :func:`skull_distance`; ``w = barrier_width``), 0
+    beyond ``w`` (C2 there), ``-> -inf`` as ``s -> 0``; and whether every point is clear of
+    the barrier's own wall, ``s > BARRIER_FLOOR * w``.
 
     An optional change of the model (``model.skull_barrier_mm``; 0 = off, the paper's hard
     constraint alone): it bends the log-density down within ``w`` of the skull so that
     gradient trajectories turn before they reach the hard ``-inf`` wall, which stays in
-    place.  ``d`` is the distance to the voxel cubes that the hard rule forbids, so the
-    barrier's singularity is never behind the wall (a trilinearly interpolated signed
-    distance would read clearance at the corners of the voxel staircase where the rule
-    already forbids).
-
-    ``d`` is a soft minimum, up to ``(w / 20) log 27`` below the true distance, so a point
-    that the hard rule allows can have ``d <= 0``, where the barrier cannot follow its
-    formula.  The posterior forbids points that are not clear as it forbids the skull
-    (``log p = -inf``), so the barrier's singularity is the model's wall in front of the
-    hard one (at most ``0.165 w`` in front of it): the log-density has no flat plateau
-    there, which, clamped, held a chain at ``log p = -1e12`` with a zero gradient (a
-    BrainWeb brain, one chain of three).  Below the floor the value is held finite.
+    place.  The barrier and the wall are one surface, ``d = 0`` (the posterior forbids a
+    point not clear of the floor, which would otherwise sit on a flat, clamped plateau).
 
     Parameters
     ----------
@@ -206,11 +185,107 @@ def skull_barrier(skull: SkullConstraint, points):
         off.
     """
     w = skull.barrier_width
-    if skull.barrier_offsets.shape[0] == 0:
-        return jnp.zeros(()), jnp.asarray(True)
-    d = skull_distance(skull, points)
-    near = d < w
+    s = -skull_distance(skull, points)
+    near = s < w
     floor = BARRIER_FLOOR * jnp.maximum(w, 1e-12)
-    d_safe = jnp.where(near, jnp.maximum(d, floor), 1.0)
-    clear = jnp.all(d > floor) | ~jnp.asarray(skull.barrier_wall)
-    return -jnp.sum(jnp.where(near, (w / d_safe - 1.0) ** 2, 0.0)), clear
+    s_safe = jnp.where(near, jnp.maximum(s, floor), 1.0)
+    clear = jnp.all(s > floor) | ~jnp.asarray(skull.barrier_wall) | ~(w > 0)
+    value = -jnp.sum(jnp.where(near, (w / s_safe - 1.0) ** 3, 0.0))
+    return jnp.where(w > 0, value, 0.0), clear
+
+
+def signed_volumes(points, tets):
+    """Six times the signed volume of each tetrahedron, ``(M,)`` mm^3, of world points
+    ``(N, 3)`` mm and ``tets`` ``(M, 4)``: positive for the mesh's orientation, ``<= 0``
+    for an inverted (or flat) element, the other hard constraint (paper Sec. 3.2)."""
+    x = points[tets]
+    return jnp.einsum("mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0])
+
+
+def inversion_barrier(points, tets, volumes0, ratio: float):
+    """Smooth barrier against inverted elements: ``-sum (r / J - 1)^3`` over the elements
+    whose volume ratio ``J = V / V_0`` is below ``r = ratio``, 0 elsewhere (C2 at ``J = r``),
+    ``-> -inf`` as ``J -> 0``.
+
+    Not part of the model (whose constraint is the hard ``J > 0``): the mode search
+    (:func:`bayesreg.mode.find_mode`) adds it, so that its steps turn before an element
+    collapses instead of stalling on a sliver whose gradient points through the wall.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Deformed nodes, world mm.
+    tets : (M, 4) int array
+    volumes0 : (M,) array
+        :func:`signed_volumes` at rest (> 0).
+    ratio : float
+        ``r`` in (0, 1).
+
+    Returns
+    -------
+    () array
+        ``0`` when no element is below ``r``; elements with ``J <= 0`` contribute a finite
+        value (the hard constraint rejects them).
+    """
+    j = signed_volumes(points, tets) / volumes0
+    near = j < ratio
+    j_safe = jnp.where(near, jnp.maximum(j, 1e-12 * ratio), 1.0)
+    return -jnp.sum(jnp.where(near, (ratio / j_safe - 1.0) ** 3, 0.0))
+
+
+class SignedDistance:
+    """:func:`skull_distance` on the host (NumPy) with its gradient and Hessian, for the
+    Newton solver of the constrained truth (:mod:`bayesreg.contact`): the same spline, the
+    same coefficients, the same clamping.
+
+    Parameters
+    ----------
+    skull : SkullConstraint
+    """
+
+    def __init__(self, skull: SkullConstraint):
+        self.coef = np.asarray(skull.coef)
+        self.inv = np.asarray(skull.inv_affine)
+        self.hi = np.array(self.coef.shape) - 2 * CUBIC_PAD - 1.0
+
+    @staticmethod
+    def _bspline(t):
+        s = 1.0 - t
+        w = np.stack([s**3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3], -1)
+        dw = np.stack([-3 * s**2, 9 * t**2 - 12 * t, -9 * t**2 + 6 * t + 3, 3 * t**2], -1)
+        d2w = np.stack([s, 3 * t - 2, 1 - 3 * t, t], -1)
+        return w / 6.0, dw / 6.0, d2w
+
+    def __call__(self, points, hessian=False):
+        """``d`` ``(P,)``, ``grad d`` ``(P, 3)`` and, with ``hessian``, ``grad grad d``
+        ``(P, 3, 3)`` at world points ``(P, 3)`` mm (zero derivatives across a clamped
+        coordinate)."""
+        points = np.asarray(points, np.float64)
+        c = points @ self.inv[:3, :3].T + self.inv[:3, 3]
+        cc = np.clip(c, 0.0, self.hi) + CUBIC_PAD
+        i0 = np.floor(cc).astype(np.int64)
+        t = cc - i0
+        taps = i0[:, :, None] + np.arange(-1, 3)  # (P, 3, 4)
+        v = self.coef[taps[:, 0, :, None, None], taps[:, 1, None, :, None], taps[:, 2, None, None, :]]
+        w, dw, d2w = [np.moveaxis(a, 1, 0) for a in self._bspline(t)]  # each (3, P, 4)
+
+        def contract(kx, ky, kz):
+            return np.einsum("pa,pb,pc,pabc->p", kx[0], ky[1], kz[2], v)
+
+        val = contract(w, w, w)
+        keep = (c >= 0.0) & (c <= self.hi)  # not clamped
+        gc = np.stack([contract(dw, w, w), contract(w, dw, w), contract(w, w, dw)], -1) * keep
+        grad = gc @ self.inv[:3, :3]
+        if not hessian:
+            return val, grad
+        hc = np.empty((len(points), 3, 3))
+        for a in range(3):
+            for b in range(a, 3):
+                k = [w, w, w]
+                if a == b:
+                    k[a] = d2w
+                else:
+                    k[a], k[b] = dw, dw
+                hc[:, a, b] = hc[:, b, a] = contract(*k)
+        hc *= keep[:, :, None] & keep[:, None, :]
+        return val, grad, np.einsum("ai,pab,bj->pij", self.inv[:3, :3], hc, self.inv[:3, :3])

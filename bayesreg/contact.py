@@ -4,8 +4,9 @@
 (Dirichlet) and puts every other boundary node where it minimises the linear-elastic
 strain energy subject to the skull constraint (frictionless contact: nodes may slide along
 the skull, never enter it), by an augmented-Lagrangian method with semi-smooth Newton inner
-solves on the Schur complement of ``K``.  The skull becomes a smooth signed distance
-(:class:`_SignedDistance`, a C2 cubic B-spline of the Euclidean distance transform).
+solves on the Schur complement of ``K``.  The skull is the samplers' own smooth signed
+distance (:mod:`bayesreg.constraints`), evaluated with its gradient and Hessian by
+:class:`bayesreg.constraints.SignedDistance`.
 
 Units: world mm; energies in ``[lam] mm^3``.
 """
@@ -14,108 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from bayesreg.constraints import SignedDistance, skull_constraint
 from bayesreg.fem import stiffness_matrix
 from bayesreg.images import Image
 from bayesreg.mesh import Mesh, signed_volumes
 from bayesreg.synthetic import Truth, centre_of_gravity, top_boundary
 
 __all__ = ["constrained_shift"]
-
-
-_PAD = 3  # forbidden voxels added around the grid (the exterior of the grid is forbidden)
-
-
-def _nearest_forbidden(mask, inv_affine, points):
-    """The rule of :func:`bayesreg.constraints.points_forbidden` in NumPy: nearest voxel ``floor(c + 0.5)``
-    forbidden, or the point outside the grid; ``(P,)`` bool."""
-    c = points @ inv_affine[:3, :3].T + inv_affine[:3, 3]
-    idx = np.floor(c + 0.5).astype(np.int64)
-    shape = np.array(mask.shape)
-    inside = np.all((idx >= 0) & (idx < shape), axis=1)
-    idc = np.clip(idx, 0, shape - 1)
-    return ~inside | mask[idc[:, 0], idc[:, 1], idc[:, 2]]
-
-
-class _SignedDistance:
-    """Smooth signed distance (mm, > 0 inside the forbidden region) and its gradient.
-
-    Grid values: ``edt - h/2`` with ``edt`` the Euclidean distance from a voxel centre to
-    the nearest centre of the other class and ``h`` the smallest spacing, so the zero level
-    lies on the voxel faces that separate the classes.  ``d`` is the uniform cubic B-spline
-    quasi-interpolant of these values (the samples used as B-spline coefficients, no
-    prefilter): C2, so Newton and the line search see no kinks of the voxel staircase, and
-    it reproduces linear functions, so a face-aligned wall stays exact.  The grid is padded
-    with forbidden voxels; beyond it the distance to it is added, so ``d`` keeps growing.
-    """
-
-    def __init__(self, forbidden_mask, affine):
-        f = np.pad(np.asarray(forbidden_mask, bool), _PAD, constant_values=True)
-        affine = np.asarray(affine, np.float64)
-        shift = np.eye(4)
-        shift[:3, 3] = -_PAD
-        self.affine = affine @ shift
-        self.inv = np.linalg.inv(self.affine)
-        spacing = np.linalg.norm(affine[:3, :3], axis=0)
-        half = 0.5 * spacing.min()
-        inside = ndi.distance_transform_edt(f, sampling=spacing)
-        outside = ndi.distance_transform_edt(~f, sampling=spacing)
-        self.grid = np.where(f, inside - half, -(outside - half))
-        self.hi = np.array(self.grid.shape) - 3  # c in [1, hi]: the 4 taps stay in the grid
-
-    @staticmethod
-    def _bspline(t):
-        s = 1.0 - t
-        w = np.stack([s**3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3], -1)
-        dw = np.stack([-3 * s**2, 9 * t**2 - 12 * t, -9 * t**2 + 6 * t + 3, 3 * t**2], -1)
-        d2w = np.stack([s, 3 * t - 2, 1 - 3 * t, t], -1)
-        return w / 6.0, dw / 6.0, d2w
-
-    def __call__(self, points, hessian=False):
-        """``d`` (P,), ``grad d`` (P, 3) and, with ``hessian``, ``grad grad d`` (P, 3, 3)
-        (of the spline part; the distance added beyond the grid contributes none)."""
-        c = points @ self.inv[:3, :3].T + self.inv[:3, 3]
-        cc = np.clip(c, 1, self.hi)
-        i0 = np.minimum(np.floor(cc).astype(np.int64), self.hi - 1)
-        t = cc - i0
-        taps = i0[:, :, None] + np.arange(-1, 3)  # (P, 3, 4)
-        v = self.grid[
-            taps[:, 0, :, None, None], taps[:, 1, None, :, None], taps[:, 2, None, None, :]
-        ]
-        w, dw, d2w = [np.moveaxis(a, 1, 0) for a in self._bspline(t)]  # each (3, P, 4)
-
-        def contract(kx, ky, kz):
-            return np.einsum("pa,pb,pc,pabc->p", kx[0], ky[1], kz[2], v)
-
-        val = contract(w, w, w)
-        gc = np.stack([contract(dw, w, w), contract(w, dw, w), contract(w, w, dw)], -1)
-        out = c - cc  # voxel units, nonzero only on clamped axes
-        clamped = out != 0
-        gc[clamped] = 0.0
-        m = self.affine[:3, :3]
-        ow = out @ m.T
-        dist = np.linalg.norm(ow, axis=1)
-        far = dist > 0
-        val[far] += dist[far]
-        gc[far] += np.where(clamped[far], (ow[far] @ m) / dist[far, None], 0.0)
-        grad = gc @ self.inv[:3, :3]
-        if not hessian:
-            return val, grad
-        hc = np.empty((len(points), 3, 3))
-        for a in range(3):
-            for b in range(a, 3):
-                k = [w, w, w]
-                if a == b:
-                    k[a] = d2w
-                else:
-                    k[a], k[b] = dw, dw
-                hc[:, a, b] = hc[:, b, a] = contract(*k)
-        keep = ~clamped
-        hc *= keep[:, :, None] & keep[:, None, :]
-        return val, grad, np.einsum("ai,pab,bj->pij", self.inv[:3, :3], hc, self.inv[:3, :3])
 
 
 def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.0, n_pushed=20,
@@ -132,13 +41,11 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     ``E = u_b^T S u_b / 2`` with ``S`` the (dense) Schur complement, built with a sparse LU
     (SuperLU) of ``K_ii`` - direct, so the paper's CSF values (1e-6 against 1-30) are fine.
 
-    Method (tolerances in brackets).  The forbidden region becomes a smooth signed distance
-    ``d(x)`` (mm, > 0 inside; :class:`_SignedDistance`: ``distance_transform_edt`` between
-    voxel centres, shifted by half a voxel so that ``d = 0`` on the separating voxel faces,
-    evaluated as a C2 cubic B-spline with its exact gradient and Hessian).  Nodes cannot
-    cross the skull, so the admissible region is the 6-connected component(s) of the
-    allowed voxels that hold the undeformed nodes; every other voxel counts as forbidden
-    for ``d``.  With ``g_n(u) = d(x_n + u_n) + c_n <= 0`` for every non-pushed node
+    Method (tolerances in brackets).  The forbidden region is the samplers' smooth signed
+    distance ``d(x)`` (mm, > 0 inside; :func:`bayesreg.constraints.skull_constraint` given
+    the mesh at rest: the allowed voxels not connected to the undeformed nodes count as
+    forbidden, since nodes cannot cross the skull; a C2 cubic B-spline, evaluated with its
+    exact gradient and Hessian).  With ``g_n(u) = d(x_n + u_n) + c_n <= 0`` for every non-pushed node
     (``c_n`` the clearance) an augmented-Lagrangian (method of multipliers) loop solves the
     problem: for fixed multipliers ``l_n >= 0`` (contact forces) the merit
     ``E + sum_n [max(0, l_n + r g_n)^2 - l_n^2] / (2 r)`` is minimised by semi-smooth
@@ -151,16 +58,14 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     ``max_iter`` outer iterations it returns unconverged, with the figures.  The start is
     the unconstrained minimiser.
 
-    Clearance.  A point whose nearest voxel is forbidden lies within half a voxel diagonal
-    of that voxel's centre; ``c`` defaults to that half diagonal, to cover the difference
-    between ``d`` (a smoothed distance between voxel centres) and the nearest-voxel rule of
-    :func:`bayesreg.constraints.points_forbidden` (points the rule forbids have ``d`` above
-    about ``-0.64 h``, ``h`` the smallest spacing, inside the default ``c``, ``0.87 h`` for
-    isotropic voxels).  The result is checked with exactly
-    that rule (against the admissible region): a node failing it gets its clearance raised
-    by ``h / 2`` and the loop goes on (``n_clearance_raises``), so a converged result has
-    ``n_forbidden_nodes == 0``.  A node that is closer than ``c`` to the skull already at
-    rest gets its rest distance as its clearance (never negative): the margin must not push
+    Clearance.  ``c`` defaults to half the voxel diagonal: the truth's nodes stop that far in
+    front of the skull, so that a sampler's smooth barrier (``model.skull_barrier_mm``, 1 mm
+    in the NUTS configs: ``-(w / s - 1)^3`` at clearance ``s``) barely sees them.  The
+    result is checked with the samplers' own rule (``d < 0``,
+    :func:`bayesreg.constraints.points_forbidden`): a node failing it gets its clearance
+    raised by ``h / 2`` (``h`` the smallest spacing) and the loop goes on
+    (``n_clearance_raises``), so a converged result has ``n_forbidden_nodes == 0``.  A node
+    that is closer than ``c`` to the skull already at rest gets its rest distance as its clearance (never negative): the margin must not push
     the brain inward where the mesh (after :func:`bayesreg.meshing.carve_skull`) already
     touches the skull.
 
@@ -199,8 +104,9 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         ``max_violation_pushed_mm`` the same
         for the pushed nodes (not constrained); ``max_constraint_mm`` = ``max g_n`` over
         the constrained nodes (``<= tol_mm`` when converged: ``d_n <= -c_n``, where ``c_n``
-        is below ``clearance`` for a node nearer the skull at rest); ``n_forbidden_nodes`` (every node, by the
-        nearest-voxel rule of :func:`bayesreg.constraints.points_forbidden`); ``n_active`` (nodes with
+        is below ``clearance`` for a node nearer the skull at rest); ``n_forbidden_nodes``
+        (every node, by the samplers' rule :func:`bayesreg.constraints.points_forbidden`
+        against the plain skull); ``n_active`` (nodes with
         ``g_n >= -tol_mm``); ``iterations`` (outer), ``newton_iterations`` (total);
         ``penalty`` (final dimensionless ``rho``); ``converged``; ``n_inverted`` (deformed
         elements with signed volume <= 0); ``clearance_mm``; ``n_clearance_raises``;
@@ -241,7 +147,6 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     if mask.ndim != 3:
         raise ValueError(f"forbidden must be 3D, got shape {mask.shape}")
     affine = np.asarray(forbidden.affine, np.float64)
-    inv_affine = np.linalg.inv(affine)
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
     if clearance_mm is None:
         clearance_mm = 0.5 * float(np.linalg.norm(spacing))
@@ -260,26 +165,22 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     cog = centre_of_gravity(mesh)
     direction = cog - nodes[pushed]
     u_p = shift_mm * direction / np.linalg.norm(direction, axis=1, keepdims=True)
-    bad = pushed[_nearest_forbidden(mask, inv_affine, nodes[pushed] + u_p)]
+    # the samplers' skull, plain and with the pockets beyond it (admissible: the allowed
+    # voxels connected to the undeformed nodes)
+    plain = SignedDistance(skull_constraint(forbidden))
+    sdf = SignedDistance(skull_constraint(forbidden, nodes=nodes))
+    bad = pushed[plain(nodes[pushed] + u_p)[0] >= 0]
     if bad.size:
         raise ValueError(
             f"the target of pushed node(s) {bad.tolist()} lies in the forbidden region; "
             "lower shift_mm or choose other nodes"
         )
-    # admissible region: the (6-connected) allowed components that hold the undeformed
-    # nodes; a node cannot pass through the skull into another one
-    comp, _ = ndi.label(~mask)
-    idx = np.floor(nodes @ inv_affine[:3, :3].T + inv_affine[:3, 3] + 0.5).astype(np.int64)
-    ok = np.all((idx >= 0) & (idx < np.array(mask.shape)), axis=1)
-    seeds = np.unique(comp[tuple(idx[ok].T)])
-    admissible = np.isin(comp, seeds[seeds > 0])
-    bad = pushed[_nearest_forbidden(~admissible, inv_affine, nodes[pushed] + u_p)]
+    bad = pushed[sdf(nodes[pushed] + u_p)[0] >= 0]
     if bad.size:
         raise ValueError(
             f"the target of pushed node(s) {bad.tolist()} lies beyond the forbidden region "
             "(an allowed pocket not connected to the undeformed mesh)"
         )
-    sdf = _SignedDistance(~admissible, affine)
 
     # condensation: u = u0 + T u_f, u_f the free boundary DOFs
     k = sp.csr_matrix(stiffness_matrix(nodes, tets, lam_e, mu_e))
@@ -421,7 +322,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         viol = max(float(g.max()) if g.size else -np.inf, float(gv.max()))
         if viol <= tol_mm:
             u_all = (u0 + t_mat @ uf).reshape(n, 3)
-            bad = _nearest_forbidden(~admissible, inv_affine, x_c + u_all[cons])
+            bad = sdf(x_c + u_all[cons])[0] >= 0
             if not bad.any():
                 converged = True
                 break
@@ -443,7 +344,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         "max_violation_mm": float(d_all[cons].max()) if cons.size else None,
         "max_violation_pushed_mm": float(d_all[pushed].max()),
         "max_constraint_mm": float(g.max()) if cons.size else None,
-        "n_forbidden_nodes": int(np.sum(_nearest_forbidden(mask, inv_affine, nodes + u))),
+        "n_forbidden_nodes": int(np.sum(plain(nodes + u)[0] >= 0)),
         "n_active": int(np.sum(g >= -tol_mm)),
         "iterations": int(it),
         "newton_iterations": int(n_newton),

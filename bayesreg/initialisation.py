@@ -25,8 +25,9 @@ import scipy.sparse.linalg as spla
 
 from bayesreg import labels as L
 from bayesreg.config import Config
+from bayesreg.constraints import skull_distance
 from bayesreg.fem import stiffness_matrix
-from bayesreg.images import Image, interpolate_numpy
+from bayesreg.images import Image
 from bayesreg.mode import find_mode
 from bayesreg.mesh import Mesh
 from bayesreg.posterior import Posterior, elastic_groups, energies, similarity_weight
@@ -48,7 +49,9 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     (``init.start: registration``: scikit-image optical flow, see
     :func:`bayesreg.registration.optical_flow_displacement`) at the boundary nodes.  Nodes
     that the start would put into the skull (or an element it would invert) are pulled back
-    toward zero by halving until the start is valid.  Parameters: ``model.initial_*``.
+    toward zero by halving until the start is valid and no node is nearer the skull than half
+    the barrier's width (:func:`bayesreg.constraints.skull_distance`, the one smooth skull of
+    every stage).  Parameters: ``model.initial_*``.
 
     Parameters
     ----------
@@ -85,14 +88,21 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     theta = np.concatenate([base_u.ravel(), problem.phi_init])
     check = start_check(problem, cfg) if check is None else check
     shrink = 1.0
+    # a node nearer the skull than half the barrier's width counts as offending: its barrier
+    # term (and gradient) would dwarf the rest of log p at the start of the mode search
+    # (or than it is at rest, if nearer)
+    near = -0.5 * float(post.barrier_width)
+    rest = np.asarray(skull_distance(post.skull, jnp.asarray(mesh.nodes[mesh.boundary])))
     for _ in range(30):
+        moved = mesh.nodes[mesh.boundary] + theta[: 3 * nb].reshape(nb, 3)
+        d = np.asarray(skull_distance(post.skull, jnp.asarray(moved)))
+        bad = (d >= near) & (d > rest)
         # the one start, as each of the chains' rows: the program of the dispersed starts
-        if np.isfinite(np.asarray(check(jnp.tile(jnp.asarray(theta), (cfg.sampler.chains, 1))))[0]):
+        if (not bad.any() and
+                np.isfinite(np.asarray(check(jnp.tile(jnp.asarray(theta), (cfg.sampler.chains, 1))))[0])):
             info["shrink"] = shrink
             return theta, info
-        # pull back only the offending nodes (in the skull or out of the image) first
-        moved = mesh.nodes[mesh.boundary] + theta[: 3 * nb].reshape(nb, 3)
-        bad = interpolate_numpy(problem.labels, moved, order=0, cval=L.SKULL) == L.SKULL
+        # pull back only the offending nodes (in or near the skull, out of the image) first
         u = theta[: 3 * nb].reshape(nb, 3)
         u[bad if bad.any() else slice(None)] *= 0.5
         theta[: 3 * nb] = u.ravel()

@@ -22,12 +22,14 @@ import tempfile
 import warnings
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage as ndi
 
 from bayesreg import labels as L
 from bayesreg._checks import check_number
-from bayesreg.images import Image, check_image, interpolate_numpy, world_to_voxel
+from bayesreg.constraints import points_forbidden, skull_constraint
+from bayesreg.images import Image, check_image, world_to_voxel
 from bayesreg.mesh import (
     Mesh, MeshError, boundary_nodes, compact_nodes, label_elements, mesh_quality, orient_tets)
 from bayesreg.warp import interpolation_matrix
@@ -344,7 +346,8 @@ def carve_skull(labels: Image, mesh: Mesh, *, clearance_mm: float = 2.0) -> tupl
     Raises
     ------
     MeshError
-        If a mesh node still lies in the skull region (it cannot, unless the clearance is 0).
+        If a mesh node still lies in the skull region as the samplers see it
+        (:func:`bayesreg.constraints.points_forbidden`; it cannot, unless the clearance is 0).
     """
     _, covered = interpolation_matrix(mesh, labels)
     # the voxels nearest to the nodes count as covered too (thin protrusions, tips)
@@ -358,8 +361,9 @@ def carve_skull(labels: Image, mesh: Mesh, *, clearance_mm: float = 2.0) -> tupl
     carve = (data == L.SKULL) & (dist < clearance_mm)
     data[carve] = L.BACKGROUND
     out = Image(data, labels.affine)
-    at_rest = interpolate_numpy(out, mesh.nodes, order=0, cval=L.SKULL)
-    n_bad = int(np.sum(at_rest == L.SKULL))
+    # at rest every node must be allowed by the samplers' own rule (the smooth skull)
+    skull = skull_constraint(Image((data == L.SKULL).astype(np.uint8), labels.affine))
+    n_bad = int(np.sum(np.asarray(points_forbidden(skull, jnp.asarray(mesh.nodes)))))
     if n_bad:
         raise MeshError(f"{n_bad} mesh node(s) lie in the skull region before any deformation")
     return out, int(carve.sum())

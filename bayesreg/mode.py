@@ -15,16 +15,21 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from bayesreg.constraints import inversion_barrier, signed_volumes
 from bayesreg.normaliser import add_normaliser
 from bayesreg.posterior import (
-    Posterior, log_normaliser, normaliser_surrogate, split_position, surrogate_normaliser,
-    with_skull_barrier)
+    Posterior, full_displacement, log_normaliser, normaliser_surrogate, split_position,
+    surrogate_normaliser, with_skull_barrier)
 from bayesreg.targets import logdensity_fn
 
-__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM", "SURROGATE_ROUNDS"]
+__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM", "MODE_VOLUME_RATIO", "SURROGATE_ROUNDS"]
 
 MODE_BARRIER_MM = 1.0
 """Width (mm) of the skull barrier that :func:`find_mode` adds to a model without one."""
+
+MODE_VOLUME_RATIO = 0.1
+"""Volume ratio below which :func:`find_mode`'s objective bends down against an element's
+inversion (:func:`bayesreg.constraints.inversion_barrier`)."""
 
 SURROGATE_ROUNDS = 4
 """At most this many rounds of the parameters' search with the normaliser's surrogate
@@ -39,12 +44,13 @@ class ModeSearch(NamedTuple):
     theta : (dim,) ndarray
         The mode found, ``[u_b.ravel() (mm), phi]``.
     logp_start, logp_mode : float
-        The searched objective (the barrier included) at the start and at the result.
+        The searched objective (the barriers included) at the start and at the result.
     iterations : int
         L-BFGS iterations, all stages.
     message : str
         Why the search stopped (``"converged: ..."``, ``"reached N iterations"``, or that the
-        line search found no feasible step: a hard constraint).
+        line search found no feasible step: a hard constraint); for the joint search, why
+        each of its two stages stopped (``"u_b alone: ...; joint: ..."``).
     parameters_optimized : bool
     search_barrier_mm : float
         Width of the skull barrier of the searched objective, mm.
@@ -87,7 +93,11 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     :data:`MODE_BARRIER_MM` barrier (:func:`bayesreg.constraints.skull_barrier`): on the hard
     wall alone the line search stalls as soon as the gradient points into the skull, while
     the barrier's maximum is strictly feasible and within the barrier of the constrained
-    one; the chains sample the model as given.  The barrier's own wall
+    one; the chains sample the model as given.  Likewise against inverted elements: the
+    objective has :func:`bayesreg.constraints.inversion_barrier` below the volume ratio
+    :data:`MODE_VOLUME_RATIO` (on the hard ``J > 0`` alone a step toward the mode would
+    crush an element and stall there).  Where L-BFGS's line search gives up, a backtracking
+    gradient step is taken and L-BFGS starts afresh.  The barrier's own wall
     (:func:`bayesreg.constraints.skull_barrier`) is off in the search: there the barrier's
     huge finite values shorten the step, where ``-inf`` would stop the search.  With
     ``exact`` the search runs without the normaliser (it depends on the parameters only),
@@ -140,7 +150,13 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     # every node sampled (model.interior: sample): without the normaliser the whole K's
     # energy drives the parameters onto their lower edge: with it (its surrogate)
     exact_joint = exact and post.op.n_interior == 0
-    plain = logdensity_fn(post, rtol=rtol, maxiter=maxiter)
+    model = logdensity_fn(post, rtol=rtol, maxiter=maxiter)
+    volumes0 = signed_volumes(post.nodes, post.tets)
+
+    def plain(theta, guess):  # the model plus the search's barrier against inverted elements
+        lp, aux = model(theta, guess)
+        u = full_displacement(post, split_position(post, theta)[0], aux.interior)
+        return lp + inversion_barrier(post.nodes + u, post.tets, volumes0, MODE_VOLUME_RATIO), aux
     grouped = post.normaliser.grounded.unit is not None
 
     def with_normaliser(theta, guess, data=None):
@@ -187,11 +203,28 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
                 upd, state = solver.update(g, state, x, value=v, grad=g, value_fn=neg)
                 return optax.apply_updates(x, upd), state, v, g
 
-            steps[logdensity] = step, solver
-        step, solver = steps[logdensity]
+            @jax.jit
+            def value(y, data):  # compiled only if a gradient step is needed
+                return -logdensity(y, *((zeros,) if data is None else (zeros, data)))[0]
+
+            steps[logdensity] = step, solver, value
+        step, solver, value = steps[logdensity]
         mask = np.zeros(len(theta), bool)
         mask[sl] = True
         step = partial(step, mask=jnp.asarray(mask), data=data)
+
+        def gradient_step(x, v, g):
+            """Backtracking (Armijo) along ``-g`` from a step that moves the largest
+            coordinate by 1 (mm or log units): the point, or ``None``."""
+            g = np.where(mask, np.asarray(g), 0.0)
+            gg, t = float(g @ g), 1.0 / max(float(np.abs(g).max()), 1e-300)
+            for _ in range(60):
+                y = jnp.asarray(np.asarray(x) - t * g)
+                f = float(value(y, data))
+                if np.isfinite(f) and f <= v - 1e-4 * t * gg:
+                    return y, f
+                t *= 0.5
+            return None
 
         x = jnp.asarray(theta)
         state = solver.init(x)
@@ -199,6 +232,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         # typed (same dtypes): made strong here so that `step` compiles once, not twice
         state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), state)
         best_x, best_f, message, nit = x, np.inf, f"reached {maxiter} iterations", 0
+        fallbacks = 0
         for nit in range(1, maxiter + 1):
             x_new, state, v, g = step(x, state)
             v = float(v)  # the value at x
@@ -218,13 +252,25 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
                 best_x, best_f = x, f_new
             g_norm = float(jnp.linalg.norm(g))
             if f_new == v and g_norm > 1e-8:
-                message = "no step: the line search found no feasible decrease (a hard constraint)"
-                break
+                # L-BFGS's line search gave up (a stiff barrier or a hard constraint along
+                # its direction): a backtracking gradient step, then L-BFGS afresh
+                found = gradient_step(x, v, g)
+                if found is None:
+                    message = "no step: no feasible decrease along the gradient (a hard constraint)"
+                    break
+                x, f_new = found
+                fallbacks += 1
+                if f_new < best_f:
+                    best_x, best_f = x, f_new
+                state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), solver.init(x))
+                continue
             if abs(v - f_new) <= 1e-10 * max(abs(f_new), 1.0) or g_norm <= 1e-8:
                 message = "converged: relative reduction <= 1e-10 or gradient norm <= 1e-8"
                 break
         out = theta.copy()
         out[sl] = np.asarray(best_x)[sl]  # (the rest unchanged: held by the mask)
+        if fallbacks:
+            message += f" ({fallbacks} gradient steps where the line search gave up)"
         return out, start, SimpleNamespace(fun=best_f, nit=nit, message=message)
 
     # the parameters move in the coordinates x = log(phi - r1) (the same objective, no
@@ -263,6 +309,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         x, start, res1 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1), data)
         x, _, res = maximise(objective, x, free, max(iters - iters // 2, 1), data)
         nit = res1.nit + res.nit
+        res.message = f"u_b alone: {res1.message} ({res1.nit} its); joint: {res.message}"
     else:
         x, start, res = maximise(objective, x, free, iters, data)
         nit = res.nit

@@ -324,7 +324,7 @@ def build_posterior(
         more = f" and {int(outside.sum()) - 5} more" if outside.sum() > 5 else ""
         raise ValueError(f"reference parameters phi_ref lie outside the prior support: "
                          f"{', '.join(bad)}{more}")
-    skull = skull_constraint(forbidden, barrier_mm=barrier_mm)
+    skull = skull_constraint(forbidden, barrier_mm=barrier_mm, nodes=mesh.nodes)
     op, interior = build_operator(mesh.nodes, mesh.tets, mesh.boundary)
     n_b, n_i = len(mesh.boundary), len(interior)
     perm = np.empty(len(mesh.nodes), np.int64)

@@ -17,11 +17,13 @@ import warnings
 from pathlib import Path
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage as ndi
 
 from bayesreg import labels as L
 from bayesreg.config import Config
+from bayesreg.constraints import points_forbidden, skull_constraint
 from bayesreg.contact import constrained_shift
 from bayesreg.datasets import brainweb, brainweb_model, mni152
 from bayesreg.images import (
@@ -299,11 +301,14 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
 
 def _check_truth_nodes(truth, mesh: Mesh, labels: Image, info: dict) -> None:
     """A truth that is not the constrained minimiser must keep every node out of the skull
-    region (``ValueError`` otherwise); its inverted elements are counted in ``info``."""
-    moved = interpolate_numpy(labels, mesh.nodes + truth.u, order=0, cval=L.SKULL)
-    if np.any(moved == L.SKULL):
+    region as the samplers see it (:func:`bayesreg.constraints.points_forbidden`;
+    ``ValueError`` otherwise); its inverted elements are counted in ``info``."""
+    skull = skull_constraint(Image((labels.data == L.SKULL).astype(np.uint8), labels.affine),
+                             nodes=mesh.nodes)
+    bad = np.asarray(points_forbidden(skull, jnp.asarray(mesh.nodes + truth.u)))
+    if np.any(bad):
         raise ValueError(
-            f"the synthetic truth moves {int(np.sum(moved == L.SKULL))} node(s) into the "
+            f"the synthetic truth moves {int(np.sum(bad))} node(s) into the "
             "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
         )
     info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
@@ -470,7 +475,8 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
     choice = cfg.solver.preconditioner  # spectral is validated to have one group (config)
     post = build_posterior(
         mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s, quadrature_level=cfg.model.quadrature_level,
-                        reach=reach, moving_dtype=cfg.model.moving_dtype),
+                        reach=reach, moving_dtype=cfg.model.moving_dtype,
+                        interpolation=cfg.model.interpolation),
         forbidden,
         t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
         t_s_prior=(None if cfg.model.t_s_prior is None

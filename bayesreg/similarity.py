@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from bayesreg.images import Image, check_image, grid_box, world_to_voxel
-from bayesreg.interpolation import interpolate, trilinear_clamped
+from bayesreg.interpolation import cubic_clamped, cubic_coefficients, interpolate, trilinear_clamped
 from bayesreg.mesh import signed_volumes
 
 __all__ = ["GAUSS_BARY", "MOVING_DTYPES", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
@@ -120,11 +120,15 @@ class SSDTerm(NamedTuple):
         Intra-operative image over the box the quadrature points can reach (see
         :func:`build_ssd`), with one voxel of ``cval`` wherever the box leaves the image's
         own grid, in float64 or float32 (``moving_dtype``); sampled by :func:`sample_moving`
-        (in float64 either way).
+        (in float64 either way).  With cubic interpolation, the cubic B-spline coefficients
+        of that volume (:func:`bayesreg.interpolation.cubic_coefficients`).
     m_inv_affine : (4, 4)
         World-to-voxel matrix of the array ``m`` (world mm to its voxel indices).
     cval : ()
         Value of the moving image outside its grid.
+    spline : (0,) or (1,)
+        Its length says how ``m`` is interpolated (static, a shape): 0 trilinear, 1 cubic
+        B-spline (:data:`INTERPOLATIONS`).
     """
 
     points: jax.Array
@@ -134,6 +138,12 @@ class SSDTerm(NamedTuple):
     m: jax.Array
     m_inv_affine: jax.Array
     cval: jax.Array
+    spline: jax.Array = None
+
+    @property
+    def interpolation(self) -> str:
+        """``"cubic"`` or ``"linear"`` (trilinear)."""
+        return "cubic" if self.spline is not None and self.spline.shape[0] else "linear"
 
 
 def reach_box(reach: Image):
@@ -155,9 +165,9 @@ def reach_box(reach: Image):
     return np.stack([world.min(axis=0), world.max(axis=0)])
 
 
-def _moving_array(m: Image, cval: float, box=None):
+def _moving_array(m: Image, cval: float, box=None, margin: int = 1):
     """``m`` over the voxel box that covers ``box`` (world, ``(2, 3)``; ``None``: the whole
-    grid), one voxel of margin beyond it and ``cval`` outside ``m``'s grid; with its inverse
+    grid), ``margin`` voxels beyond it and ``cval`` outside ``m``'s grid; with its inverse
     affine."""
     data = np.asarray(m.data, dtype=np.float64)
     shape = np.array(data.shape)
@@ -167,8 +177,8 @@ def _moving_array(m: Image, cval: float, box=None):
         corners = np.array([[a, b, c] for a in box[:, 0] for b in box[:, 1] for c in box[:, 2]])
         vox = world_to_voxel(m.affine, corners)
         # the trilinear corners of a point c are floor(c) and floor(c) + 1: one more for round-off
-        lo = np.floor(vox.min(axis=0)).astype(int) - 1
-        hi = np.floor(vox.max(axis=0)).astype(int) + 2
+        lo = np.floor(vox.min(axis=0)).astype(int) - margin
+        hi = np.floor(vox.max(axis=0)).astype(int) + 1 + margin
         lo, hi = np.maximum(lo, -1), np.minimum(hi, shape)  # never more than the grid + 1 voxel
     # one voxel of cval where the box reaches past the grid (the clamped sampler then
     # blends toward cval exactly as images.interpolate does, and stays at cval beyond)
@@ -212,9 +222,15 @@ def _fmt_box(lo, hi) -> str:
 #: storage precisions of the moving image that :func:`build_ssd` accepts
 MOVING_DTYPES = ("float64", "float32")
 
+#: interpolations of the moving image that :func:`build_ssd` accepts: ``linear`` (trilinear,
+#: the paper's: its gradient jumps at every voxel face) and ``cubic`` (B-spline with its
+#: prefilter: C2, for gradient samplers)
+INTERPOLATIONS = ("linear", "cubic")
+
 
 def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: int = 0,
-              reach: Image | None = None, moving_dtype: str = "float64") -> SSDTerm:
+              reach: Image | None = None, moving_dtype: str = "float64",
+              interpolation: str = "linear") -> SSDTerm:
     """Precompute :class:`SSDTerm` for a mesh and an image pair (world frames must agree).
 
     Parameters
@@ -243,13 +259,20 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
         The interpolation, the residuals and ``E_s`` are float64 either way; the rounding
         moves ``log p`` by an offset nearly constant over the chains' states, of the size
         of the CG tolerance's effect.
+    interpolation : {"linear", "cubic"}
+        How ``m`` is sampled at the displaced points: trilinear (the paper's; its gradient
+        jumps at every voxel face) or cubic B-spline with its prefilter (C2: what a
+        gradient sampler needs, several times the cost per point;
+        :func:`bayesreg.interpolation.cubic_clamped`).  ``f`` at the fixed points is read
+        the same way.
 
     Raises
     ------
     ValueError
         If ``f``, ``m`` (or ``reach``) is not a 3D :class:`Image` with a finite invertible
         affine, ``f`` or ``m`` has a NaN or infinite voxel, ``quadrature_level`` is outside
-        0..3, ``moving_dtype`` is not one of :data:`MOVING_DTYPES`, or no quadrature point
+        0..3, ``moving_dtype`` is not one of :data:`MOVING_DTYPES`, ``interpolation`` not one
+        of :data:`INTERPOLATIONS`, or no quadrature point
         of the mesh lies inside ``f``'s grid or ``m``'s grid (the mesh and the images then
         do not share a world frame).
 
@@ -260,6 +283,9 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     """
     if moving_dtype not in MOVING_DTYPES:
         raise ValueError(f"moving_dtype must be one of {MOVING_DTYPES}, got {moving_dtype!r}")
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
+    cubic = interpolation == "cubic"
     f = check_image(f, "f", finite=True)
     m = check_image(m, "m", finite=True)
     if reach is not None:
@@ -269,10 +295,19 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
     for img, name in ((f, "f"), (m, "m")):
         _check_overlap(img, name, pts)
     f_inv = jnp.asarray(np.linalg.inv(f.affine))
-    f_q = jax.jit(interpolate)(jnp.asarray(f.data, dtype=jnp.float64), f_inv, jnp.asarray(pts),
-                               float(cval))  # one program, not one per op
+    if cubic:  # f read as m is: its whole grid with a voxel of cval around it
+        f_arr, f_inv = _moving_array(f, float(cval))
+        f_q = jax.jit(cubic_clamped)(jnp.asarray(cubic_coefficients(f_arr)), jnp.asarray(
+            pts @ f_inv[:3, :3].T + f_inv[:3, 3]))
+    else:
+        f_q = jax.jit(interpolate)(jnp.asarray(f.data, dtype=jnp.float64), f_inv, jnp.asarray(pts),
+                                   float(cval))  # one program, not one per op
     box = None if reach is None else reach_box(reach)
-    m_arr, m_inv = _moving_array(m, float(cval), box)
+    # cubic: the spline's taps reach two voxels past a point, and its prefilter's boundary
+    # effect decays by 0.27 a voxel (8 voxels: 3e-5)
+    m_arr, m_inv = _moving_array(m, float(cval), box, margin=8 if cubic else 1)
+    if cubic:
+        m_arr = cubic_coefficients(m_arr)
     return SSDTerm(
         points=jnp.asarray(pts),
         sqrt_w=jnp.sqrt(jnp.asarray(w)),
@@ -281,15 +316,20 @@ def build_ssd(nodes, tets, f: Image, m: Image, *, cval=0.0, quadrature_level: in
         m=jnp.asarray(m_arr.astype(moving_dtype)),
         m_inv_affine=jnp.asarray(m_inv),
         cval=jnp.asarray(float(cval)),
+        spline=jnp.zeros((1 if cubic else 0,)),
     )
 
 
 def sample_moving(term: SSDTerm, points):
-    """The moving image at world points ``(..., 3)`` mm, ``(...,)``: trilinear, ``cval``
-    outside its grid, valid inside the box of :func:`build_ssd` (``reach``); differentiable
-    (:func:`bayesreg.interpolation.trilinear_clamped`)."""
+    """The moving image at world points ``(..., 3)`` mm, ``(...,)``: trilinear or cubic
+    (:attr:`SSDTerm.interpolation`), ``cval`` outside its grid, valid inside the box of
+    :func:`build_ssd` (``reach``); differentiable
+    (:func:`bayesreg.interpolation.trilinear_clamped`, :func:`~bayesreg.interpolation.cubic_clamped`)."""
     a = term.m_inv_affine
-    return trilinear_clamped(term.m, points @ a[:3, :3].T + a[:3, 3])
+    coords = points @ a[:3, :3].T + a[:3, 3]
+    if term.interpolation == "cubic":
+        return cubic_clamped(term.m, coords)
+    return trilinear_clamped(term.m, coords)
 
 
 def moving_values(term: SSDTerm, u_e):

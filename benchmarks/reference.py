@@ -17,8 +17,12 @@ posterior as :func:`bayesreg.posterior.log_density`, written the way one would w
   one voxel outside the grid blends toward ``cval``, as :func:`bayesreg.images.interpolate`),
   its values rounded to ``model.moving_dtype`` as the posterior stores them;
 * scaled Beta priors and the hard constraints of :mod:`bayesreg.posterior` (parameter
-  outside its support, a node in the skull region or out of the label grid by nearest
-  voxel, an inverted element) give ``-inf``.
+  outside its support, a node where the skull's smooth signed distance is ``>= 0``, an
+  inverted element) give ``-inf``.  The signed distance is rebuilt here from the label map
+  with SciPy (:func:`scipy.ndimage.distance_transform_edt` between voxel centres, shifted
+  half a voxel, the grid padded by forbidden voxels, pockets not connected to the mesh at
+  rest forbidden, read by :func:`scipy.ndimage.map_coordinates` at order 3 without
+  prefilter: the cubic B-spline quasi-interpolant of :mod:`bayesreg.constraints`).
 
 Nothing here calls JAX: only the problem's host arrays (mesh, images, priors) are read.
 """
@@ -47,6 +51,25 @@ GAUSS_BARY = np.full((4, 4), _B) + np.eye(4) * (_A - _B)
 def _world_to_voxel(affine, points):
     inv = np.linalg.inv(np.asarray(affine, dtype=np.float64))
     return points @ inv[:3, :3].T + inv[:3, 3]
+
+
+def _signed_distance(skull, affine, nodes, pad=5):
+    """Samples of the skull's signed distance (mm, > 0 forbidden) on the label grid padded by
+    ``pad`` forbidden voxels, and the padded grid's affine: allowed voxels not 6-connected to
+    a node at rest are forbidden; the Euclidean distance between voxel centres of the two
+    classes less half a voxel, so that 0 lies on the faces between them."""
+    comp, _ = ndi.label(~skull)
+    idx = np.floor(_world_to_voxel(affine, nodes) + 0.5).astype(np.int64)
+    ok = np.all((idx >= 0) & (idx < np.array(skull.shape)), axis=1)
+    seeds = np.unique(comp[tuple(idx[ok].T)])
+    forbidden = np.pad(~np.isin(comp, seeds[seeds > 0]), pad, constant_values=True)
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    half = 0.5 * spacing.min()
+    sd = np.where(forbidden, ndi.distance_transform_edt(forbidden, sampling=spacing) - half,
+                  half - ndi.distance_transform_edt(~forbidden, sampling=spacing))
+    shift = np.eye(4)
+    shift[:3, 3] = -pad
+    return sd, affine @ shift
 
 
 class ReferencePosterior:
@@ -142,9 +165,10 @@ class ReferencePosterior:
         self.m = np.asarray(m.data, np.float64).astype(cfg.model.moving_dtype).astype(np.float64)
         self.m_affine = np.asarray(m.affine, np.float64)
 
-        # hard constraint: skull label (nearest voxel) or outside the label grid
-        self.forbidden = np.asarray(problem.labels.data) == L.SKULL
-        self.forbidden_affine = np.asarray(problem.labels.affine, np.float64)
+        # hard constraint: the skull's smooth signed distance d >= 0 (bayesreg.constraints)
+        self.sd, self.sd_affine = _signed_distance(np.asarray(problem.labels.data) == L.SKULL,
+                                                   np.asarray(problem.labels.affine, np.float64),
+                                                   self.nodes)
 
         self._coef = None
         self._lu = None
@@ -152,6 +176,12 @@ class ReferencePosterior:
         self.factor_s = self.solve_s = self.ssd_s = 0.0
 
     # ---- pieces --------------------------------------------------------------------------
+
+    def skull_distance(self, points):
+        """The skull's signed distance (mm, > 0 forbidden) at world points ``(P, 3)``."""
+        c = _world_to_voxel(self.sd_affine, points).reshape(-1, 3)
+        c = np.clip(c, 0.0, np.array(self.sd.shape) - 1.0).T
+        return ndi.map_coordinates(self.sd, c, order=3, prefilter=False, mode="nearest")
 
     def _sample(self, volume, affine, points):
         c = _world_to_voxel(affine, points).reshape(-1, 3).T
@@ -228,11 +258,7 @@ class ReferencePosterior:
         e_s = self.e_s(u)
         x = (self.nodes + u)[self.tets]
         det = np.einsum("mi,mi->m", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0])
-        idx = np.floor(_world_to_voxel(self.forbidden_affine, self.nodes + u) + 0.5).astype(np.int64)
-        in_grid = np.all((idx >= 0) & (idx < np.array(self.forbidden.shape)), axis=1)
-        if not in_grid.all() or np.any(det <= 0):
-            return -np.inf
-        if self.forbidden[idx[:, 0], idx[:, 1], idx[:, 2]].any():
+        if np.any(det <= 0) or np.any(self.skull_distance(self.nodes + u) >= 0.0):
             return -np.inf
         if not (np.isfinite(e_s) and np.isfinite(e_r)):
             return -np.inf

@@ -101,6 +101,16 @@ def fake_run(seed=0, c=3, d=23):
 # --- posteriors ----------------------------------------------------------------------------
 
 
+def box_skull() -> Image:
+    """The skull of :func:`box_posterior`: everything with world x > 36 mm, on its 48^3
+    grid of 1 mm voxels from -9 mm."""
+    shape = (48, 48, 48)
+    affine = np.diag([1.0, 1.0, 1.0, 1.0])
+    affine[:3, 3] = -9.0
+    x = np.arange(shape[0]) - 9.0
+    return Image(np.broadcast_to((x > 36.0)[:, None, None], shape).astype(np.uint8), affine)
+
+
 def box_posterior(prior, t_r, phi, *, quadrature_level=0, every_node=False):
     """The posterior of a 30 mm box mesh (3 tissues by x thirds; ``mu_gm`` fixed at 1) on a
     smooth random image shifted by one voxel, with a skull at world x > 36 mm; with
@@ -117,9 +127,7 @@ def box_posterior(prior, t_r, phi, *, quadrature_level=0, every_node=False):
     affine[:3, 3] = -9.0
     f = Image(ndi.gaussian_filter(rng.random(shape), 2.0) * 4, affine)
     m = Image(np.roll(f.data, 1, axis=0), affine)
-    # skull: everything with world x > 36 mm
-    x = np.arange(shape[0]) - 9.0
-    forbidden = Image(np.broadcast_to((x > 36.0)[:, None, None], shape).astype(np.uint8), affine)
+    forbidden = box_skull()
     layout = ParamLayout(("csf", "gm", "wm"),
                          free=(("lam", 0), ("lam", 1), ("lam", 2), ("mu", 0), ("mu", 2)),
                          fixed=(("mu", 1, 1.0),))

@@ -19,6 +19,7 @@ LAYERS = [
      "config.calibration", "config", "_tetwild_worker"],
     ["images"],
     ["interpolation"],
+    ["constraints"],  # the skull: one smooth signed distance (meshing checks the rest state)
     ["labels"],
     ["datasets"],
     ["mesh"],
@@ -30,7 +31,6 @@ LAYERS = [
     ["preconditioners"],
     ["solver"],
     ["similarity"],
-    ["constraints"],
     ["parameters"],
     ["normaliser"],
     ["posterior"],

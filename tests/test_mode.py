@@ -10,7 +10,7 @@ from bayesreg.mode import find_mode
 from bayesreg.parameters import ParamLayout
 from bayesreg.posterior import build_posterior
 from conftest import box_mesh, compilations
-from helpers import log_p
+from helpers import box_skull, log_p
 
 
 def test_find_mode_reaches_a_stationary_point_from_a_far_start(small):
@@ -23,9 +23,7 @@ def test_find_mode_reaches_a_stationary_point_from_a_far_start(small):
     phi = np.array([5.0, 10.0, 97.0])
     prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
     _, base, theta = small  # its image term and skull, with lam alone free
-    post = build_posterior(mesh, base.ssd, Image(np.asarray(base.skull.forbidden).astype(np.uint8),
-                                                  np.linalg.inv(np.asarray(base.skull.inv_affine))),
-                           t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
+    post = build_posterior(mesh, base.ssd, box_skull(), t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
                            prior=prior, phi_ref=phi)
     theta = np.concatenate([theta[: 3 * len(mesh.boundary)], phi])
     with compilations() as compiled:

@@ -228,8 +228,9 @@ class SyntheticConfig(_Strict):
                               "boundary nodes fades as exp(-d^2 / (2 falloff^2)) with their "
                               "distance d to the nearest pushed node; bump: the Gaussian's sd")
     clearance_mm: Float | None = Field(
-        None, ge=0, description="constrained truth: distance kept from the skull region (default "
-        "half a voxel diagonal, so no node's nearest voxel is skull)")
+        None, ge=0, description="constrained truth: distance (mm) kept in front of the skull's "
+        "smooth surface (bayesreg.constraints; default half a voxel diagonal, so that a "
+        "sampler's barrier barely sees the truth's nodes)")
     tol_mm: Float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
     min_volume_ratio: Float = Field(
         0.05, ge=0, lt=1, description="constrained truth: no element may shrink below this "
@@ -353,8 +354,9 @@ class ModelConfig(_Strict):
     prior_mu: Prior = Field(BetaPrior(r2=10.0), description="prior of every free mu, as "
                             "prior_lam")
     skull_barrier_mm: Float = Field(
-        1.0, ge=0, description="width w (mm) of a smooth barrier -sum (w/d - 1)^2 over nodes at "
-        "distance d < w from the skull's voxel cubes, added to the log-density: gradient "
+        1.0, ge=0, description="width w (mm) of a smooth barrier -sum (w/s - 1)^3 over nodes at "
+        "clearance s < w from the skull's smooth surface (bayesreg.constraints: the one signed "
+        "distance of the truth, the mode search and the sampler), added to the log-density: gradient "
         "trajectories turn before the hard constraint, which stays in place either way; 0: "
         "off, the paper's hard constraint alone (the paper's configs)")
     quadrature_level: Int = Field(
@@ -363,6 +365,11 @@ class ModelConfig(_Strict):
         "(4 * 8^k points, up to 8^k times the cost of E_s).  Four points per element alias an "
         "image of finer voxels into local modes of the boundary nodes; level 1 removes most "
         "of them (the paper's configs keep 0, the paper's rule)")
+    interpolation: Literal["linear", "cubic"] = Field(
+        "linear", description="how E_s (Eq. 1) reads the images at the quadrature points: "
+        "linear (trilinear, the paper's: the gradient of E_s jumps at every voxel face, where "
+        "the tissue edges hold the information) or cubic (B-spline with its prefilter, C2: a "
+        "smooth potential for the gradient samplers, several times the cost per point)")
     moving_dtype: Literal["float32", "float64"] = Field(
         "float32", description="storage precision of the moving image m that E_s (Eq. 1) "
         "samples: float32 rounds its values once (relative 2^-24) and halves the bytes that "
