@@ -65,9 +65,9 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     :func:`bayesreg.constraints.points_forbidden`): a node failing it gets its clearance
     raised by ``h / 2`` (``h`` the smallest spacing) and the loop goes on
     (``n_clearance_raises``), so a converged result has ``n_forbidden_nodes == 0``.  A node
-    that is closer than ``c`` to the skull already at rest gets its rest distance as its clearance (never negative): the margin must not push
-    the brain inward where the mesh (after :func:`bayesreg.meshing.carve_skull`) already
-    touches the skull.
+    that is closer than ``c`` to the skull already at rest gets its rest distance as its
+    clearance (never negative): the margin must not push the brain inward where the mesh
+    (after :func:`bayesreg.meshing.carve_skull`) already touches the skull.
 
     Parameters
     ----------

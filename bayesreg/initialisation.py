@@ -89,14 +89,13 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     check = start_check(problem, cfg) if check is None else check
     shrink = 1.0
     # a node nearer the skull than half the barrier's width counts as offending: its barrier
-    # term (and gradient) would dwarf the rest of log p at the start of the mode search
-    # (or than it is at rest, if nearer)
-    near = -0.5 * float(post.barrier_width)
+    # term (and gradient) would dwarf the rest of log p at the start of the mode search; one
+    # nearer than that at rest may close half its rest clearance (halving reaches it)
     rest = np.asarray(skull_distance(post.skull, jnp.asarray(mesh.nodes[mesh.boundary])))
+    limit = np.maximum(-0.5 * float(post.barrier_width), 0.5 * rest)  # d < limit <= 0
     for _ in range(30):
         moved = mesh.nodes[mesh.boundary] + theta[: 3 * nb].reshape(nb, 3)
-        d = np.asarray(skull_distance(post.skull, jnp.asarray(moved)))
-        bad = (d >= near) & (d > rest)
+        bad = np.asarray(skull_distance(post.skull, jnp.asarray(moved))) >= limit
         # the one start, as each of the chains' rows: the program of the dispersed starts
         if (not bad.any() and
                 np.isfinite(np.asarray(check(jnp.tile(jnp.asarray(theta), (cfg.sampler.chains, 1))))[0])):
