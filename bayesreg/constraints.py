@@ -35,7 +35,7 @@ from bayesreg.interpolation import CUBIC_PAD, cubic_clamped
 
 __all__ = ["SkullConstraint", "skull_constraint", "with_barrier", "points_forbidden",
            "skull_distance", "skull_barrier", "SignedDistance", "BARRIER_FLOOR", "GRID_PAD",
-           "signed_volumes", "inversion_barrier"]
+           "element_volumes", "inversion_barrier"]
 
 #: Forbidden voxels added around the grid: outside the image grid is forbidden, and ``d``
 #: keeps growing there for a few voxels (then it is held).
@@ -194,12 +194,14 @@ def skull_barrier(skull: SkullConstraint, points):
     return jnp.where(w > 0, value, 0.0), clear
 
 
-def signed_volumes(points, tets):
-    """Six times the signed volume of each tetrahedron, ``(M,)`` mm^3, of world points
-    ``(N, 3)`` mm and ``tets`` ``(M, 4)``: positive for the mesh's orientation, ``<= 0``
-    for an inverted (or flat) element, the other hard constraint (paper Sec. 3.2)."""
+def element_volumes(points, tets):
+    """Signed element volumes ``(M,)``, mm^3, of world points ``(N, 3)`` mm and ``tets``
+    ``(M, 4)``, traceable by JAX (:func:`bayesreg.mesh.signed_volumes` is its NumPy form):
+    positive for the mesh's orientation, ``<= 0`` for an inverted (or flat) element, the
+    other hard constraint (paper Sec. 3.2)."""
     x = points[tets]
-    return jnp.einsum("mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0])
+    return jnp.einsum("mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]),
+                      x[:, 3] - x[:, 0]) / 6.0
 
 
 def inversion_barrier(points, tets, volumes0, ratio: float):
@@ -217,7 +219,7 @@ def inversion_barrier(points, tets, volumes0, ratio: float):
         Deformed nodes, world mm.
     tets : (M, 4) int array
     volumes0 : (M,) array
-        :func:`signed_volumes` at rest (> 0).
+        :func:`element_volumes` at rest (> 0), mm^3.
     ratio : float
         ``r`` in (0, 1).
 
@@ -227,7 +229,7 @@ def inversion_barrier(points, tets, volumes0, ratio: float):
         ``0`` when no element is below ``r``; elements with ``J <= 0`` contribute a finite
         value (the hard constraint rejects them).
     """
-    j = signed_volumes(points, tets) / volumes0
+    j = element_volumes(points, tets) / volumes0
     near = j < ratio
     j_safe = jnp.where(near, jnp.maximum(j, 1e-12 * ratio), 1.0)
     return -jnp.sum(jnp.where(near, (ratio / j_safe - 1.0) ** 3, 0.0))

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from bayesreg.constraints import inversion_barrier, signed_volumes
+from bayesreg.constraints import element_volumes, inversion_barrier
 from bayesreg.normaliser import add_normaliser
 from bayesreg.posterior import (
     Posterior, full_displacement, log_normaliser, normaliser_surrogate, split_position,
@@ -151,7 +151,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     # energy drives the parameters onto their lower edge: with it (its surrogate)
     exact_joint = exact and post.op.n_interior == 0
     model = logdensity_fn(post, rtol=rtol, maxiter=maxiter)
-    volumes0 = signed_volumes(post.nodes, post.tets)
+    volumes0 = element_volumes(post.nodes, post.tets)
 
     def plain(theta, guess):  # the model plus the search's barrier against inverted elements
         lp, aux = model(theta, guess)

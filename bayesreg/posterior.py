@@ -34,7 +34,8 @@ import numpy as np
 
 from bayesreg._checks import check_last_axis, check_shape
 from bayesreg.constraints import (
-    SkullConstraint, points_forbidden, skull_barrier, skull_constraint, with_barrier)
+    SkullConstraint, element_volumes, points_forbidden, skull_barrier, skull_constraint,
+    with_barrier)
 from bayesreg.fem import element_strain_energy, shape_gradients
 from bayesreg.images import check_image
 from bayesreg.jaxconfig import require_x64
@@ -580,15 +581,11 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
     u = full_displacement(post, u_b, u_i)
     e_s, e_r = energies(post, u, phi_solve)
     with jax.named_scope(SCOPES["constraints"]):
-        x = (post.nodes + u)[post.tets]
-        det = jnp.einsum(
-            "mi,mi->m", jnp.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0]
-        )
         barrier, clear = skull_barrier(post.skull, post.nodes + u)  # clear: of its own wall
         ok = (
             in_support
             & info.converged
-            & jnp.all(det > 0)
+            & jnp.all(element_volumes(post.nodes + u, post.tets) > 0)
             & ~jnp.any(points_forbidden(post.skull, post.nodes + u))
             & clear
             & jnp.isfinite(e_s)

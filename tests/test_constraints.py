@@ -144,12 +144,12 @@ def test_inversion_barrier_follows_its_formula_in_the_volume_ratio():
     """One unit tetrahedron squashed along z to the volume ratio ``J = s``: the barrier is
     ``-(r / J - 1)^3`` below ``r``, 0 above with a zero derivative at ``r`` (C2), finite for an
     inverted element (the hard constraint rejects it), and a sum over elements."""
-    from bayesreg.constraints import inversion_barrier, signed_volumes
+    from bayesreg.constraints import element_volumes, inversion_barrier
 
     nodes = jnp.asarray([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     tets = jnp.asarray([[0, 1, 2, 3]])
-    v0 = signed_volumes(nodes, tets)
-    assert float(v0[0]) == pytest.approx(1.0)  # six times the volume 1/6
+    v0 = element_volumes(nodes, tets)
+    assert float(v0[0]) == pytest.approx(1.0 / 6.0)
     r = 0.1
 
     def barrier(s):
