@@ -21,7 +21,7 @@ from bayesreg.images import Image, check_image, interpolate_numpy
 __all__ = [
     "Mesh", "MeshError", "read_mesh", "box_mesh", "boundary_faces", "boundary_nodes", "signed_volumes",
     "orient_tets", "dihedral_angles", "mesh_quality", "label_elements", "compact_nodes",
-    "tangle_report",
+    "tangle_report", "mesh_pieces",
 ]
 
 
@@ -115,6 +115,30 @@ def boundary_faces(tets):
 def boundary_nodes(tets):
     """Indices of nodes on the surface of the mesh (sorted), ``(n_b,)``."""
     return np.unique(boundary_faces(tets))
+
+
+def mesh_pieces(tets) -> np.ndarray:
+    """The piece of each element, ``(M,)`` ints from 0, largest piece first: elements joined
+    by a shared face are in one piece.
+
+    A mesh of more than one piece is not one elastic body: each further piece moves rigidly
+    without strain (six more zero modes of ``K``), and so does a piece attached to the rest
+    by a node or an edge only, which this counts apart too.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    tets = np.asarray(tets)
+    m = len(tets)
+    key = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    order = np.argsort(inv.ravel(), kind="stable")
+    face, elem = inv.ravel()[order], order // 4
+    pair = np.flatnonzero(face[1:] == face[:-1])  # an interior face: its two elements
+    graph = sp.coo_matrix((np.ones(len(pair)), (elem[pair], elem[pair + 1])), shape=(m, m))
+    _, piece = connected_components(graph, directed=False)
+    rank = np.argsort(np.argsort(-np.bincount(piece), kind="stable"), kind="stable")
+    return rank[piece]
 
 
 def signed_volumes(nodes, tets):
@@ -276,7 +300,8 @@ def read_mesh(path, labels: Image) -> Mesh:
         (a ``ValueError``) meshio cannot read the file; it holds no linear tetrahedra
         (``tetra``), or volume cells of another type (quadratic tetrahedra, hexahedra,
         wedges, pyramids); its points are not 3-D and finite, or a tetrahedron names a point
-        that does not exist; an element is degenerate (volume at most 1e-9 of the largest); or
+        that does not exist; an element is degenerate (volume at most 1e-9 of the largest); it
+        is more than one piece (:func:`mesh_pieces`); or
         fewer than :data:`MIN_INSIDE_FRACTION` of the element centroids lie in the
         intracranial tissues of ``labels`` (a mesh in voxel coordinates, or of another
         subject or space: the message gives both extents); the mesh is tangled (folded
@@ -321,6 +346,13 @@ def read_mesh(path, labels: Image) -> Mesh:
         bad = np.flatnonzero(vol <= 1e-9 * vol.max())
         raise MeshError(f"mesh file {path}: {len(bad)} degenerate (flat or repeated-node) "
                         f"element(s), the first {bad[:5].tolist()}")
+    pieces = np.bincount(mesh_pieces(tets))
+    if len(pieces) > 1:
+        raise MeshError(
+            f"mesh file {path} is {len(pieces)} pieces joined by no face (elements "
+            f"{', '.join(str(int(c)) for c in pieces[:5])}{', ...' if len(pieces) > 5 else ''}): "
+            "the FE model needs one body (a loose piece moves without strain, so K is "
+            "singular); keep its largest piece")
     tangle = tangle_report(nodes, tets)
     if tangle["tangled"]:
         raise MeshError(

@@ -31,7 +31,8 @@ from bayesreg._checks import check_number
 from bayesreg.constraints import points_forbidden, skull_constraint
 from bayesreg.images import Image, check_image, world_to_voxel
 from bayesreg.mesh import (
-    Mesh, MeshError, boundary_nodes, compact_nodes, label_elements, mesh_quality, orient_tets)
+    Mesh, MeshError, boundary_nodes, compact_nodes, label_elements, mesh_pieces, mesh_quality,
+    orient_tets)
 from bayesreg.warp import interpolation_matrix
 
 __all__ = ["mesh_brain", "mesh_brain_sized", "carve_skull", "tetrahedralize"]
@@ -190,6 +191,12 @@ def mesh_brain(
         fTetWild runs: beyond the brain's size its run time grows and its mesh does not
         coarsen), meshing fails, returns too few elements, or any element is
         inverted/degenerate.
+
+    Warns
+    -----
+    UserWarning
+        fTetWild's mesh had pieces joined to the largest by no face (islands of the smoothed
+        mask): only the largest is kept, the count of dropped elements is named.
     """
     _check_mesh_args(edge_length_mm, smoothing_sigma_mm, epsilon, step_size)
     labels = check_image(labels, "labels")
@@ -210,6 +217,15 @@ def mesh_brain(
                                  epsilon=float(epsilon), num_threads=num_threads)
     if len(tets) < 4:
         raise MeshError(f"fTetWild returned {len(tets)} elements; check the label map and size")
+    # one elastic body: fTetWild can return loose pieces (islands of the smoothed mask), each
+    # of which would move rigidly without strain (K singular); the largest is the brain
+    piece = mesh_pieces(tets)
+    if piece.max() > 0:
+        sizes = np.bincount(piece)
+        warnings.warn(f"the mesh had {len(sizes)} pieces joined by no face; kept the largest "
+                      f"({sizes[0]} elements), dropped {int(sizes[1:].sum())} element(s) in "
+                      f"the others", UserWarning, stacklevel=2)
+        tets = tets[piece == 0]
     nodes, tets = compact_nodes(nodes, tets)
     tets = orient_tets(nodes, tets)
     tissue = label_elements(labels, nodes, tets)

@@ -422,13 +422,21 @@ def build_surrogate(data: NormaliserData, klam, kmu, group, lam_g0, mu_g0, *, fr
 
     def residual(u):
         th = np.exp(u)
-        return float(exact(jnp.asarray(th))) - eig_part(th)
+        try:
+            value = float(exact(jnp.asarray(th)))
+        except jax.errors.JaxRuntimeError as exc:  # sparsax's Cholesky: NaN, as the dense one
+            if "not positive definite" not in str(exc):
+                raise
+            value = np.nan
+        return value - eig_part(th)
 
     u0 = np.log(theta0)
     r0 = residual(u0)
     if not np.isfinite(r0):
         raise ValueError(f"the exact normaliser cannot be factorised at the surrogate's "
-                         f"parameters {theta0}")
+                         f"parameters {theta0}: K is not positive definite beyond its six "
+                         "rigid modes (a mesh of loose pieces, bayesreg.mesh.mesh_pieces, or a "
+                         "parameter at 0)")
     idx = list(range(n_p) if free is None else free)
     lo, hi = u0 - span, u0 + span
     if bounds is not None:  # inside each support by a millionth of its width

@@ -69,8 +69,30 @@ def test_read_mesh_refuses_unusable_files_with_the_reason(tmp_path):
     flat = write("flat.vtu", box.nodes, [("tetra", np.vstack([box.tets, [[0, 1, 2, 2]]]))])
     with pytest.raises(M.MeshError, match=r"1 degenerate .* the first \[162\]"):
         read_mesh(flat, labels)
+    # a loose tetrahedron beside the box: two pieces, K singular
+    loose = np.vstack([box.nodes, [[14.0, 14.0, 23.0], [15.0, 14.0, 23.0], [14.0, 15.0, 23.0],
+                                   [14.0, 14.0, 24.0]]])
+    n = len(box.nodes)
+    two = write("two.vtu", loose, [("tetra", np.vstack([box.tets, [[n, n + 1, n + 2, n + 3]]]))])
+    with pytest.raises(M.MeshError, match=r"is 2 pieces joined by no face \(elements 162, 1\)"):
+        read_mesh(two, labels)
     # the same mesh in voxel coordinates of the label map (2 mm voxels): outside the ball
     voxels = write("voxels.vtu", box.nodes / 2.0 - 4.0, [("tetra", box.tets)])
     with pytest.raises(M.MeshError, match=r"only 0% of its element centroids lie in the "
                        r"intracranial tissues .* world coordinates in mm"):
         read_mesh(voxels, labels)
+
+
+def test_mesh_pieces_joins_elements_by_faces_only():
+    """Elements sharing a face are one piece; a tetrahedron touching the box at one node only
+    is a piece of its own (it can turn about that node without strain); the largest piece
+    is numbered 0 whatever the element order."""
+    from bayesreg.mesh import mesh_pieces
+
+    box = box_mesh((2, 2, 2), (10.0, 10.0, 10.0))
+    assert np.array_equal(mesh_pieces(box.tets), np.zeros(len(box.tets), int))
+    corner = int(np.argmax(box.nodes.sum(axis=1)))  # the node at (10, 10, 10)
+    n = len(box.nodes)
+    tets = np.vstack([[[corner, n, n + 1, n + 2]], box.tets])  # touches the box at one node
+    piece = mesh_pieces(tets)
+    assert piece[0] == 1 and np.all(piece[1:] == 0)
