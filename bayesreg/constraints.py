@@ -131,6 +131,7 @@ def with_barrier(skull: SkullConstraint, barrier_mm: float) -> SkullConstraint:
     return skull._replace(barrier_width=jnp.asarray(float(barrier_mm)))
 
 
+@jax.jit  # (also called from host code: one program, not ~50 eager ops of ~30 ms)
 def skull_distance(skull: SkullConstraint, points):
     """The smooth signed distance ``d`` (mm, ``> 0`` inside the forbidden region) at world
     points ``(..., 3)`` mm (module docstring); differentiable (C2).
@@ -143,6 +144,7 @@ def skull_distance(skull: SkullConstraint, points):
     return cubic_clamped(skull.coef, points @ a[:3, :3].T + a[:3, 3])
 
 
+@jax.jit
 def points_forbidden(skull: SkullConstraint, points):
     """Whether each world point ``(..., 3)`` mm breaks the hard constraint: ``d >= 0``
     (in the skull, outside the image grid, or in a pocket beyond the skull).
