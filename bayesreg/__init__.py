@@ -1,11 +1,16 @@
 """bayesreg: Bayesian estimation of deformation and elastic parameters in non-rigid registration.
 
 A JAX implementation of Risholm, Samset & Wells (the paper in ``shared/paper.md``).  The
-modules follow the data flow::
+subpackages follow the data flow::
 
-    images -> labels -> mesh / meshing -> fem, stiffness (K) -> solver (K_ii u_i = -K_ib u_b)
-           -> similarity (E_s), constraints, parameters -> posterior (log p)
-           -> kernels, chains, sampler -> diagnostics, fields, outputs, report
+    data (images, labels, sources) -> mesh (mesh, FE map on grids, skull) -> fem (K, solve)
+         -> truth (synthetic truths) -> model (similarity, parameters, posterior log p)
+         -> sampling (kernels, driver, convergence) -> inference (targets, mode, starts)
+         -> outputs, report;  interop: fields as ITK/ANTs/Slicer files;  experiments:
+            calibration, sweeps
+
+with the run shell around them: ``config``, ``rundir``, ``checkpoint``, ``pipeline`` (the
+main job), ``apply`` (a finished run's posterior on new data) and ``cli``.
 
 :func:`run` is the main job (a config in, a run directory out).  Importing the package
 changes nothing in the process; :func:`configure_jax` (float64, XLA flags, BLAS threads) is
@@ -18,7 +23,7 @@ DOF order node-major ``3*i + axis``, images carry their voxel-to-world affine.
 from bayesreg.config import Config, load_config
 from bayesreg.jaxconfig import configure_jax
 from bayesreg.pipeline import run, sample_problem
-from bayesreg.problem import prepare
+from bayesreg.model.problem import prepare
 
 __version__ = "0.1.0"
 __all__ = ["Config", "load_config", "configure_jax", "prepare", "run", "sample_problem",

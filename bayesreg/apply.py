@@ -6,7 +6,7 @@ kept draw (``posterior.nc``) and its mesh and images (``checkpoint/problem.npz``
 full nodal field is its interior FE solve ``K_ii u_i = -K_ib u_b`` at the draw's ``lam`` and
 ``mu`` (the model's own interior, paper Eq. 5), here by a sparse direct solve (SciPy).
 
-Directions (:mod:`bayesreg.transforms`): ``"to_fixed"`` resamples an image given in the
+Directions (:mod:`bayesreg.interop.transforms`): ``"to_fixed"`` resamples an image given in the
 moving (intra-operative) frame onto the fixed grid through ``x -> x + u(x)``;
 ``"to_moving"`` carries an image given in the fixed (pre-operative) frame, such as a tumour
 segmentation, onto the moving grid through the FE map's exact inverse.  Points always go
@@ -26,12 +26,12 @@ from typing import NamedTuple
 import numpy as np
 
 from bayesreg._files import dumps_json, write_text_atomic
-from bayesreg.images import Image, grid_points, interpolate_numpy, save_nifti
-from bayesreg.labels import tissue_label
-from bayesreg.mesh import Mesh
-from bayesreg.transforms import (FIXED_TO_MOVING, MOVING_TO_FIXED, displace_points,
+from bayesreg.data.images import Image, grid_points, interpolate_numpy, save_nifti
+from bayesreg.data.labels import tissue_label
+from bayesreg.mesh.tetmesh import Mesh
+from bayesreg.interop.transforms import (FIXED_TO_MOVING, MOVING_TO_FIXED, displace_points,
                                  inverse_displacement, locate_points, save_displacement)
-from bayesreg.warp import interpolation_matrix
+from bayesreg.mesh.warp import interpolation_matrix
 
 __all__ = ["RunPosterior", "load_posterior", "draw_indices", "nodal_field_draws", "export",
            "FORMATS", "warp_image", "warp_labels", "LabelPosterior", "map_points", "PointPosterior",
@@ -107,8 +107,8 @@ def load_posterior(run_dir) -> RunPosterior:
     import meshio
 
     from bayesreg.checkpoint import Checkpoint
-    from bayesreg.diagnostics import group_draws
-    from bayesreg.problem import parameter_layout, sampled_mesh
+    from bayesreg.sampling.diagnostics import group_draws
+    from bayesreg.model.problem import parameter_layout, sampled_mesh
 
     path = Path(run_dir)
     for name in ("posterior.nc", "mesh.vtu"):
@@ -160,7 +160,7 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    from bayesreg.fem import stiffness_matrix
+    from bayesreg.fem.element import stiffness_matrix
 
     mesh = rp.mesh
     n = len(mesh.nodes)
@@ -189,7 +189,7 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
 
 def _grid_field(w, u, grid: Image) -> np.ndarray:
     """Nodal ``u`` ``(N, 3)`` on ``grid`` through the interpolation matrix ``w`` of
-    :func:`bayesreg.warp.interpolation_matrix` (located once per grid, reused per field)."""
+    :func:`bayesreg.mesh.warp.interpolation_matrix` (located once per grid, reused per field)."""
     return (w @ u).reshape(*grid.data.shape[:3], 3)
 
 

@@ -7,7 +7,7 @@ name, flushed to disk, then ``os.replace``; :mod:`bayesreg._files`)::
     checkpoint/config.sha256    the SHA-256 of config.json as written (a resume refuses an edit)
     checkpoint/problem.npz      images, mesh and truth (:meth:`Checkpoint.save_problem`)
     checkpoint/init.npz         chain starts and initial jumping kernels
-    checkpoint/state.npz        :class:`bayesreg.sampler.SamplerCheckpoint` after the last chunk
+    checkpoint/state.npz        :class:`bayesreg.sampling.driver.SamplerCheckpoint` after the last chunk
     checkpoint/draws/chunk_00000.npz ...  the stored draws of each sampling chunk
 
 A chunk file is written before the state that counts it, so the state never refers to a
@@ -31,12 +31,12 @@ import numpy as np
 
 from bayesreg._files import dumps_json, replace_durably, write_text_atomic, writing
 from bayesreg.config import Config, ConfigError, format_errors
-from bayesreg.images import Image
-from bayesreg.initialisation import Initialisation
-from bayesreg.mesh import Mesh
-from bayesreg.problem import ProblemData
-from bayesreg.sampler import SamplerCheckpoint
-from bayesreg.synthetic import Truth
+from bayesreg.data.images import Image
+from bayesreg.inference.initialisation import Initialisation
+from bayesreg.mesh.tetmesh import Mesh
+from bayesreg.model.problem import ProblemData
+from bayesreg.sampling.driver import SamplerCheckpoint
+from bayesreg.truth.synthetic import Truth
 
 __all__ = ["Checkpoint", "savez_atomic"]
 
@@ -223,7 +223,7 @@ class Checkpoint:
 
     # ---- sampler progress ----
     def on_chunk(self, ckpt: SamplerCheckpoint, out) -> None:
-        """Callback for :func:`bayesreg.sampler.sample`: write the chunk, then the state."""
+        """Callback for :func:`bayesreg.sampling.driver.sample`: write the chunk, then the state."""
         self.chunks_done = ckpt.chunks_done
         if out is not None:
             self.draws_dir.mkdir(parents=True, exist_ok=True)

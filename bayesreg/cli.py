@@ -9,7 +9,7 @@
 ``bayesreg report RUN_DIR ... --out DIR``
     the report of finished runs (``bayesreg report SWEEP_DIR``: a sweep's tables, rebuilt).
 ``bayesreg sweep SWEEP.yaml [--scheduler ADDRESS] [--workers N]``
-    many runs over config keys on Dask distributed (:mod:`bayesreg.sweep`); running it
+    many runs over config keys on Dask distributed (:mod:`bayesreg.experiments.sweep`); running it
     again finishes what is left.
 ``bayesreg export RUN_DIR --format itk|ants|slicer|nifti [--draws K] [--out DIR]``
     the posterior mean (and K draws) as transforms ITK, ANTs and 3D Slicer apply
@@ -39,11 +39,11 @@ import numpy as np
 from bayesreg import __version__
 from bayesreg.config import ConfigError
 from bayesreg.jaxconfig import configure_jax
-from bayesreg.outputs import format_report
+from bayesreg.outputs.write import format_report
 from bayesreg.pipeline import RunInterrupted, run
 from bayesreg.report import write_report
 from bayesreg.stages import StageError
-from bayesreg.sweep import run_or_resume, run_sweep, sweep_report
+from bayesreg.experiments.sweep import run_or_resume, run_sweep, sweep_report
 
 __all__ = ["main", "PAPER_CONFIGS"]
 
@@ -148,8 +148,8 @@ def _input_kind(path: Path, kind: str) -> str:
 
 def _apply(args) -> str:
     from bayesreg import apply as A
-    from bayesreg.images import Image, load_nifti, save_nifti
-    from bayesreg.transforms import displace_points
+    from bayesreg.data.images import Image, load_nifti, save_nifti
+    from bayesreg.interop.transforms import displace_points
 
     rp = A.load_posterior(args.run_dir)
     path, out = Path(args.input), Path(args.out)
@@ -307,7 +307,7 @@ def main(argv=None) -> int:
         elif args.command == "apply":
             print(_apply(args))
         elif args.command == "calibrate":
-            from bayesreg.calibration import calibrate, load_spec, table
+            from bayesreg.experiments.calibration import calibrate, load_spec, table
 
             summary = calibrate(load_spec(args.spec, args.set), args.out)
             print(table(summary))

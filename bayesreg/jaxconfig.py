@@ -11,7 +11,7 @@ It sets:
 
 * ``jax_enable_x64``: the interior FE solve runs in float64 (a float32 CG stalls near a
   relative residual of 4e-7, far above the solver's tolerance), so the whole log-density is
-  float64.  The functions that build float64 state (:func:`bayesreg.posterior.build_posterior`,
+  float64.  The functions that build float64 state (:func:`bayesreg.model.posterior.build_posterior`,
   the samplers) refuse to run without it (:func:`require_x64`), rather than compute in
   float32 silently.
 * ``--xla_cpu_experimental_ynn_fusion_type=`` (empty) in ``XLA_FLAGS``: XLA's CPU backend

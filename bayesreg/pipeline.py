@@ -1,8 +1,8 @@
 """The main job: a config in, a run directory out.
 
-:func:`run` loads the config, builds the problem (:func:`bayesreg.problem.prepare`), finds
-the starts (:func:`bayesreg.initialisation.initialise`), samples (:func:`sample_problem`) and
-writes the run directory (:func:`bayesreg.outputs.write_outputs`), checkpointing as it goes
+:func:`run` loads the config, builds the problem (:func:`bayesreg.model.problem.prepare`), finds
+the starts (:func:`bayesreg.inference.initialisation.initialise`), samples (:func:`sample_problem`) and
+writes the run directory (:func:`bayesreg.outputs.write.write_outputs`), checkpointing as it goes
 (:mod:`bayesreg.checkpoint`) so that ``resume`` continues a killed run.
 """
 
@@ -16,15 +16,15 @@ import numpy as np
 
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, load_config, override_config
-from bayesreg.initialisation import Initialisation, initialise, registration_field
+from bayesreg.inference.initialisation import Initialisation, initialise, registration_field
 from bayesreg.jaxconfig import configure_jax
-from bayesreg.outputs import RunResult, write_outputs
-from bayesreg.posterior import elastic_groups
-from bayesreg.problem import Problem, assemble, make_data
+from bayesreg.outputs.write import RunResult, write_outputs
+from bayesreg.model.posterior import elastic_groups
+from bayesreg.model.problem import Problem, assemble, make_data
 from bayesreg.rundir import RunDirectory
-from bayesreg.sampler import SamplerResult, sample, sample_gradient
+from bayesreg.sampling.driver import SamplerResult, sample, sample_gradient
 from bayesreg.stages import Stages
-from bayesreg.targets import (
+from bayesreg.inference.targets import (
     cg_preconditioner, dense_preconditioning, gradient_target, make_logdensity, rw_condensation,
     rw_preconditioner)
 
@@ -43,9 +43,9 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     problem : Problem
     cfg : Config
     init : Initialisation, optional
-        Starts and proposal scales (default :func:`bayesreg.initialisation.initialise`).
+        Starts and proposal scales (default :func:`bayesreg.inference.initialisation.initialise`).
     on_chunk, resume, resume_draws
-        Checkpointing (:func:`bayesreg.sampler.sample`; see :func:`run`).
+        Checkpointing (:func:`bayesreg.sampling.driver.sample`; see :func:`run`).
 
     Returns
     -------
@@ -124,7 +124,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
 
     Returns
     -------
-    bayesreg.outputs.RunResult
+    bayesreg.outputs.write.RunResult
 
     Raises
     ------

@@ -31,9 +31,9 @@ import scipy.sparse.linalg as spla
 
 import bayesreg
 from bayesreg.checkpoint import Checkpoint
-from bayesreg.fem import stiffness_matrix
-from bayesreg.labels import TISSUE_LABELS
-from bayesreg.warp import interpolation_matrix
+from bayesreg.fem.element import stiffness_matrix
+from bayesreg.data.labels import TISSUE_LABELS
+from bayesreg.mesh.warp import interpolation_matrix
 
 
 def elastic_fit(mesh, w, target, lam_t, mu_t):

@@ -12,7 +12,7 @@ leapfrog step evaluates it (value and gradient, jitted, median of repeated calls
 
 * ``paper``: without the normaliser (``model.prior_normaliser: paper``), the reference;
 * ``exact (surrogate)``: what the default's trajectories evaluate under ``exact``: the
-  log-density with the normaliser's smooth surrogate (:func:`bayesreg.normaliser.build_surrogate`);
+  log-density with the normaliser's smooth surrogate (:func:`bayesreg.fem.normaliser.build_surrogate`);
 * ``exact correction``: the exact sparse normaliser less the surrogate, once per transition
   (value only: two sparse Cholesky factorisations);
 * ``exact (sparse gradient)``: the log-density with the exact sparse normaliser in every
@@ -61,10 +61,10 @@ def time_cycling(fn, inputs, *, target_s: float, min_reps: int = 5) -> float:
 
 
 def _targets(problem, cfg_exact, cfg_paper, theta):
-    from bayesreg.kernels import gibbs
-    from bayesreg.kernels.target import joint_target
-    from bayesreg.parameters import from_unconstrained, to_unconstrained
-    from bayesreg.targets import gradient_target
+    from bayesreg.sampling.kernels import gibbs
+    from bayesreg.sampling.kernels.target import joint_target
+    from bayesreg.model.parameters import from_unconstrained, to_unconstrained
+    from bayesreg.inference.targets import gradient_target
 
     post = problem.posterior
     nb3 = 3 * post.n_boundary
@@ -75,8 +75,8 @@ def _targets(problem, cfg_exact, cfg_paper, theta):
     build_s = time.perf_counter() - t0
     base = t_exact._replace(correction=None)
     # the same joint target with the exact sparse normaliser in every evaluation
-    from bayesreg.targets import dense_preconditioning
-    from bayesreg.kernels.target import make_target
+    from bayesreg.inference.targets import dense_preconditioning
+    from bayesreg.sampling.kernels.target import make_target
 
     plain = make_target(post, center_u=theta[:nb3], factor=factor, exact=True, condensed=False,
                         precondition=dense_preconditioning(problem, cfg_exact))
@@ -97,8 +97,8 @@ def _targets(problem, cfg_exact, cfg_paper, theta):
 
 def bench_mesh(edge: float, res: float, args) -> dict:
     from bayesreg.config import load_config
-    from bayesreg.posterior import log_normaliser_dense
-    from bayesreg.problem import assemble
+    from bayesreg.model.posterior import log_normaliser_dense
+    from bayesreg.model.problem import assemble
 
     extra = ["model.fixed=null"]
     cfg_exact = load_config(DEFAULT_CONFIG, overrides=mesh_overrides(edge, res) + extra

@@ -1,9 +1,9 @@
 """The time of a step, split by part, from a profile of the sampler's compiled programs.
 
 Used by ``profile_step.py``.  The log-density and the random
-walk carry :func:`jax.named_scope` names (:data:`bayesreg.posterior.SCOPES`,
-:data:`bayesreg.kernels.rwmh.PROPOSAL_SCOPE`, :data:`bayesreg.kernels.rwmh.ACCEPT_SCOPE`,
-:data:`bayesreg.kernels.rwmh.CACHE_SCOPE`) into the
+walk carry :func:`jax.named_scope` names (:data:`bayesreg.model.posterior.SCOPES`,
+:data:`bayesreg.sampling.kernels.rwmh.PROPOSAL_SCOPE`, :data:`bayesreg.sampling.kernels.rwmh.ACCEPT_SCOPE`,
+:data:`bayesreg.sampling.kernels.rwmh.CACHE_SCOPE`) into the
 ``op_name`` metadata of the optimised HLO.  A :func:`jax.profiler` trace names, for each
 operation it ran, the HLO instruction and the program (``hlo_op``, ``program_id``); the HLO
 that XLA dumps (``--xla_dump_to``, :func:`enable_hlo_dump`) maps the instruction to its
@@ -74,8 +74,8 @@ def parts() -> dict:
     """Part of the step -> the named scope it was compiled under.  The scopes do not nest
     (the log-density's and the kernel's; the cache build holds no log-density): an
     operation's ``op_name`` holds at most one of them, under the jit/scan/cond path."""
-    from bayesreg.posterior import SCOPES
-    from bayesreg.kernels.rwmh import ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE
+    from bayesreg.model.posterior import SCOPES
+    from bayesreg.sampling.kernels.rwmh import ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE
 
     out = dict(SCOPES)
     out["proposal"] = PROPOSAL_SCOPE

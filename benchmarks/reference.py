@@ -1,7 +1,7 @@
 """A plain NumPy/SciPy implementation of the posterior and of the paper's MH step.
 
 It is the yardstick of the benchmark (``benchmarks/run.py``): the same unnormalised log
-posterior as :func:`bayesreg.posterior.log_density`, written the way one would without JAX:
+posterior as :func:`bayesreg.model.posterior.log_density`, written the way one would without JAX:
 
 * ``K`` (paper Eq. 7) is linear in the per-group Lamé parameters, so the unit matrices of
   every group are assembled once (SciPy sparse, one common sparsity pattern) and ``K`` is a
@@ -14,15 +14,15 @@ posterior as :func:`bayesreg.posterior.log_density`, written the way one would w
 * ``E_r = u^T K u / 2`` from the sparse stiffness matrix;
 * ``E_s`` by the 4-point Gauss rule on every tetrahedron, the moving image sampled with
   :func:`scipy.ndimage.map_coordinates` (order 1, ``mode="grid-constant"``: a point within
-  one voxel outside the grid blends toward ``cval``, as :func:`bayesreg.images.interpolate`),
+  one voxel outside the grid blends toward ``cval``, as :func:`bayesreg.data.images.interpolate`),
   its values rounded to ``model.moving_dtype`` as the posterior stores them;
-* scaled Beta priors and the hard constraints of :mod:`bayesreg.posterior` (parameter
+* scaled Beta priors and the hard constraints of :mod:`bayesreg.model.posterior` (parameter
   outside its support, a node where the skull's smooth signed distance is ``>= 0``, an
   inverted element) give ``-inf``.  The signed distance is rebuilt here from the label map
   with SciPy (:func:`scipy.ndimage.distance_transform_edt` between voxel centres, shifted
   half a voxel, the grid padded by forbidden voxels, pockets not connected to the mesh at
   rest forbidden, read by :func:`scipy.ndimage.map_coordinates` at order 3 without
-  prefilter: the cubic B-spline quasi-interpolant of :mod:`bayesreg.constraints`).
+  prefilter: the cubic B-spline quasi-interpolant of :mod:`bayesreg.mesh.constraints`).
 
 Nothing here calls JAX: only the problem's host arrays (mesh, images, priors) are read.
 """
@@ -37,8 +37,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.special import betaln
 
-from bayesreg import labels as L
-from bayesreg.fem import element_stiffness
+from bayesreg.data import labels as L
+from bayesreg.fem.element import element_stiffness
 
 __all__ = ["GAUSS_BARY", "ReferencePosterior", "reference_mh"]
 
@@ -73,14 +73,14 @@ def _signed_distance(skull, affine, nodes, pad=5):
 
 
 class ReferencePosterior:
-    """``theta -> log p`` in NumPy/SciPy for a :class:`bayesreg.problem.Problem`.
+    """``theta -> log p`` in NumPy/SciPy for a :class:`bayesreg.model.problem.Problem`.
 
     Parameters
     ----------
-    problem : bayesreg.problem.Problem
+    problem : bayesreg.model.problem.Problem
     cfg : bayesreg.config.Config
         Temperatures, priors and image smoothing are read from it (as
-        :func:`bayesreg.problem.assemble` does).
+        :func:`bayesreg.model.problem.assemble` does).
     permc_spec : str
         Column ordering of :func:`scipy.sparse.linalg.splu` (``MMD_AT_PLUS_A``: 0.02 / 0.3 /
         6 s per factor at 900 / 3400 / 9800 nodes on a 2-core CPU; ``COLAMD`` about 2x slower).
@@ -165,7 +165,7 @@ class ReferencePosterior:
         self.m = np.asarray(m.data, np.float64).astype(cfg.model.moving_dtype).astype(np.float64)
         self.m_affine = np.asarray(m.affine, np.float64)
 
-        # hard constraint: the skull's smooth signed distance d >= 0 (bayesreg.constraints)
+        # hard constraint: the skull's smooth signed distance d >= 0 (bayesreg.mesh.constraints)
         self.sd, self.sd_affine = _signed_distance(np.asarray(problem.labels.data) == L.SKULL,
                                                    np.asarray(problem.labels.affine, np.float64),
                                                    self.nodes)

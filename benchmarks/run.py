@@ -23,10 +23,10 @@ Measured:
   random walk (Eq. 14) on the paper model, from the config's starts with its fixed scales;
   ``nuts``, the default kernel (NUTS on ``u_b`` in Gibbs with the elastic random walk) on
   the quickstart model, from the chains' states after a short warm-up (Stan's windows).
-  The chains run as the samplers run them: chunks of :func:`bayesreg.chains.build_chunk`
+  The chains run as the samplers run them: chunks of :func:`bayesreg.sampling.chains.build_chunk`
   (the paper configs' 1,000 random-walk steps, ``--nuts-chunk`` NUTS transitions; each
   chain's preconditioner rebuilt at every chunk start), mapped by ``--chain-method`` (NUTS:
-  never in pieces, as :func:`bayesreg.sampler.sample_gradient`); the first chunk, which
+  never in pieces, as :func:`bayesreg.sampling.driver.sample_gradient`); the first chunk, which
   compiles, is not timed.  More chains than starts repeat the starts with their own keys.
 
 Writes ``<out>/<UTC time>-<backend>[-quick].json`` and ``.md`` (the tables, also printed),
@@ -53,15 +53,15 @@ import jax.numpy as jnp
 import numpy as np
 
 import bayesreg
-from bayesreg import chains
+from bayesreg.sampling import chains
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import load_config, override_config
-from bayesreg.initialisation import initialise
-from bayesreg.kernels import gibbs, rwmh
-from bayesreg.posterior import log_density
-from bayesreg.problem import assemble, make_data
-from bayesreg.sampler import sample_gradient
-from bayesreg.targets import (
+from bayesreg.inference.initialisation import initialise
+from bayesreg.sampling.kernels import gibbs, rwmh
+from bayesreg.model.posterior import log_density
+from bayesreg.model.problem import assemble, make_data
+from bayesreg.sampling.driver import sample_gradient
+from bayesreg.inference.targets import (
     cg_preconditioner, dense_preconditioning, gradient_target, make_logdensity, rw_preconditioner)
 
 REPO = Path(__file__).resolve().parent.parent
@@ -147,7 +147,7 @@ def mesh_overrides(edge: float, res: float) -> list[str]:
 
 
 def cached_data(cfg, cache: Path, prefix: str, rebuild: bool = False):
-    """The images, mesh and synthetic truth of ``cfg`` (:func:`bayesreg.problem.make_data`),
+    """The images, mesh and synthetic truth of ``cfg`` (:func:`bayesreg.model.problem.make_data`),
     from ``cache`` or made and cached there: fTetWild is not reproducible, so later runs
     measure the same mesh.  The file is keyed by ``prefix`` and a hash of the config's
     ``data``, ``mesh`` and ``synthetic`` sections.  Returns ``(data, from_cache)``."""
@@ -307,7 +307,7 @@ def rwmh_setup(problem, cfg, init, args):
 
 def nuts_setup(problem, cfg, init, args):
     """The default NUTS-in-Gibbs kernel, from the chains' states after a short warm-up
-    (:func:`bayesreg.sampler.sample_gradient`, Stan's windows), at its tuned parameters.
+    (:func:`bayesreg.sampling.driver.sample_gradient`, Stan's windows), at its tuned parameters.
 
     Returns ``(at, warm)``: ``at(c) -> (row, run_chunks arguments)`` for ``c`` chains, and the
     warm-up's figures with the time of one gradient of the target (a leapfrog step's)."""
@@ -439,7 +439,7 @@ def parse_args(argv=None):
     p.add_argument("--chains", help="comma-separated chain counts (default 1,3,16; quick 1,3)")
     p.add_argument("--kernels", default="rwmh,nuts", help="comma-separated, of rwmh, nuts")
     p.add_argument("--chain-method", default="auto", choices=chains.CHAIN_METHODS,
-                   help="how the chains run (bayesreg.chains; nuts never uses pieces)")
+                   help="how the chains run (bayesreg.sampling.chains; nuts never uses pieces)")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results",
                    help="folder of the JSON and Markdown results (default benchmarks/results)")
     p.add_argument("--cache", type=Path, default=REPO / "benchmarks" / ".cache",

@@ -37,11 +37,11 @@ import run  # noqa: E402  (benchmarks/run.py: the cached problem)
 
 import bayesreg  # noqa: E402
 from bayesreg.config import load_config  # noqa: E402
-from bayesreg.convergence import gelman_rubin  # noqa: E402
-from bayesreg.initialisation import initialise  # noqa: E402
+from bayesreg.sampling.convergence import gelman_rubin  # noqa: E402
+from bayesreg.inference.initialisation import initialise  # noqa: E402
 from bayesreg.pipeline import sample_problem  # noqa: E402
-from bayesreg.posterior import elastic_groups  # noqa: E402
-from bayesreg.problem import assemble  # noqa: E402
+from bayesreg.model.posterior import elastic_groups  # noqa: E402
+from bayesreg.model.problem import assemble  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "quickstart.yaml"

@@ -9,7 +9,7 @@ Run from the repository root with the BrainWeb models (not part of the test suit
 For each subject, the three-compartment NUTS config (``configs/paper_three_compartment_nuts.yaml``)
 on ``data.source: brainweb`` at 1 mm with the paper's constrained truth (extra ``--set``
 overrides apply to every subject): the problem is made (data, mesh, truth; a truth that
-fails is a row with its error), then the starts (:func:`bayesreg.initialisation.initialise`,
+fails is a row with its error), then the starts (:func:`bayesreg.inference.initialisation.initialise`,
 the mode search).  One row per subject: nodes, the truth's active skull constraints, the
 mode search's message and gain in ``log p``, the central start's distance to the truth
 over the boundary nodes (median and 95th percentile, mm; the sweep calls a run whose median
@@ -35,8 +35,8 @@ SUBJECTS = "5,6,18,20,38,41,42,43,44,45"
 
 def one(subject: int, sets: list[str]) -> dict:
     from bayesreg.config import load_config
-    from bayesreg.initialisation import initialise
-    from bayesreg.problem import prepare
+    from bayesreg.inference.initialisation import initialise
+    from bayesreg.model.problem import prepare
 
     row: dict = {"subject": subject}
     cfg = load_config(CONFIG, overrides=["data.source=brainweb", "data.resolution_mm=1.0",

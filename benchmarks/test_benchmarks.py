@@ -14,12 +14,12 @@ mesh (about 280 nodes), cached in ``benchmarks/.cache/`` so that later runs time
 mesh.  Each benchmark calls one jitted function on fixed inputs (compiled before timing),
 so every round repeats the same arithmetic:
 
-* ``test_logdensity``: the paper model's log-density (:func:`bayesreg.targets.make_logdensity`)
+* ``test_logdensity``: the paper model's log-density (:func:`bayesreg.inference.targets.make_logdensity`)
   at a chain's start, the interior CG solve warm-started from a nearby position's solution;
 * ``test_rwmh_step``: one step of the paper's joint random walk
-  (:func:`bayesreg.kernels.rwmh.build_kernel`, with the sampler's CG preconditioner);
+  (:func:`bayesreg.sampling.kernels.rwmh.build_kernel`, with the sampler's CG preconditioner);
 * ``test_nuts_transition``: one transition of the default kernel
-  (:func:`bayesreg.kernels.gibbs.build_kernel`: a NUTS trajectory on ``u_b``, then the
+  (:func:`bayesreg.sampling.kernels.gibbs.build_kernel`: a NUTS trajectory on ``u_b``, then the
   configured elastic random-walk moves) on the quickstart model, at the config's initial
   step size (its trajectory length is in the benchmark's ``extra_info``).
 """
@@ -39,10 +39,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bayesreg.initialisation import initialise  # noqa: E402
-from bayesreg.kernels import gibbs, rwmh  # noqa: E402
-from bayesreg.problem import assemble  # noqa: E402
-from bayesreg.targets import (  # noqa: E402
+from bayesreg.inference.initialisation import initialise  # noqa: E402
+from bayesreg.sampling.kernels import gibbs, rwmh  # noqa: E402
+from bayesreg.model.problem import assemble  # noqa: E402
+from bayesreg.inference.targets import (  # noqa: E402
     dense_preconditioning, gradient_target, make_logdensity, rw_preconditioner)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -39,8 +39,8 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 import bayesreg  # noqa: E402
 
 bayesreg.configure_jax()  # float64, XLA flags, BLAS threads: before any JAX computation
-from bayesreg import mesh as mesh_mod  # noqa: E402
-from bayesreg.mesh import Mesh, boundary_nodes, orient_tets  # noqa: E402
+from bayesreg.mesh import tetmesh as mesh_mod  # noqa: E402
+from bayesreg.mesh.tetmesh import Mesh, boundary_nodes, orient_tets  # noqa: E402
 
 
 # Files of the longest tests (end-to-end runs, notebooks, a Dask cluster), collected first:
@@ -68,7 +68,7 @@ def pytest_unconfigure(config):
 
 
 def box_mesh(n=(3, 3, 3), size=(30.0, 30.0, 30.0), origin=(0.0, 0.0, 0.0), tissue=None) -> Mesh:
-    """Structured tetrahedral mesh of a box (:func:`bayesreg.mesh.box_mesh`)."""
+    """Structured tetrahedral mesh of a box (:func:`bayesreg.mesh.tetmesh.box_mesh`)."""
     return mesh_mod.box_mesh(n, size, origin, tissue)
 
 
@@ -87,9 +87,9 @@ def centred_cube() -> Mesh:
 @pytest.fixture(scope="session")
 def brain():
     """The MNI152 brain at 2 mm with labels and a coarse (~440 node) mesh."""
-    from bayesreg.datasets import mni152
-    from bayesreg.labels import labels_from_probabilities
-    from bayesreg.meshing import carve_skull, mesh_brain
+    from bayesreg.data.datasets import mni152
+    from bayesreg.data.labels import labels_from_probabilities
+    from bayesreg.mesh.meshing import carve_skull, mesh_brain
 
     t1, gm, wm, mask = mni152(2.0)
     labels = labels_from_probabilities(gm, wm, mask)
@@ -114,7 +114,7 @@ def tiny_mesh(tmp_path_factory) -> str:
     import meshio
 
     from bayesreg.config import load_config
-    from bayesreg.problem import make_data
+    from bayesreg.model.problem import make_data
 
     root = tmp_path_factory.getbasetemp()
     shared = (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "tiny_mesh.vtu"

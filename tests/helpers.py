@@ -16,13 +16,15 @@ import jax.numpy as jnp
 import scipy.ndimage as ndi
 import scipy.sparse.linalg as spla
 
-from bayesreg import fem, labels, stiffness
-from bayesreg.images import Image
-from bayesreg.kernels.target import Cache, Target
-from bayesreg.parameters import ParamLayout
-from bayesreg.posterior import Aux, build_posterior, log_density
-from bayesreg.similarity import build_ssd
-from bayesreg.solver import solve_interior
+from bayesreg.fem import element as fem
+from bayesreg.data import labels
+from bayesreg.fem.element import stiffness
+from bayesreg.data.images import Image
+from bayesreg.sampling.kernels.target import Cache, Target
+from bayesreg.model.parameters import ParamLayout
+from bayesreg.model.posterior import Aux, build_posterior, log_density
+from bayesreg.model.similarity import build_ssd
+from bayesreg.fem.solver import solve_interior
 from conftest import box_mesh, centred_cube
 
 # --- images and grids --------------------------------------------------------------------

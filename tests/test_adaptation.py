@@ -1,4 +1,4 @@
-"""The gradient kernels' warm-up (bayesreg.kernels.adaptation): the elastic block's dense
+"""The gradient kernels' warm-up (bayesreg.sampling.kernels.adaptation): the elastic block's dense
 proposal factor follows the parameters' correlation."""
 
 import numpy as np
@@ -7,7 +7,7 @@ import arviz as az
 import jax
 import jax.numpy as jnp
 
-from bayesreg.sampler import sample_gradient
+from bayesreg.sampling.driver import sample_gradient
 from helpers import ETA_COV, assert_moments, correlated_target
 
 

@@ -1,4 +1,4 @@
-"""bayesreg.calibration: truths from the prior and data from the likelihood against their
+"""bayesreg.experiments.calibration: truths from the prior and data from the likelihood against their
 distributions (Monte Carlo, from the posterior's own JAX energies), ranks and their tests
 against exact cases, the proper rigid-body prior against its closed form, and a tiny
 ``bayesreg calibrate`` writing its folder."""
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from scipy.stats import chisquare
 
-from bayesreg import calibration as cal
+from bayesreg.experiments import calibration as cal
 from bayesreg.cli import main
 from bayesreg.config import ConfigError
-from bayesreg.images import Image
-from bayesreg.posterior import build_posterior, energies, rigid_log_prior
+from bayesreg.data.images import Image
+from bayesreg.model.posterior import build_posterior, energies, rigid_log_prior
 from helpers import box_posterior, log_p
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -1,12 +1,12 @@
-"""The chain scheduler (bayesreg.chains): every method gives the draws of every other."""
+"""The chain scheduler (bayesreg.sampling.chains): every method gives the draws of every other."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg import chains
-from bayesreg.kernels import rwmh
+from bayesreg.sampling import chains
+from bayesreg.sampling.kernels import rwmh
 from helpers import quadratic_problem
 
 

@@ -8,8 +8,8 @@ import pytest
 
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import load_config
-from bayesreg.initialisation import Initialisation
-from bayesreg.sampler import SamplerCheckpoint
+from bayesreg.inference.initialisation import Initialisation
+from bayesreg.sampling.driver import SamplerCheckpoint
 
 
 @pytest.mark.parametrize("damage", ["truncated", "emptied", "text"])

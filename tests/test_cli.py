@@ -172,7 +172,7 @@ def _exported_transforms_and_applied_posterior(out, capsys):
     import nibabel as nib
 
     from bayesreg import apply as A
-    from bayesreg.images import Image, load_nifti
+    from bayesreg.data.images import Image, load_nifti
 
     sitk = pytest.importorskip("SimpleITK")
     vtu = meshio.read(out / "mesh.vtu")
@@ -530,7 +530,7 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
 def test_strict_gives_each_failure_its_own_exit_status(monkeypatch, tmp_path, capsys):
     """``run --strict``: 3 for chains that never moved, 4 for a stop rule not met by
     ``max_draws``, 0 for a converged run; without ``--strict`` every finished run is 0."""
-    from bayesreg.outputs import RunResult
+    from bayesreg.outputs.write import RunResult
 
     monkeypatch.setattr(cli, "format_report", lambda errors, info: "")
     for sampler, strict in (({"converged": True, "stuck_chains": []}, 0),

@@ -1,4 +1,4 @@
-"""The skull constraint (bayesreg.constraints): one smooth signed distance, its sign the hard
+"""The skull constraint (bayesreg.mesh.constraints): one smooth signed distance, its sign the hard
 rule and the barrier a smooth function of it, the same for the truth (NumPy) and the samplers."""
 
 import jax
@@ -7,11 +7,11 @@ import numpy as np
 import scipy.ndimage as ndi
 import pytest
 
-from bayesreg.constraints import points_forbidden, skull_barrier, skull_distance
-from bayesreg.images import Image
-from bayesreg.parameters import ParamLayout
-from bayesreg.posterior import build_posterior, with_skull_barrier
-from bayesreg.similarity import build_ssd
+from bayesreg.mesh.constraints import points_forbidden, skull_barrier, skull_distance
+from bayesreg.data.images import Image
+from bayesreg.model.parameters import ParamLayout
+from bayesreg.model.posterior import build_posterior, with_skull_barrier
+from bayesreg.model.similarity import build_ssd
 from conftest import box_mesh
 from helpers import log_p
 
@@ -52,7 +52,7 @@ def test_the_barriers_own_wall_is_forbidden_below_its_floor(small):
     as the skull; clamped, it would be a flat plateau that holds a chain), allowed without
     it, and clear for the mode search (its wall off: the huge finite values kept); 0.2 mm
     in front the barrier follows its formula and the point is clear."""
-    from bayesreg.constraints import BARRIER_FLOOR
+    from bayesreg.mesh.constraints import BARRIER_FLOOR
 
     mesh, post, theta = small
     w = 1.0
@@ -84,7 +84,7 @@ def test_one_smooth_signed_distance_for_the_truth_and_the_samplers():
     jumps), its sign is the nearest-voxel rule's away from the staircase's edges, points
     outside the grid are forbidden, and, given the mesh at rest, so is an allowed pocket
     that the skull separates from it."""
-    from bayesreg.constraints import SignedDistance, skull_constraint
+    from bayesreg.mesh.constraints import SignedDistance, skull_constraint
 
     rng = np.random.default_rng(7)
     spacing = np.array([2.0, 2.0, 1.5])
@@ -144,7 +144,7 @@ def test_inversion_barrier_follows_its_formula_in_the_volume_ratio():
     """One unit tetrahedron squashed along z to the volume ratio ``J = s``: the barrier is
     ``-(r / J - 1)^3`` below ``r``, 0 above with a zero derivative at ``r`` (C2), finite for an
     inverted element (the hard constraint rejects it), and a sum over elements."""
-    from bayesreg.constraints import element_volumes, inversion_barrier
+    from bayesreg.mesh.constraints import element_volumes, inversion_barrier
 
     nodes = jnp.asarray([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     tets = jnp.asarray([[0, 1, 2, 3]])

@@ -1,4 +1,4 @@
-"""Synthetic truth of paper Sec. 4.1 (bayesreg.contact): the constrained minimiser of the
+"""Synthetic truth of paper Sec. 4.1 (bayesreg.truth.contact): the constrained minimiser of the
 strain energy with the skull as a frictionless obstacle."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from bayesreg.contact import constrained_shift
-from bayesreg.fem import stiffness_matrix
-from bayesreg.images import Image
-from bayesreg.mesh import boundary_nodes
+from bayesreg.truth.contact import constrained_shift
+from bayesreg.fem.element import stiffness_matrix
+from bayesreg.data.images import Image
+from bayesreg.mesh.tetmesh import boundary_nodes
 from conftest import box_mesh
 from helpers import world_grid
 
@@ -165,7 +165,7 @@ def crush_case():
 def test_no_element_shrinks_below_its_minimum_volume_ratio():
     mesh, forb, pushed = crush_case()
     lam, mu = PAPER_LAM[mesh.tissue], PAPER_MU[mesh.tissue]
-    from bayesreg.mesh import signed_volumes
+    from bayesreg.mesh.tetmesh import signed_volumes
 
     v0 = signed_volumes(mesh.nodes, mesh.tets)
     # the bound is active: the crushed layer would go through zero volume without it

@@ -1,10 +1,10 @@
-"""The stopping rule's statistic (bayesreg.convergence): classic and split R-hat on known
+"""The stopping rule's statistic (bayesreg.sampling.convergence): classic and split R-hat on known
 cases, in blocks, and running over chunks."""
 
 import numpy as np
 import pytest
 
-from bayesreg.convergence import RunningGelmanRubin, gelman_rubin
+from bayesreg.sampling.convergence import RunningGelmanRubin, gelman_rubin
 
 
 def test_gelman_rubin_known_cases():

@@ -1,4 +1,4 @@
-"""Data sources (bayesreg.datasets): a BrainWeb-like crisp model made here (the real models
+"""Data sources (bayesreg.data.datasets): a BrainWeb-like crisp model made here (the real models
 are not needed), its T1-weighted image, labels, grid and noise."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import nibabel as nib
 import numpy as np
 import pytest
 
-from bayesreg import labels as L
-from bayesreg.datasets import (BRAINWEB_CLASSES, BRAINWEB_T1_SEQUENCE, BRAINWEB_TISSUE, brainweb,
+from bayesreg.data import labels as L
+from bayesreg.data.datasets import (BRAINWEB_CLASSES, BRAINWEB_T1_SEQUENCE, BRAINWEB_TISSUE, brainweb,
                                brainweb_model, t1_weighted_signal)
 
 
@@ -59,7 +59,7 @@ def test_brainweb_image_and_labels_from_a_crisp_model(tmp_path):
     assert inner[6, 7, 5] == L.WM and set(np.unique(lab.data)) == {L.BACKGROUND, L.CSF, L.GM, L.WM, L.SKULL}
     assert np.all(lab.data[:2] == L.SKULL)
     full = np.all(blocks == blocks[..., :1], axis=-1)  # blocks of one class
-    from bayesreg.datasets import BRAINWEB_LABELS
+    from bayesreg.data.datasets import BRAINWEB_LABELS
     np.testing.assert_array_equal(inner[full], BRAINWEB_LABELS[blocks[..., 0][full]])
 
 

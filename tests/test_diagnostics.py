@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import arviz as az
-from bayesreg.diagnostics import EBFMI_MIN, arviz_fast_ess, coverage, sampler_health
+from bayesreg.sampling.diagnostics import EBFMI_MIN, arviz_fast_ess, coverage, sampler_health
 
 LEVELS = (0.5, 0.9, 0.95)
 K, C, D = 2000, 4, 500  # components, chains, draws per chain
@@ -167,8 +167,8 @@ def test_contraction_is_zero_for_prior_draws_and_near_one_for_a_narrow_posterior
     """Against Monte Carlo: draws from the scaled Beta priors themselves contract by 0 (to
     Monte Carlo error), on the logit scale of each parameter and the log scale of the ratio;
     a narrow posterior contracts by nearly 1; a fixed mu adds no prior variance."""
-    from bayesreg.diagnostics import IDENTIFIED_MIN, contraction
-    from bayesreg.parameters import BetaPriors, ParamLayout
+    from bayesreg.sampling.diagnostics import IDENTIFIED_MIN, contraction
+    from bayesreg.model.parameters import BetaPriors, ParamLayout
 
     layout = ParamLayout(("csf", "gm"), (("lam", 0), ("mu", 0), ("lam", 1)), (("mu", 1, 1.0),))
     priors = BetaPriors(np.array([2.0, 3.0, 1.5]), np.array([5.0, 3.0, 1.5]),

@@ -22,9 +22,9 @@ import meshio
 import numpy as np
 import pytest
 
-import bayesreg.kernels.adaptation
-import bayesreg.outputs
-import bayesreg.problem
+import bayesreg.sampling.kernels.adaptation
+import bayesreg.outputs.write
+import bayesreg.model.problem
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.cli import main
 
@@ -79,9 +79,9 @@ def _interrupt_at(monkeypatch, stage: str) -> None:
         raise KeyboardInterrupt
 
     if stage == "mesh":
-        monkeypatch.setattr(bayesreg.problem, "read_mesh", stop)
+        monkeypatch.setattr(bayesreg.model.problem, "read_mesh", stop)
     elif stage == "warm-up":
-        monkeypatch.setattr(bayesreg.kernels.adaptation, "rwmh_warmup", stop)
+        monkeypatch.setattr(bayesreg.sampling.kernels.adaptation, "rwmh_warmup", stop)
     elif stage == "sampling":
         original = Checkpoint.on_chunk
 
@@ -92,7 +92,7 @@ def _interrupt_at(monkeypatch, stage: str) -> None:
 
         monkeypatch.setattr(Checkpoint, "on_chunk", after_chunk_1)
     else:
-        monkeypatch.setattr(bayesreg.outputs, "plot_parameters", stop)
+        monkeypatch.setattr(bayesreg.outputs.write, "plot_parameters", stop)
 
 
 @pytest.mark.slow
@@ -332,7 +332,7 @@ def test_a_library_failure_names_its_stage_and_what_to_change(reference, tmp_pat
     def potrf(*args, **kwargs):
         raise np.linalg.LinAlgError("Internal potrf return info = [312] for slices [0].")
 
-    monkeypatch.setattr(bayesreg.problem, "brain_shift", potrf)
+    monkeypatch.setattr(bayesreg.model.problem, "brain_shift", potrf)
     assert main(_args(mesh, tmp_path / "run")) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     # The stages finished before the truth print their lines first; the error is the last one.

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from bayesreg import fem, stiffness
+from bayesreg.fem import element as fem
+from bayesreg.fem.element import stiffness
 from conftest import box_mesh
 
 

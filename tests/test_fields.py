@@ -1,4 +1,4 @@
-"""Posterior field statistics over chunks of draws (bayesreg.fields).
+"""Posterior field statistics over chunks of draws (bayesreg.outputs.fields).
 
 A run of the paper's size stores 3 x 25,000 draws; the displacement statistics are
 accumulated chunk by chunk and must equal those of all draws held at once.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bayesreg import fields
+from bayesreg.outputs.write import fields
 from helpers import fake_run
 
 

@@ -6,7 +6,7 @@ import os
 import numpy as np
 
 from bayesreg.checkpoint import savez_atomic
-from bayesreg.images import Image, save_nifti
+from bayesreg.data.images import Image, save_nifti
 from bayesreg.rundir import RunDirectory
 
 

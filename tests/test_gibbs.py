@@ -1,4 +1,4 @@
-"""Gradient kernels in Gibbs with the elastic block (bayesreg.kernels.gibbs) on known targets."""
+"""Gradient kernels in Gibbs with the elastic block (bayesreg.sampling.kernels.gibbs) on known targets."""
 
 import numpy as np
 import pytest
@@ -7,10 +7,10 @@ import arviz as az
 import jax
 import jax.numpy as jnp
 
-from bayesreg.chains import build_chunk
-from bayesreg.kernels import gibbs as gk
-from bayesreg.kernels.target import make_target
-from bayesreg.sampler import sample_gradient
+from bayesreg.sampling.chains import build_chunk
+from bayesreg.sampling.kernels import gibbs as gk
+from bayesreg.sampling.kernels.target import make_target
+from bayesreg.sampling.driver import sample_gradient
 from helpers import D, M_ETA, S, SD_ETA, assert_moments, gaussian_target, toy_moments, toy_target
 
 
@@ -45,7 +45,7 @@ def test_joint_nuts_samples_the_known_joint():
     """NUTS over ``u`` and ``eta`` together (a joint target: no elastic block) reaches the
     toy's moments within 5 Monte Carlo standard errors, as the Gibbs kernel does, and names
     its one block "joint"."""
-    from bayesreg.kernels.target import joint_target
+    from bayesreg.sampling.kernels.target import joint_target
 
     rng = np.random.default_rng(0)
     x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
@@ -73,7 +73,7 @@ def test_a_surrogate_normaliser_corrected_per_transition_samples_the_exact_joint
     ``min(1, exp(Delta' - Delta))``, ``Delta`` the exact normaliser less the surrogate (a
     surrogate transition); the correction is the second block, "normaliser", with an
     acceptance below one, and the stored log-density is the exact natural one."""
-    from bayesreg.kernels.target import joint_target
+    from bayesreg.sampling.kernels.target import joint_target
 
     rng = np.random.default_rng(0)
     x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bayesreg.images import (
+from bayesreg.data.images import (
     Image,
     check_same_frame,
     check_same_space,
@@ -245,7 +245,7 @@ def test_pad_rejects_a_negative_or_nan_margin(margin):
 # coordinates through np.linalg.solve of the two affines, so a centre on the source grid's
 # boundary lands 1e-16 outside it, where scipy.ndimage's "constant" mode returns cval.
 OBLIQUE = pytest.param(True, id="oblique", marks=pytest.mark.xfail(
-    strict=True, reason="bayesreg.images.resample: boundary centres of an oblique grid get cval"))
+    strict=True, reason="bayesreg.data.images.resample: boundary centres of an oblique grid get cval"))
 
 
 def _source_affine(spacing, oblique):

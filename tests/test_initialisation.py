@@ -1,4 +1,4 @@
-"""The chains' start (bayesreg.initialisation): the Laplace precision of the condensed posterior."""
+"""The chains' start (bayesreg.inference.initialisation): the Laplace precision of the condensed posterior."""
 
 import jax
 import jax.numpy as jnp
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from bayesreg.fem import stiffness_matrix
-from bayesreg.initialisation import laplace_precision
-from bayesreg.posterior import elastic_groups
-from bayesreg.problem import Problem
-from bayesreg.similarity import ssd_residuals
+from bayesreg.fem.element import stiffness_matrix
+from bayesreg.inference.initialisation import laplace_precision
+from bayesreg.model.posterior import elastic_groups
+from bayesreg.model.problem import Problem
+from bayesreg.model.similarity import ssd_residuals
 from helpers import box_posterior
 
 

@@ -1,4 +1,4 @@
-"""Trilinear interpolation in JAX (bayesreg.interpolation): values against SciPy, the
+"""Trilinear interpolation in JAX (bayesreg.data.interpolation): values against SciPy, the
 hand-written JVPs against finite differences, the clamped variant against the plain one."""
 
 import jax
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from bayesreg.images import interpolate_numpy
-from bayesreg.interpolation import interpolate, trilinear_clamped
+from bayesreg.data.images import interpolate_numpy
+from bayesreg.data.interpolation import interpolate, trilinear_clamped
 from helpers import grid_image
 
 
@@ -84,7 +84,7 @@ def test_cubic_bspline_matches_scipy_and_its_derivatives_are_smooth_and_exact():
     where the trilinear one jumps."""
     import scipy.ndimage as ndi
 
-    from bayesreg.interpolation import CUBIC_PAD, cubic_clamped, cubic_coefficients
+    from bayesreg.data.interpolation import CUBIC_PAD, cubic_clamped, cubic_coefficients
 
     rng = np.random.default_rng(3)
     vol = rng.random((9, 10, 11))

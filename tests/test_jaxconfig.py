@@ -109,10 +109,10 @@ def test_float32_is_refused_rather_than_computed():
     remedy: its arrays would silently be float32."""
     code = """
 import numpy as np
-from bayesreg.images import Image
-from bayesreg.mesh import Mesh, boundary_nodes, orient_tets
-from bayesreg.parameters import ParamLayout
-from bayesreg.posterior import build_posterior
+from bayesreg.data.images import Image
+from bayesreg.mesh.tetmesh import Mesh, boundary_nodes, orient_tets
+from bayesreg.model.parameters import ParamLayout
+from bayesreg.model.posterior import build_posterior
 nodes = np.array([[0, 0, 0], [20, 0, 0], [0, 20, 0], [0, 0, 20]], float) + 10
 tets = orient_tets(nodes, np.array([[0, 1, 2, 3]]))
 mesh = Mesh(nodes, tets, np.zeros(1, np.int64), boundary_nodes(tets))

@@ -1,13 +1,13 @@
-"""The posterior in the gradient kernels' coordinates (bayesreg.kernels.target)."""
+"""The posterior in the gradient kernels' coordinates (bayesreg.sampling.kernels.target)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.kernels.target import make_target
-from bayesreg.parameters import from_unconstrained
-from bayesreg.posterior import log_density, log_normaliser
+from bayesreg.sampling.kernels.target import make_target
+from bayesreg.model.parameters import from_unconstrained
+from bayesreg.model.posterior import log_density, log_normaliser
 
 
 @pytest.mark.parametrize("condensed", [False, True])
@@ -43,8 +43,8 @@ def test_joint_target_moves_the_parameters_with_u_b_and_stores_the_natural_densi
     Gibbs target's over ``(w, eta)`` (with the log-Jacobian); its gradient in every
     coordinate, the parameters' through the CG solve, matches finite differences; a NUTS
     transition of the kernel stores the natural log-density of where it went."""
-    from bayesreg.kernels import gibbs as gk
-    from bayesreg.kernels.target import joint_target
+    from bayesreg.sampling.kernels import gibbs as gk
+    from bayesreg.sampling.kernels.target import joint_target
 
     _, post, theta = small
     nb3 = 3 * post.n_boundary

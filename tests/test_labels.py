@@ -1,10 +1,10 @@
-"""Label maps (bayesreg.labels): a user's coding remapped, labels from tissue probabilities."""
+"""Label maps (bayesreg.data.labels): a user's coding remapped, labels from tissue probabilities."""
 
 import numpy as np
 import pytest
 
-from bayesreg import labels as L
-from bayesreg.images import Image
+from bayesreg.data import labels as L
+from bayesreg.data.images import Image
 
 
 def test_remap_labels_and_errors():

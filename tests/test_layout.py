@@ -11,58 +11,79 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "bayesreg"
 
-# The data flow, lowest layer first: a module may import modules of its own layer or of
-# lower ones, never of a higher one.  Names are relative to ``bayesreg``; a package's
-# ``__init__`` is the package's name ("bayesreg" for the top-level one).
+# The rooms of the package, in the order of the data flow: a subpackage, or a top-level module
+# of the run shell.  A module may import modules of its own room or of earlier rooms, never of a
+# later one, so the file tree reads as the method: data -> mesh -> FE -> model -> sampling ->
+# outputs, with the run shell (config, run directory, checkpoint, pipeline, CLI) around it.
+ROOMS = [
+    "_checks", "_files", "jaxconfig", "stages", "config", "rundir",  # the shell's base
+    "data",         # images, labels, data sources, an optical-flow registration
+    "mesh",         # the mesh, its FE map on grids, the constraints on its motion, meshing
+    "interop",      # displacement fields as ITK/ANTs/Slicer files; the FE map at points
+    "fem",          # elements, K, the interior solve, preconditioners, the normaliser
+    "truth",        # synthetic truths and the paper's constrained truth
+    "model",        # similarity, elastic parameters, the posterior, a problem from a config
+    "sampling",     # kernels, chain scheduler, driver, convergence, diagnostics
+    "inference",    # a problem and a config to the sampler's targets, mode and starts
+    "outputs",      # a finished run's field statistics, figures, tables, verdict
+    "report",       # the paper's Tables and Figures from run directories
+    "checkpoint", "pipeline", "apply",  # the run shell: the main job, a finished run's posterior
+    "experiments",  # calibration and sweeps built on the main job
+    "bayesreg",     # the public API: configure_jax, Config, run, prepare, ...
+    "cli",          # the command line, on top of the public API
+]
+
+# The data flow within the rooms, lowest layer first: a module may import modules of its own
+# layer or of lower ones, never of a higher one.  Names are relative to ``bayesreg``; a
+# package's ``__init__`` is the package's name ("bayesreg" for the top-level one).
 LAYERS = [
     ["_checks", "_files", "jaxconfig", "stages", "config.models", "config.loading",
-     "config.calibration", "config", "_tetwild_worker"],
-    ["images"],
-    ["interpolation"],
-    ["constraints"],  # the skull: one smooth signed distance (meshing checks the rest state)
-    ["labels"],
-    ["datasets"],
-    ["mesh"],
-    ["warp"],
-    ["transforms"],  # displacement fields as ITK/ANTs files, the FE map on points
-    ["meshing"],
-    ["fem"],
-    ["stiffness"],
-    ["preconditioners"],
-    ["solver"],
-    ["similarity"],
-    ["parameters"],
-    ["normaliser"],
-    ["posterior"],
-    ["registration"],
-    ["synthetic"],
-    ["contact"],
-    ["kernels.base", "kernels"],
-    ["kernels.rwmh"],
-    ["kernels.target"],
-    ["kernels.gibbs"],
-    ["kernels.adaptation"],
-    ["convergence"],
-    ["chains"],
-    ["sampler"],
-    ["problem"],
-    ["targets"],
-    ["mode"],
-    ["initialisation"],
-    ["diagnostics"],
-    ["fields"],
-    ["rundir"],
-    ["checkpoint"],
-    ["plots"],
-    ["outputs"],
-    ["apply"],
-    ["pipeline"],
-    ["calibration"],  # simulation-based calibration: a small problem, many replicas
+     "config.calibration", "config", "rundir"],
+    ["data", "data.images"],
+    ["data.interpolation"],
+    ["data.labels"],
+    ["data.datasets"],
+    ["data.registration"],
+    ["mesh", "mesh._tetwild_worker", "mesh.constraints"],  # the skull: one smooth signed distance
+    ["mesh.tetmesh"],
+    ["mesh.warp"],
+    ["mesh.meshing"],
+    ["interop", "interop.transforms"],
+    ["fem", "fem.element"],
+    ["fem.stiffness"],
+    ["fem.preconditioners"],
+    ["fem.solver"],
+    ["fem.normaliser"],
+    ["truth", "truth.synthetic"],
+    ["truth.contact"],
+    ["model", "model.similarity"],
+    ["model.parameters"],
+    ["model.posterior"],
+    ["model.problem"],
+    ["sampling", "sampling.kernels.base", "sampling.kernels"],
+    ["sampling.kernels.rwmh"],
+    ["sampling.kernels.target"],
+    ["sampling.kernels.gibbs"],
+    ["sampling.kernels.adaptation"],
+    ["sampling.convergence"],
+    ["sampling.chains"],
+    ["sampling.driver"],
+    ["sampling.diagnostics"],
+    ["inference", "inference.targets"],
+    ["inference.mode"],
+    ["inference.initialisation"],
+    ["outputs", "outputs.fields"],
+    ["outputs.plots"],
+    ["outputs.write"],
     ["report.data"],
     ["report.tables", "report.figures"],
     ["report.write"],
     ["report"],
-    ["sweep"],  # many runs on Dask distributed
+    ["checkpoint"],
+    ["pipeline"],
+    ["apply"],
+    ["experiments", "experiments.calibration"],  # simulation-based calibration
+    ["experiments.sweep"],  # many runs on Dask distributed
     ["bayesreg"],  # the public API: configure_jax, Config, run, prepare, ...
     ["cli"],  # the command line, on top of the public API
 ]
@@ -72,8 +93,8 @@ MAX_LINES = 650
 LONG_MODULES = {
     "config.models": "every key's description is its documentation (the configuration reference "
                      "is generated from it)",
-    "sampler": "the driver's two entry points carry their full parameter documentation",
-    "posterior": "the Posterior type and its entry points carry their full field and parameter "
+    "sampling.driver": "the driver's two entry points carry their full parameter documentation",
+    "model.posterior": "the Posterior type and its entry points carry their full field and parameter "
                  "documentation, with examples (about half the module is docstrings)",
 }
 
@@ -113,7 +134,7 @@ def _imports(module: str) -> set[str]:
                 stem = "bayesreg." + stem if stem else "bayesreg"
             else:
                 stem = node.module
-            # ``from bayesreg.kernels import gibbs`` imports the submodule kernels.gibbs
+            # ``from bayesreg.sampling.kernels import gibbs`` imports the submodule sampling.kernels.gibbs
             targets = [f"{stem}.{a.name}" for a in node.names] + [stem]
             sub = [t for t in targets[:-1] if t.startswith("bayesreg.") and _resolve(t[9:]) == t[9:]]
             targets = sub or [stem]
@@ -190,11 +211,12 @@ def test_no_module_imports_a_higher_layer():
 def test_the_graph_is_read_from_both_kinds_of_import():
     """The reader sees module-level and function-level imports, absolute and relative, and
     a submodule imported by ``from package import module``."""
-    assert {"chains", "kernels.gibbs", "kernels.rwmh", "kernels.adaptation"} <= GRAPH["sampler"]
+    assert {"sampling.chains", "sampling.kernels.gibbs", "sampling.kernels.rwmh",
+            "sampling.kernels.adaptation"} <= GRAPH["sampling.driver"]
     assert {"config.loading", "config.models"} <= GRAPH["config"]
     assert "report.data" in GRAPH["report.tables"]
     # the brain fixture's modules: meshing imports mesh and warp
-    assert {"mesh", "warp"} <= GRAPH["meshing"]
+    assert {"mesh.tetmesh", "mesh.warp"} <= GRAPH["mesh.meshing"]
 
 
 def test_no_private_name_is_imported_across_modules():
@@ -216,3 +238,32 @@ def test_modules_stay_short():
     long = {m: n for m, n in lengths.items() if n > MAX_LINES}
     assert set(long) <= set(LONG_MODULES), {m: n for m, n in long.items() if m not in LONG_MODULES}
     assert set(LONG_MODULES) <= set(long), f"no longer over {MAX_LINES} lines: {set(LONG_MODULES) - set(long)}"
+
+
+def room(module: str) -> str:
+    """The room of a module: its subpackage, or the top-level module itself."""
+    return module.split(".")[0]
+
+
+def test_every_module_lives_in_a_room():
+    assert len(ROOMS) == len(set(ROOMS))
+    assert {room(m) for m in MODULES} == set(ROOMS), {room(m) for m in MODULES} ^ set(ROOMS)
+
+
+def test_no_room_imports_a_later_room():
+    """The rooms follow the data flow: a module imports its own room or earlier ones."""
+    order = {r: k for k, r in enumerate(ROOMS)}
+    later = sorted(f"{m} -> {n}" for m, deps in GRAPH.items() for n in deps
+                   if order[room(n)] > order[room(m)])
+    assert not later, "imports of a later room: " + ", ".join(later)
+
+
+def test_the_layers_keep_the_rooms_together():
+    """LAYERS lists each room's modules in one run, in the order of ROOMS (so the layers are
+    the rooms' data flow, refined)."""
+    rooms = [room(m) for layer in LAYERS for m in layer]
+    runs = [r for k, r in enumerate(rooms) if k == 0 or r != rooms[k - 1]]
+    base = set(ROOMS[:6])
+    runs = ["base" if r in base else r for r in runs]
+    runs = [r for k, r in enumerate(runs) if k == 0 or r != runs[k - 1]]
+    assert runs == ["base"] + ROOMS[6:], runs

@@ -1,4 +1,4 @@
-"""A given mesh read from a file (bayesreg.mesh.read_mesh, ``mesh.file``)."""
+"""A given mesh read from a file (bayesreg.mesh.tetmesh.read_mesh, ``mesh.file``)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import meshio
 import numpy as np
 import pytest
 
-from bayesreg import mesh as M
-from bayesreg.mesh import boundary_faces, label_elements, read_mesh
+from bayesreg.mesh import tetmesh as M
+from bayesreg.mesh.tetmesh import boundary_faces, label_elements, read_mesh
 from conftest import box_mesh
 from helpers import ball_labels
 
@@ -87,7 +87,7 @@ def test_mesh_pieces_joins_elements_by_faces_only():
     """Elements sharing a face are one piece; a tetrahedron touching the box at one node only
     is a piece of its own (it can turn about that node without strain); the largest piece
     is numbered 0 whatever the element order."""
-    from bayesreg.mesh import mesh_pieces
+    from bayesreg.mesh.tetmesh import mesh_pieces
 
     box = box_mesh((2, 2, 2), (10.0, 10.0, 10.0))
     assert np.array_equal(mesh_pieces(box.tets), np.zeros(len(box.tets), int))

@@ -1,14 +1,14 @@
-"""Meshing a label map (bayesreg.meshing): to a node count, and argument checks."""
+"""Meshing a label map (bayesreg.mesh.meshing): to a node count, and argument checks."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bayesreg import meshing
-from bayesreg.images import Image
-from bayesreg.mesh import Mesh, MeshError, mesh_quality
-from bayesreg.meshing import mesh_brain_sized
+from bayesreg.mesh.tetmesh import meshing
+from bayesreg.data.images import Image
+from bayesreg.mesh.tetmesh import Mesh, MeshError, mesh_quality
+from bayesreg.mesh.meshing import mesh_brain_sized
 from helpers import ball_labels
 
 

@@ -1,14 +1,14 @@
-"""The mode search (bayesreg.mode)."""
+"""The mode search (bayesreg.inference.mode)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.images import Image
-from bayesreg.mode import find_mode
-from bayesreg.parameters import ParamLayout
-from bayesreg.posterior import build_posterior
+from bayesreg.data.images import Image
+from bayesreg.inference.mode import find_mode
+from bayesreg.model.parameters import ParamLayout
+from bayesreg.model.posterior import build_posterior
 from conftest import box_mesh, compilations
 from helpers import box_skull, log_p
 

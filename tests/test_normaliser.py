@@ -1,4 +1,4 @@
-"""The exact normaliser of the elastic prior (bayesreg.normaliser)."""
+"""The exact normaliser of the elastic prior (bayesreg.fem.normaliser)."""
 
 import arviz as az
 import jax
@@ -6,15 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.fem import stiffness_matrix
-from bayesreg.kernels.target import make_target
-from bayesreg.normaliser import SAFE_RATIO
-from bayesreg.parameters import ParamLayout
-from bayesreg.posterior import (
+from bayesreg.fem.element import stiffness_matrix
+from bayesreg.sampling.kernels.target import make_target
+from bayesreg.fem.normaliser import SAFE_RATIO
+from bayesreg.model.parameters import ParamLayout
+from bayesreg.model.posterior import (
     build_posterior, elastic_groups, log_normaliser, log_normaliser_dense, normaliser_surrogate,
     surrogate_normaliser)
-from bayesreg.sampler import sample_gradient
-from bayesreg.targets import logdensity_fn
+from bayesreg.sampling.driver import sample_gradient
+from bayesreg.inference.targets import logdensity_fn
 from helpers import box_posterior
 
 
@@ -75,7 +75,7 @@ def _element_posterior(small):
 
 def _skull_image():
     """No skull, on the box posterior's grid."""
-    from bayesreg.images import Image
+    from bayesreg.data.images import Image
 
     affine = np.eye(4)
     affine[:3, 3] = -9.0

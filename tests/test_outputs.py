@@ -1,4 +1,4 @@
-"""The run's outputs (bayesreg.outputs): the summary table in threads equals ArviZ's own."""
+"""The run's outputs (bayesreg.outputs.write): the summary table in threads equals ArviZ's own."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import arviz as az
 import numpy as np
 import pytest
 
-from bayesreg import outputs
-from bayesreg.diagnostics import arviz_fast_ess, to_datatree
+from bayesreg.outputs import write as outputs
+from bayesreg.sampling.diagnostics import arviz_fast_ess, to_datatree
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3, 7])

@@ -1,11 +1,11 @@
-"""The elastic parameters' unconstrained coordinates (bayesreg.parameters)."""
+"""The elastic parameters' unconstrained coordinates (bayesreg.model.parameters)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.parameters import from_unconstrained, to_unconstrained
+from bayesreg.model.parameters import from_unconstrained, to_unconstrained
 
 
 def test_unconstrained_map_round_trip_and_jacobian(small):

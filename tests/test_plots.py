@@ -1,4 +1,4 @@
-"""The run directory's figures (bayesreg.plots): log axes for ratios, a rank plot beside the
+"""The run directory's figures (bayesreg.outputs.plots): log axes for ratios, a rank plot beside the
 traces, the marginal plot naming its node and marking the truth, the uncertainty slice
 through the most uncertain region."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from bayesreg.diagnostics import to_datatree
-from bayesreg.plots import most_uncertain_voxel, parameter_figures
+from bayesreg.sampling.diagnostics import to_datatree
+from bayesreg.outputs.plots import most_uncertain_voxel, parameter_figures
 
 
 def test_the_most_uncertain_voxel_is_the_centre_of_a_region_not_a_lone_spike():

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from bayesreg import fem
-from bayesreg.images import Image
-from bayesreg.kernels.rwmh import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner, build_kernel,
+from bayesreg.fem import element as fem
+from bayesreg.data.images import Image
+from bayesreg.sampling.kernels.rwmh import (ACCEPT_SCOPE, CACHE_SCOPE, PROPOSAL_SCOPE, Preconditioner, build_kernel,
                                    init)
-from bayesreg.parameters import ParamLayout, from_unconstrained, to_unconstrained
-from bayesreg.posterior import (SCOPES, build_posterior, condensation, elastic_groups, full_displacement,
+from bayesreg.model.parameters import ParamLayout, from_unconstrained, to_unconstrained
+from bayesreg.model.posterior import (SCOPES, build_posterior, condensation, elastic_groups, full_displacement,
                                 log_density, log_density_condensed, preconditioner, split_position)
-from bayesreg.similarity import build_ssd
-from bayesreg.solver import interior_map
+from bayesreg.model.similarity import build_ssd
+from bayesreg.fem.solver import interior_map
 from conftest import box_mesh
 from helpers import box_posterior, log_p
 
@@ -184,7 +184,7 @@ def test_position_shapes_are_checked_statically(small):
 
 def test_bad_temperatures_and_priors_raise(small):
     mesh, post, _ = small
-    from bayesreg.similarity import SSDTerm  # noqa: F401
+    from bayesreg.model.similarity import SSDTerm  # noqa: F401
 
     kw = dict(layout=ParamLayout(("all",), (("lam", 0),), (("mu", 0, 1.0),)),
               element_group=np.zeros(len(mesh.tets), int), prior={"lam": (1, 1, 0, 10), "mu": (1, 1, 0, 1)},
@@ -320,7 +320,7 @@ def test_build_posterior_rejects_bad_priors_references_and_forbidden_images(chan
 
 
 def test_compiled_log_density_names_its_parts_for_the_profiler(small):
-    """Every part of :data:`bayesreg.posterior.SCOPES` (and the kernel's proposal, accept
+    """Every part of :data:`bayesreg.model.posterior.SCOPES` (and the kernel's proposal, accept
     and cache-build scopes) reaches the optimised program's metadata, where
     ``benchmarks/profile_step.py`` reads it to split a step's time."""
     mesh, post, theta = small
@@ -351,7 +351,7 @@ def test_marginal_similarity_temperature_is_the_integral_over_its_gamma_prior():
     from scipy.integrate import quad
     from scipy.special import gammaln
 
-    from bayesreg.posterior import similarity_weight
+    from bayesreg.model.posterior import similarity_weight
 
     prior = {"lam": (1.0, 1.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
     phi = np.array([5.0, 5.0, 5.0, 1.0, 1.0])
@@ -395,8 +395,8 @@ def test_every_node_sampled_keeps_the_elastic_prior_whose_conditional_mean_is_th
     eigenvalues but the six rigid modes'), and without the images the interior's gradient
     vanishes at the FE solve of the boundary: the paper's interior is this prior's
     conditional mean."""
-    from bayesreg.posterior import log_normaliser
-    from bayesreg.synthetic import solve_dirichlet
+    from bayesreg.model.posterior import log_normaliser
+    from bayesreg.truth.synthetic import solve_dirichlet
 
     prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
     phi = np.array([5.0, 10.0, 30.0, 2.0, 1.5])

@@ -1,4 +1,4 @@
-"""Preconditioners of the interior solve (bayesreg.preconditioners): the dense inverse at
+"""Preconditioners of the interior solve (bayesreg.fem.preconditioners): the dense inverse at
 reference parameters, its packed storage, and the exact spectral one of a uniform model."""
 
 from functools import partial
@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg import stiffness
-from bayesreg.preconditioners import (PACKED_BLOCK_ROWS, DensePreconditioner, dense_preconditioner,
+from bayesreg.fem.element import stiffness
+from bayesreg.fem.preconditioners import (PACKED_BLOCK_ROWS, DensePreconditioner, dense_preconditioner,
                                       pack_symmetric, spectral_preconditioner, unpack_symmetric)
-from bayesreg.solver import solve_interior_blocks
+from bayesreg.fem.solver import solve_interior_blocks
 from conftest import box_mesh
 from helpers import direct_interior_solve
 

@@ -1,11 +1,11 @@
-"""The problem's data (bayesreg.problem): a run on a given mesh file."""
+"""The problem's data (bayesreg.model.problem): a run on a given mesh file."""
 
 import meshio
 import numpy as np
 import pytest
 
 from bayesreg.config import load_config
-from bayesreg.problem import make_data
+from bayesreg.model.problem import make_data
 
 
 def test_a_run_on_a_given_mesh_gets_that_mesh_and_the_same_data(tmp_path):
@@ -15,7 +15,7 @@ def test_a_run_on_a_given_mesh_gets_that_mesh_and_the_same_data(tmp_path):
     tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26"]
     first = make_data(load_config("configs/quickstart.yaml", overrides=tiny))
     mesh = first.mesh
-    path = tmp_path / "mesh.vtu"  # as bayesreg.outputs writes it
+    path = tmp_path / "mesh.vtu"  # as bayesreg.outputs.write writes it
     meshio.write(path, meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
                                    cell_data={"tissue": [mesh.tissue.astype(np.int32)]}))
     again = make_data(load_config("configs/quickstart.yaml", overrides=tiny + [f"mesh.file={path}"]))
@@ -44,12 +44,12 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
 
     from bayesreg import configure_jax
     from bayesreg.checkpoint import Checkpoint
-    from bayesreg.fields import node_slots
-    from bayesreg.images import grid_points, interpolate_numpy
-    from bayesreg.labels import TISSUE_LABELS
-    from bayesreg.outputs import error_table
-    from bayesreg.problem import assemble
-    from bayesreg.warp import interpolation_matrix
+    from bayesreg.outputs.fields import node_slots
+    from bayesreg.data.images import grid_points, interpolate_numpy
+    from bayesreg.data.labels import TISSUE_LABELS
+    from bayesreg.outputs.write import error_table
+    from bayesreg.model.problem import assemble
+    from bayesreg.mesh.warp import interpolation_matrix
 
     configure_jax()
     tiny = ["data.resolution_mm=3.0", "mesh.edge_length_mm=26", "synthetic.truth=bump",
@@ -61,7 +61,7 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     assert data.truth_info["truth"] == "bump" and "lam" not in data.truth_info
     # m(y) = f(x) with x + u(x) = y at the brain's voxels the bump moves (x by the fixed
     # point x <- y - u(x), u through registration.displacement_at)
-    from bayesreg.registration import displacement_at
+    from bayesreg.data.registration import displacement_at
 
     u = truth.field.data.reshape(-1, 3)
     moved = np.isin(data.labels.data.ravel(), TISSUE_LABELS) & (np.linalg.norm(u, axis=1) > 1.0)
@@ -70,14 +70,14 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     for _ in range(60):
         x = y - displacement_at(truth.field, x)
     assert np.abs(x + displacement_at(truth.field, x) - y).max() < 1e-6
-    from bayesreg.problem import SYNTHETIC_ORDER
+    from bayesreg.model.problem import SYNTHETIC_ORDER
 
     np.testing.assert_allclose(data.m.data.ravel()[moved],
                                interpolate_numpy(data.f, x, order=SYNTHETIC_ORDER), atol=1e-5)
     assert np.abs(data.m.data.ravel()[moved] - data.f.data.ravel()[moved]).mean() > 0.01  # it moved
 
     # the same field from a file (ITK/ANTs form, LPS float32) on the same mesh: the same truth
-    from bayesreg.transforms import save_displacement
+    from bayesreg.interop.transforms import save_displacement
 
     field_file = save_displacement(truth.field.data, truth.field.affine, tmp_path / "u.nii.gz")
     mesh_file = tmp_path / "mesh.vtu"

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from bayesreg.images import Image
-from bayesreg.registration import displacement_at, optical_flow_displacement
+from bayesreg.data.images import Image
+from bayesreg.data.registration import displacement_at, optical_flow_displacement
 
 
 def _blobs(rng, n_blobs, low, high, sigma):

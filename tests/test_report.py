@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bayesreg.diagnostics import coverage, to_datatree
+from bayesreg.sampling.diagnostics import coverage, to_datatree
 from bayesreg.report import PAPER, load_run, table1, table2, write_report
 from conftest import box_mesh
 

@@ -1,4 +1,4 @@
-"""The random-walk kernel (bayesreg.kernels.rwmh): it leaves known posteriors invariant, and
+"""The random-walk kernel (bayesreg.sampling.kernels.rwmh): it leaves known posteriors invariant, and
 its cached interior map and preconditioner leave the draws where the plain kernel takes them."""
 
 import arviz as az
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from bayesreg import chains
-from bayesreg.convergence import gelman_rubin
-from bayesreg.kernels import rwmh
-from bayesreg.posterior import condensation, log_density, log_density_condensed, preconditioner
-from bayesreg.sampler import sample
+from bayesreg.sampling import chains
+from bayesreg.sampling.convergence import gelman_rubin
+from bayesreg.sampling.kernels import rwmh
+from bayesreg.model.posterior import condensation, log_density, log_density_condensed, preconditioner
+from bayesreg.sampling.driver import sample
 from helpers import box_posterior, quadratic_problem
 
 
@@ -78,7 +78,7 @@ def test_blocked_kernel_targets_the_same_posterior():
 
 def test_condensed_chunk_in_pieces_equals_whole_chunks(identified, monkeypatch):
     """The condensed kernel's cache (``H`` at each chain's parameters) passes from piece to
-    piece on a CPU with fewer cores than chains (:func:`bayesreg.chains.chain_pieces`);
+    piece on a CPU with fewer cores than chains (:func:`bayesreg.sampling.chains.chain_pieces`);
     the draws equal those of whole chunks run by vmap, elastic moves accepted included."""
     mesh, post, theta = identified
     nb3 = 3 * len(mesh.boundary)

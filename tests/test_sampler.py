@@ -1,4 +1,4 @@
-"""The driver (bayesreg.sampler): stopping, argument checks, runs without warm-up, resuming
+"""The driver (bayesreg.sampling.driver): stopping, argument checks, runs without warm-up, resuming
 from a checkpoint, one compiled program, and the record of how a run was sampled."""
 
 from functools import partial
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from bayesreg.chains import CHAIN_METHODS
-from bayesreg.kernels.rwmh import Condensation, Preconditioner
-from bayesreg.posterior import Aux
-from bayesreg.sampler import SamplerCheckpoint, sample, sample_gradient
-from bayesreg.solver import SolveInfo
+from bayesreg.sampling.chains import CHAIN_METHODS
+from bayesreg.sampling.kernels.rwmh import Condensation, Preconditioner
+from bayesreg.model.posterior import Aux
+from bayesreg.sampling.driver import SamplerCheckpoint, sample, sample_gradient
+from bayesreg.fem.solver import SolveInfo
 from conftest import compilations
 from helpers import D, M_ETA, SD_ETA, gaussian_target, quadratic_problem, toy_target
 
@@ -40,7 +40,7 @@ def test_sampler_stops_at_the_first_chunk_meeting_the_rank_rule_as_arviz_measure
     the exponential of the first, a positive quantity on its natural scale)."""
     import arviz as az
 
-    from bayesreg.diagnostics import to_datatree
+    from bayesreg.sampling.diagnostics import to_datatree
 
     def logdensity(x, interior):  # a 2-D standard normal
         solve = SolveInfo(jnp.asarray(0), jnp.asarray(0.0), jnp.asarray(True))

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.images import Image
-from bayesreg.similarity import (GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, reach_box, ssd,
+from bayesreg.data.images import Image
+from bayesreg.model.similarity import (GAUSS_BARY, build_ssd, gauss_points, quadrature_rule, reach_box, ssd,
                                  ssd_residuals)
 from conftest import box_mesh
 from helpers import grid_image
@@ -192,7 +192,7 @@ def test_cubic_interpolation_reads_both_images_by_the_spline_and_its_gradient_is
     import scipy.ndimage as ndi
     from jax.test_util import check_grads
 
-    from bayesreg.interpolation import CUBIC_PAD
+    from bayesreg.data.interpolation import CUBIC_PAD
 
     m = box_mesh((2, 2, 2), size=(20.0, 20.0, 20.0))
     rng = np.random.default_rng(6)

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg import stiffness
-from bayesreg.preconditioners import DENSE_MAX_ITERATIONS, DensePreconditioner, dense_preconditioner
-from bayesreg.solver import interior_map, pcg, solve_interior, solve_interior_blocks
+from bayesreg.fem.element import stiffness
+from bayesreg.fem.preconditioners import DENSE_MAX_ITERATIONS, DensePreconditioner, dense_preconditioner
+from bayesreg.fem.solver import interior_map, pcg, solve_interior, solve_interior_blocks
 from conftest import box_mesh
 from helpers import direct_interior_solve
 

@@ -1,11 +1,12 @@
-"""The elastic operator in sliced ELL blocks (bayesreg.stiffness) against SciPy's assembly."""
+"""The elastic operator in sliced ELL blocks (bayesreg.fem.stiffness) against SciPy's assembly."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg import fem, stiffness
+from bayesreg.fem import element as fem
+from bayesreg.fem.element import stiffness
 from conftest import box_mesh
 
 

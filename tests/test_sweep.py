@@ -1,4 +1,4 @@
-"""bayesreg.sweep: the grid of a sweep file, and a sweep on a Dask LocalCluster (one run
+"""bayesreg.experiments.sweep: the grid of a sweep file, and a sweep on a Dask LocalCluster (one run
 failing, isolated; a second pass reusing the finished runs; the aggregate tables)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import yaml
 
 from bayesreg.cli import main
 from bayesreg.config import ConfigError
-from bayesreg.sweep import expand, load_sweep, run_sweep
+from bayesreg.experiments.sweep import expand, load_sweep, run_sweep
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

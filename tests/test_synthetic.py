@@ -1,11 +1,11 @@
-"""Synthetic brain shift without the skull (bayesreg.synthetic): the pushed nodes, the falloff
+"""Synthetic brain shift without the skull (bayesreg.truth.synthetic): the pushed nodes, the falloff
 over the rest of the boundary, and the interior in equilibrium."""
 
 import numpy as np
 import pytest
 
-from bayesreg.fem import stiffness_matrix
-from bayesreg.synthetic import brain_shift, centre_of_gravity, top_boundary
+from bayesreg.fem.element import stiffness_matrix
+from bayesreg.truth.synthetic import brain_shift, centre_of_gravity, top_boundary
 from conftest import box_mesh
 
 
@@ -42,8 +42,8 @@ def test_bump_field_is_a_gaussian_toward_the_centre_and_field_truth_samples_it_a
     top nodes' centroid ``c`` to the centre of gravity, at every voxel centre;
     ``field_truth``: the field at the nodes (trilinear), no Lamé parameters, the largest
     movers as ``pushed``; a bump that folds is refused."""
-    from bayesreg.images import grid_points
-    from bayesreg.synthetic import bump_field, field_truth
+    from bayesreg.data.images import grid_points
+    from bayesreg.truth.synthetic import bump_field, field_truth
     from helpers import smooth_image
 
     mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))

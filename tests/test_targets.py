@@ -1,4 +1,4 @@
-"""Targets from a config (bayesreg.targets): the CG preconditioner chosen by size, memory and
+"""Targets from a config (bayesreg.inference.targets): the CG preconditioner chosen by size, memory and
 device."""
 
 from types import SimpleNamespace
@@ -6,9 +6,9 @@ from types import SimpleNamespace
 import jax
 import pytest
 
-from bayesreg import targets
+from bayesreg.inference import targets
 from bayesreg.config import ConfigError, load_config
-from bayesreg.targets import cg_preconditioner, dense_preconditioning
+from bayesreg.inference.targets import cg_preconditioner, dense_preconditioning
 
 
 def test_preconditioner_choice_follows_size_and_memory():

@@ -4,8 +4,8 @@ map's inverse and point mapping against exact affine maps."""
 import numpy as np
 import pytest
 
-from bayesreg.images import Image, grid_points, interpolate_numpy
-from bayesreg.transforms import (displace_points, field_image, inverse_displacement,
+from bayesreg.data.images import Image, grid_points, interpolate_numpy
+from bayesreg.interop.transforms import (displace_points, field_image, inverse_displacement,
                                  load_displacement, save_displacement)
 from conftest import box_mesh
 

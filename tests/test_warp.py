@@ -1,12 +1,12 @@
-"""FE fields on image grids (bayesreg.warp): point location, interpolation matrices, the
+"""FE fields on image grids (bayesreg.mesh.warp): point location, interpolation matrices, the
 moments of interpolated draws, and the inverse warp of an image by a mesh displacement or
 a dense field."""
 
 import numpy as np
 import pytest
 
-from bayesreg.images import Image, grid_points, interpolate_numpy
-from bayesreg.warp import (grid_moments, grid_moments_from, interpolation_matrix, locate, locate_voxels,
+from bayesreg.data.images import Image, grid_points, interpolate_numpy
+from bayesreg.mesh.warp import (grid_moments, grid_moments_from, interpolation_matrix, locate, locate_voxels,
                            warp_image, warp_image_field)
 from conftest import box_mesh
 from helpers import fake_run, smooth_image, world_grid

@@ -1,4 +1,4 @@
-"""The calibration file of ``bayesreg calibrate`` (:mod:`bayesreg.calibration`), validated:
+"""The calibration file of ``bayesreg calibrate`` (:mod:`bayesreg.experiments.calibration`), validated:
 every key, its default, its meaning, its checks."""
 
 from __future__ import annotations

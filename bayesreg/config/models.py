@@ -86,7 +86,7 @@ class DataConfig(_Strict):
         "mni152", description="mni152: the MNI ICBM152 2009a template that ships with nilearn "
         "(T1 and GM/WM probability maps; labels derived from them); brainweb: a BrainWeb "
         "anatomical model (data.subject) and a T1-weighted image made from its labels "
-        "(bayesreg.datasets.brainweb); nifti: your own images (data.fixed, data.labels, "
+        "(bayesreg.data.datasets.brainweb); nifti: your own images (data.fixed, data.labels, "
         "data.label_coding and, without a synthetic case, data.moving)")
     resolution_mm: Float | None = Field(
         2.0, gt=0, description="resample the images to isotropic voxels of this size (mm; "
@@ -97,7 +97,7 @@ class DataConfig(_Strict):
         5.0, gt=0, description="width (mm) of the free space around the intracranial tissues, "
         "for every source: every other voxel within it is free (whatever its label: a skull "
         "that touches the brain, scalp, air), every one beyond it is the skull region "
-        "(bayesreg.labels.free_shell), so the brain can leave the skull and slide along it, "
+        "(bayesreg.data.labels.free_shell), so the brain can leave the skull and slide along it, "
         "never further.  The images are also padded by four times this on every side, the "
         "labels with skull, so an image edge that cuts the brainstem keeps the constraint")
     subject: Int | Path | None = Field(
@@ -178,7 +178,7 @@ class MeshConfig(_Strict):
         None, ge=20, description="re-mesh, scaling the edge length, until the node count is within "
         "target_tolerance of this (fTetWild's count at one edge length scatters by several "
         "percent between runs); null: one mesh at edge_length_mm "
-        "(bayesreg.meshing.mesh_brain_sized)")
+        "(bayesreg.mesh.meshing.mesh_brain_sized)")
     target_tolerance: Float = Field(0.05, gt=0, lt=1, description="relative tolerance on target_nodes")
     max_attempts: Int = Field(12, ge=1, description="meshes tried at most for target_nodes (the "
                               "closest is kept, with a warning, when none is within the tolerance)")
@@ -186,7 +186,7 @@ class MeshConfig(_Strict):
         None, description="a tetrahedral mesh to use instead of meshing: any format meshio reads "
         "(e.g. a run's mesh.vtu, to run again on that very mesh: fTetWild is not reproducible), "
         "points in world mm in the images' frame; relative to the config's folder; the element "
-        "tissues come from the label map (bayesreg.mesh.read_mesh); excludes target_nodes")
+        "tissues come from the label map (bayesreg.mesh.tetmesh.read_mesh); excludes target_nodes")
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -213,7 +213,7 @@ class SyntheticConfig(_Strict):
         "of the lam, mu below.  Truths the model does not make (a dense voxel field, no lam, mu: "
         "the mismatch case): bump, a Gaussian bump of the whole image of peak shift_mm and sd "
         "falloff_mm at the top of the brain toward its centre of gravity "
-        "(bayesreg.synthetic.bump_field); field, the displacement field of synthetic.field")
+        "(bayesreg.truth.synthetic.bump_field); field, the displacement field of synthetic.field")
     field: Path | None = Field(
         None, description="truth: field: a displacement-field NIfTI (ITK/ANTs/Slicer or "
         "bayesreg's displacement_*.nii.gz, fixed to moving: m(x + u(x)) = f(x)) in f's world "
@@ -229,7 +229,7 @@ class SyntheticConfig(_Strict):
                               "distance d to the nearest pushed node; bump: the Gaussian's sd")
     clearance_mm: Float | None = Field(
         None, ge=0, description="constrained truth: distance (mm) kept in front of the skull's "
-        "smooth surface (bayesreg.constraints; default half a voxel diagonal, so that a "
+        "smooth surface (bayesreg.mesh.constraints; default half a voxel diagonal, so that a "
         "sampler's barrier barely sees the truth's nodes)")
     tol_mm: Float = Field(1e-3, gt=0, description="constrained truth: allowed constraint violation")
     min_volume_ratio: Float = Field(
@@ -355,7 +355,7 @@ class ModelConfig(_Strict):
                             "prior_lam")
     skull_barrier_mm: Float = Field(
         1.0, ge=0, description="width w (mm) of a smooth barrier -sum (w/s - 1)^3 over nodes at "
-        "clearance s < w from the skull's smooth surface (bayesreg.constraints: the one signed "
+        "clearance s < w from the skull's smooth surface (bayesreg.mesh.constraints: the one signed "
         "distance of the truth, the mode search and the sampler), added to the log-density: gradient "
         "trajectories turn before the hard constraint, which stays in place either way; 0: "
         "off, the paper's hard constraint alone (the paper's configs)")
@@ -436,7 +436,7 @@ class SamplerConfig(_Strict):
     chains: Int = Field(3, ge=2, description="parallel chains (dispersed starts; at least 2 "
                         "for R-hat)")
     chain_method: Literal["auto", "vectorized", "sequential", "threads", "pieces"] = Field(
-        "auto", description="how the chains run (bayesreg.chains; the draws do not depend on "
+        "auto", description="how the chains run (bayesreg.sampling.chains; the draws do not depend on "
         "it): vectorized (vmap, the default on an accelerator), sequential, threads (groups of "
         "chains in host threads), pieces (pieces of chains, one worker per core, where the "
         "chains do not split evenly over the cores; random walk only); auto chooses")

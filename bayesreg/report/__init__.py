@@ -1,6 +1,6 @@
 """The paper's Section 4 tables and figures from finished runs (synthetic truth needed).
 
-:func:`write_report` reads finished run directories (see :mod:`bayesreg.outputs`), one per
+:func:`write_report` reads finished run directories (see :mod:`bayesreg.outputs.write`), one per
 model (e.g. ``{"uniform": ..., "three_compartment": ...}``), and writes a report directory:
 
 ==========================  ==========================================================

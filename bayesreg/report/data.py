@@ -54,7 +54,7 @@ PAPER = {
 TISSUE_NAMES = ("csf", "gm", "wm")
 
 
-TISSUE_LABELS = {"csf": 1, "gm": 2, "wm": 3}  # label map coding (bayesreg.labels)
+TISSUE_LABELS = {"csf": 1, "gm": 2, "wm": 3}  # label map coding (bayesreg.data.labels)
 
 
 SKULL_LABEL = 4
@@ -171,8 +171,8 @@ def _nifti(path: Path, *, required: bool = True):
 
 def _field(path: Path, *, required: bool = True):
     """A displacement field file as ``(I, J, K, 3)`` RAS mm (any form
-    :func:`bayesreg.transforms.load_displacement` reads)."""
-    from bayesreg.transforms import load_displacement
+    :func:`bayesreg.interop.transforms.load_displacement` reads)."""
+    from bayesreg.interop.transforms import load_displacement
 
     if not path.exists():
         if required:
@@ -183,7 +183,7 @@ def _field(path: Path, *, required: bool = True):
 
 
 def load_run(path) -> RunData:
-    """Read a finished run directory (written by :func:`bayesreg.outputs.write_outputs`).
+    """Read a finished run directory (written by :func:`bayesreg.outputs.write.write_outputs`).
 
     Parameters
     ----------
@@ -207,8 +207,8 @@ def load_run(path) -> RunData:
     import arviz as az
     import meshio
 
-    from bayesreg.diagnostics import group_draws
-    from bayesreg.mesh import boundary_nodes
+    from bayesreg.sampling.diagnostics import group_draws
+    from bayesreg.mesh.tetmesh import boundary_nodes
 
     path = Path(path)
     if not path.is_dir():

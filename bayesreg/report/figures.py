@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from bayesreg.plots import most_uncertain_voxel
+from bayesreg.outputs.plots import most_uncertain_voxel
 from bayesreg.report.data import (
     SKULL_LABEL, TISSUE_COLORS, TISSUE_LABELS, TISSUE_NAMES, RunData, as_runs, true_ratio)
 
@@ -453,7 +453,7 @@ def plot_uncertainty(runs, k: int | None = None):
     """Posterior uncertainty over ``f`` on axial slice ``k``, one panel per run (common scale).
 
     By default the slice goes through the first run's most uncertain region
-    (:func:`bayesreg.plots.most_uncertain_voxel`), not the centre of the brain.
+    (:func:`bayesreg.outputs.plots.most_uncertain_voxel`), not the centre of the brain.
 
     The IQR of ``|u|`` (``displacement_norm_iqr.nii.gz``), or, for runs without it, the
     norm of the per-component sd ``sqrt(sum_c sd_c^2)`` (``displacement_sd.nii.gz``), mm,

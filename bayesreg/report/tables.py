@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from bayesreg.diagnostics import coverage
+from bayesreg.sampling.diagnostics import coverage
 from bayesreg.report.data import LEVELS, TISSUE_LABELS, TISSUE_NAMES, as_runs, true_ratio
 
 __all__ = ["table1", "table2", "coverage_table", "ratio_table"]

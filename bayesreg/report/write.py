@@ -14,8 +14,8 @@ from bayesreg.report.figures import (
     plot_boundary_node, plot_dataset, plot_errors, plot_ratios, plot_uncertainty, slice_index)
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
 from bayesreg._files import dumps_json, write_text_atomic
-from bayesreg.diagnostics import normaliser_note
-from bayesreg.outputs import verdict
+from bayesreg.sampling.diagnostics import normaliser_note
+from bayesreg.outputs.write import verdict
 from bayesreg.rundir import RunDirectory
 
 __all__ = ["write_report"]

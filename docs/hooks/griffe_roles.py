@@ -1,7 +1,7 @@
 """Griffe extension: the Sphinx markup of bayesreg's numpydoc docstrings, as Markdown.
 
 The docstrings are written for numpydoc (Sphinx): cross-references are roles
-(:func:`bayesreg.run`, :class:`~bayesreg.mesh.Mesh`), a literal block follows ``::`` and a
+(:func:`bayesreg.run`, :class:`~bayesreg.mesh.tetmesh.Mesh`), a literal block follows ``::`` and a
 few tables are reST simple tables.  mkdocstrings renders docstrings as Markdown, so this
 extension rewrites, for the documentation only (the sources are not touched):
 

@@ -1,0 +1,3 @@
+"""Experiments built on the main job: simulation-based calibration and sweeps of many runs
+on Dask.
+"""

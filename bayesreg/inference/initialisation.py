@@ -1,0 +1,378 @@
+"""Where the chains start and with which proposal scales (:func:`initialise`).
+
+The central start (:func:`start_center`) is a fraction of the synthetic truth (paper
+Sec. 4.2) or a fast optical-flow registration of ``f`` to ``m``
+(:mod:`bayesreg.data.registration`); with ``init.method: mode`` the posterior mode is searched
+from it (:func:`bayesreg.inference.mode.find_mode`).  The chains start dispersed around it
+(:func:`initial_positions`), over-dispersed by draws of the Laplace approximation
+(:func:`laplace_precision`) after a mode search.  The proposal scales
+(:func:`proposal_scale`) whiten the random walk, or the gradient kernels' coordinates, by
+the same Gauss-Newton precision.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg as sla
+import scipy.ndimage as ndi
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from bayesreg.data import labels as L
+from bayesreg.config import Config
+from bayesreg.mesh.constraints import skull_distance
+from bayesreg.fem.element import stiffness_matrix
+from bayesreg.data.images import Image
+from bayesreg.inference.mode import find_mode
+from bayesreg.mesh.tetmesh import Mesh
+from bayesreg.model.posterior import Posterior, elastic_groups, energies, similarity_weight
+from bayesreg.model.problem import Problem
+from bayesreg.data.registration import displacement_at, optical_flow_displacement
+from bayesreg.model.similarity import sample_moving
+from bayesreg.inference.targets import make_logdensity
+
+__all__ = ["Initialisation", "initialise", "start_center", "start_check", "registration_field",
+           "initial_positions",
+           "laplace_precision", "gauss_newton_precision", "schur_complement", "proposal_scale"]
+
+
+def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tuple[np.ndarray, dict]:
+    """Central start ``(dim,)`` of the chains and how it was made.
+
+    ``u_b``: ``init.fraction * truth`` (``init.start: between``, paper Sec. 4.2; identity
+    without a truth) or the displacement of a fast registration of ``f`` to ``m``
+    (``init.start: registration``: scikit-image optical flow, see
+    :func:`bayesreg.data.registration.optical_flow_displacement`) at the boundary nodes.  Nodes
+    that the start would put into the skull (or an element it would invert) are pulled back
+    toward zero by halving until the start is valid and no node is nearer the skull than half
+    the barrier's width (:func:`bayesreg.mesh.constraints.skull_distance`, the one smooth skull of
+    every stage).  Parameters: ``model.initial_*``.
+
+    Parameters
+    ----------
+    check : callable, optional
+        The jitted start check of :func:`start_check` (built here if not given; pass the
+        one :func:`initial_positions` uses so that one program serves both).
+    flow : Image, optional
+        ``init.start: registration``: the :func:`registration_field` if already computed
+        (made here, and its time recorded, otherwise).
+
+    Returns
+    -------
+    theta : (dim,) ndarray
+    info : dict
+        ``{"start", "shrink"}`` (and the time of a registration made here)
+
+    Raises
+    ------
+    ValueError
+        If 30 halvings of the start's displacements find no valid start.
+    """
+    post, mesh = problem.posterior, problem.mesh
+    nb = post.n_boundary
+    info: dict = {"start": cfg.init.start}
+    base_u = np.zeros((nb, 3))
+    if cfg.init.start == "registration":
+        if flow is None:
+            t = time.perf_counter()
+            flow = registration_field(problem, cfg.init.registration)
+            info["registration_s"] = time.perf_counter() - t
+        base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
+    elif problem.truth is not None:
+        base_u = cfg.init.fraction * problem.truth.u[mesh.boundary]
+    theta = np.concatenate([base_u.ravel(), problem.phi_init])
+    check = start_check(problem, cfg) if check is None else check
+    shrink = 1.0
+    # a node nearer the skull than half the barrier's width counts as offending: its barrier
+    # term (and gradient) would dwarf the rest of log p at the start of the mode search; one
+    # nearer than that at rest may close half its rest clearance (halving reaches it)
+    rest = np.asarray(skull_distance(post.skull, jnp.asarray(mesh.nodes[mesh.boundary])))
+    limit = np.maximum(-0.5 * float(post.barrier_width), 0.5 * rest)  # d < limit <= 0
+    for _ in range(30):
+        moved = mesh.nodes[mesh.boundary] + theta[: 3 * nb].reshape(nb, 3)
+        bad = np.asarray(skull_distance(post.skull, jnp.asarray(moved))) >= limit
+        # the one start, as each of the chains' rows: the program of the dispersed starts
+        if (not bad.any() and
+                np.isfinite(np.asarray(check(jnp.tile(jnp.asarray(theta), (cfg.sampler.chains, 1))))[0])):
+            info["shrink"] = shrink
+            return theta, info
+        # pull back only the offending nodes (in or near the skull, out of the image) first
+        u = theta[: 3 * nb].reshape(nb, 3)
+        u[bad if bad.any() else slice(None)] *= 0.5
+        theta[: 3 * nb] = u.ravel()
+        shrink *= 0.5
+    raise ValueError("could not find a valid central start (skull, inverted element or solve)")
+
+
+def registration_field(problem: Problem, method: str = "tvl1") -> Image:
+    """A fast dense registration of ``f`` to ``m`` on the brain: scikit-image optical flow
+    (:func:`bayesreg.data.registration.optical_flow_displacement`), kept within 3 voxels of the
+    intracranial tissues and zero beyond.
+
+    For a synthetic truth of the FE map (whose ``m`` holds the warped brain) ``f`` is
+    registered with its brain alone; otherwise (real data, a dense truth that moved the
+    whole image) both images as they are.
+
+    Returns
+    -------
+    Image
+        ``(I, J, K, 3)`` displacement, world mm, ``m(x + u(x)) ~= f(x)``.
+    """
+    brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
+    f_reg = problem.f
+    if problem.truth is not None and problem.truth.field is None:
+        f_reg = Image(np.where(brain, problem.f.data, 0.0), problem.f.affine)
+    return optical_flow_displacement(f_reg, problem.m, method=method,
+                                     mask=ndi.binary_dilation(brain, iterations=3))
+
+
+def start_check(problem: Problem, cfg: Config):
+    """The jitted check of chain starts: ``(chains, dim) -> (chains,)`` log posterior.
+
+    Each row is evaluated from a cold interior (zeros); ``-inf`` marks a start that violates
+    a hard constraint (skull, inverted element, prior support) or whose solve did not
+    converge.  :func:`start_center` and :func:`initial_positions` share it, so a run
+    compiles one program for both.
+    """
+    logdensity = make_logdensity(problem, cfg)
+    zeros = jnp.zeros((problem.posterior.op.n_interior, 3))
+
+    def start_logdensity(theta):
+        return logdensity(theta, zeros)[0]
+
+    return jax.jit(jax.vmap(start_logdensity))
+
+
+def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None, *,
+                      check=None) -> np.ndarray:
+    """Dispersed starts ``(chains, dim)`` around ``center``.
+
+    ``u_b``: Gaussian jitter of ``init.perturb_mm`` (method ``between``), or
+    ``init.overdispersion`` times a draw from the Laplace approximation ``N(0, prec^-1)``
+    (method ``mode``).  Parameters: log-normal jitter ``init.param_jitter``, clipped into
+    the prior support.  Starts that violate a hard constraint are redrawn closer to the
+    centre (halving the jitter, at most 20 times).  ``check``: as in :func:`start_center`.
+
+    Raises
+    ------
+    ValueError
+        If some chain has no valid start after 20 halvings.
+    """
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    c = cfg.sampler.chains
+    lo = np.asarray(post.prior.r1)
+    hi = np.asarray(post.prior.r2)
+    chol = None
+    if cfg.init.method == "mode":
+        chol = sla.cholesky(prec, lower=True)
+    check = start_check(problem, cfg) if check is None else check
+    out = np.tile(np.asarray(center, np.float64), (c, 1))
+    todo = np.arange(c)
+    shrink = 1.0
+    for _ in range(20):
+        z = rng.standard_normal((len(todo), nb3))
+        if chol is None:
+            du = cfg.init.perturb_mm * z
+        else:
+            du = cfg.init.overdispersion * sla.solve_triangular(chol, z.T, lower=True, trans="T").T
+        phi = center[nb3:] * np.exp(cfg.init.param_jitter * rng.standard_normal((len(todo), post.n_free)))
+        out[todo, :nb3] = center[:nb3] + shrink * du
+        out[todo, nb3:] = np.clip(phi, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo))
+        ok = np.isfinite(np.asarray(check(jnp.asarray(out))))
+        todo = np.flatnonzero(~ok)
+        if todo.size == 0:
+            return out
+        shrink *= 0.5
+    raise ValueError(f"could not find valid starts for chains {todo.tolist()}")
+
+
+def _dofs(nodes):
+    """The DOF indices ``3*i + axis`` of ``nodes``, node-major."""
+    return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
+
+
+def laplace_precision(problem: Problem, theta) -> np.ndarray:
+    """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed
+    (:func:`gauss_newton_precision` of the problem's posterior)."""
+    return gauss_newton_precision(problem.posterior, problem.mesh, problem.element_group, theta)
+
+
+def schur_complement(post: Posterior, mesh: Mesh, element_group, phi):
+    """The interior map and the Schur complement of ``K`` at the parameters ``phi``
+    ``(n_free,)``, by SciPy (sparse LU of ``K_ii``).
+
+    Returns
+    -------
+    h : (3 n_i, 3 n_b) array
+        ``u_i = h u_b`` solves ``K_ii u_i = -K_ib u_b`` (DOFs node-major, interior nodes in
+        ``mesh.interior`` order, boundary nodes in ``mesh.boundary`` order).
+    schur : (3 n_b, 3 n_b) array
+        ``S = K_bb - K_bi K_ii^-1 K_ib``, so that ``E_r = u_b^T S u_b / 2``.
+    """
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
+    g = np.asarray(element_group)
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
+    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
+    h = -spla.splu(sp.csc_matrix(k_ii)).solve(k_ib.toarray())
+    return h, k_bb.toarray() + k_ib.T @ h
+
+
+def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) -> np.ndarray:
+    """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed.
+
+    ``P = 2 J^T J / T_s + S / T_r + R_b R_b^T / (n_b sigma^2)`` (``1 / T_s`` the posterior's
+    :func:`~bayesreg.model.posterior.similarity_weight` at ``theta``): ``J`` is the Jacobian of the
+    SSD residuals with respect to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib
+    u_b``, ``S`` the Schur complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b
+    / 2``), the last term the posterior's prior along the rigid-body modes (0 if flat).
+
+    Parameters
+    ----------
+    post : Posterior
+    mesh : Mesh
+        The posterior's mesh.
+    element_group : (M,) int array
+        Parameter group of each element.
+    theta : (dim,) array
+        ``[u_b.ravel() (mm), phi]``.
+
+    Returns
+    -------
+    (3 n_b, 3 n_b) array
+        Dense, symmetric, with a ridge of ``1e-6`` times its mean diagonal.
+    """
+    nb = len(mesh.boundary)
+    phi = np.asarray(theta)[3 * nb:]
+    h, schur = schur_complement(post, mesh, element_group, phi)
+    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    # residual Jacobian w.r.t. nodal displacements, through the interior map
+    u_b = np.asarray(theta)[: 3 * nb]
+    u = np.zeros(3 * len(mesh.nodes))
+    u[bd] = u_b
+    u[idf] = h @ u_b
+    u = u.reshape(-1, 3)
+    term = post.ssd
+    bary = np.asarray(term.bary)  # (Q, 4)
+    nq = len(bary)
+    u_q = np.einsum("qa,mad->mqd", bary, u[mesh.tets])
+    y = np.asarray(term.points) + u_q
+    grad_m = jax.jit(jax.vmap(jax.grad(lambda p: sample_moving(term, p))))(
+        jnp.asarray(y.reshape(-1, 3))
+    )
+    grad_m = np.asarray(grad_m).reshape(len(mesh.tets), nq, 3)
+    vals = -np.asarray(term.sqrt_w)[:, :, None, None] * bary[None, :, :, None] * grad_m[:, :, None, :]
+    rows = np.broadcast_to(np.arange(nq * len(mesh.tets)).reshape(-1, nq)[:, :, None, None], vals.shape)
+    cols = 3 * mesh.tets[:, None, :, None] + np.arange(3)[None, None, None, :]
+    cols = np.broadcast_to(cols, vals.shape)
+    jac = sp.csr_array((vals.ravel(), (rows.ravel(), cols.ravel())),
+                       shape=(nq * len(mesh.tets), 3 * len(mesh.nodes)))
+    # J_b^T J_b with J_b = J_b' + J_i H, through the sparse Gram matrix (J_b itself is dense
+    # with one row per quadrature point: too large for a composite rule)
+    gram = (jac.T @ jac).tocsr()
+    g_ib = gram[idf][:, bd]
+    jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
+    # E_s matters only where the temperature is integrated out (similarity_weight)
+    e_s = energies(post, jnp.asarray(u), jnp.asarray(phi))[0] if float(post.t_s_shape) > 0 else 0.0
+    prec = 2.0 * float(similarity_weight(post, e_s)) * jtj + float(post.inv_t_r) * schur
+    rigid = np.asarray(post.normaliser.rigid_b)
+    prec = prec + float(post.inv_rigid_var) * rigid @ rigid.T
+    prec = 0.5 * (prec + prec.T)
+    ridge = 1e-6 * np.trace(prec) / len(prec)
+    return prec + ridge * np.eye(len(prec))
+
+
+def proposal_scale(problem: Problem, cfg: Config, prec=None):
+    """Initial jumping-kernel scales ``(sigma_u, sigma_phi)`` of the two coordinate blocks.
+
+    ``sigma_u``: for ``proposal: laplace`` the ``(3 n_b, 3 n_b)`` factor ``2.38 / sqrt(3 n_b)
+    R^-T`` with ``prec = R R^T`` the Gauss-Newton precision of ``u_b``
+    (:func:`laplace_precision`), i.e. proposal covariance ``2.38^2 / d prec^-1``; for
+    ``isotropic`` the paper's ``sigma_u`` (Eq. 14) as a ``(3 n_b,)`` vector.
+    ``sigma_phi``: ``sigma_lam`` / ``sigma_mu`` per free parameter, ``(n_free,)``.
+    """
+    post = problem.posterior
+    s = cfg.sampler
+    sig_p = np.array([s.sigma_lam if p == "lam" else s.sigma_mu for p, _ in problem.layout.free])
+    nb3 = 3 * post.n_boundary
+    if s.proposal == "isotropic":
+        return np.full(nb3, s.sigma_u), sig_p
+    chol = sla.cholesky(prec, lower=True)
+    factor = sla.solve_triangular(chol, np.eye(nb3), lower=True, trans="T")  # R^-T
+    return 2.38 / np.sqrt(nb3) * factor, sig_p
+
+
+class Initialisation(NamedTuple):
+    """Starts and jumping kernels of a run (saved with it, so a resumed run reuses them).
+
+    Attributes
+    ----------
+    x0 : (C, dim)
+        chain starts
+    center : (dim,)
+        central start (after the mode search, if any)
+    sigma : tuple of arrays
+        initial jumping-kernel scale per block
+    blocked : bool
+        u_b and the elastic parameters in separate blocks
+    info : dict
+        how the starts were made (mode search figures, timings)
+    """
+
+    x0: np.ndarray
+    center: np.ndarray
+    sigma: tuple
+    blocked: bool
+    info: dict
+
+
+def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
+    """Central start (:func:`start_center`, given ``flow``), optional mode search, dispersed
+    starts, kernels."""
+    rng = np.random.default_rng(cfg.seed)
+    t = time.perf_counter()
+    check = start_check(problem, cfg)
+    center, info = start_center(problem, cfg, check=check, flow=flow)
+    info["method"] = cfg.init.method
+    info["proposal"] = cfg.sampler.proposal
+    if cfg.init.method == "mode":
+        mode = find_mode(problem.posterior, center, iterations=cfg.init.optimizer_iterations,
+                         optimize_parameters=cfg.init.optimize_parameters,
+                         exact=cfg.model.prior_normaliser == "exact", rtol=cfg.solver.rtol,
+                         maxiter=cfg.solver.maxiter)
+        center = mode.theta
+        info.update({k: v for k, v in mode._asdict().items()
+                     if k != "theta" and not (k == "parameter_iterations_exact" and v is None)})
+    prec = None
+    if cfg.init.method == "mode" or cfg.sampler.proposal == "laplace":
+        prec = laplace_precision(problem, center)
+    x0 = initial_positions(problem, cfg, center, rng, prec, check=check)
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    if cfg.sampler.gradient:
+        # u_b = c + F w: F = R^-T with prec = R R^T (laplace), or 1 mm (isotropic)
+        if cfg.sampler.proposal == "laplace":
+            chol = sla.cholesky(prec, lower=True)
+            factor = sla.solve_triangular(chol, np.eye(nb3), lower=True, trans="T")
+        else:
+            factor = np.ones(nb3)
+        info["init_s"] = time.perf_counter() - t
+        return Initialisation(x0, center, (factor, np.full(post.n_free, cfg.sampler.sigma_eta)), True, info)
+    sigma_u, sigma_p = proposal_scale(problem, cfg, prec)
+    info["init_s"] = time.perf_counter() - t
+    if cfg.sampler.blocked:
+        sigma = (sigma_u, sigma_p)
+    elif sigma_u.ndim == 1:  # the paper's joint proposal (Eq. 14)
+        sigma = (np.concatenate([sigma_u, sigma_p]),)
+    else:
+        joint = np.zeros((post.dim, post.dim))
+        joint[:nb3, :nb3] = sigma_u * np.sqrt(nb3 / post.dim)
+        joint[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sigma_p
+        sigma = (joint,)
+    return Initialisation(x0, center, sigma, cfg.sampler.blocked, info)

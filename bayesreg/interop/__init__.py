@@ -1,0 +1,3 @@
+"""Displacement fields as the files ITK, ANTs and 3D Slicer read; the FE map at points and
+inverted on a grid.
+"""

@@ -1,0 +1,129 @@
+"""Posterior displacement fields: nodal moments and draws, and their spread on image grids.
+
+The stored draws hold ``u_b`` (sampled) and ``u_i`` (solved) per draw; the functions here
+put them in mesh node order and reduce them chunk by chunk, never holding all ``(S, N, 3)``
+nodal draws at once.  Units: mm (displacements), mm^2 (covariances).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from bayesreg.sampling.chains import available_cores
+
+__all__ = ["node_slots", "nodal_draws", "nodal_mean", "nodal_spread", "voxel_norm_spread",
+           "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
+
+
+CHUNK_DRAWS = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
+
+
+SPREAD_MAX_BYTES = 1 << 30  # the nodal covariances' accumulators, all threads together
+
+
+def node_slots(problem):
+    """Mesh node indices of the sampled boundary nodes and of the solved interior nodes, in
+    the order of ``u_b`` and ``u_i`` (the inverse of ``posterior.perm``)."""
+    post = problem.posterior
+    perm = np.asarray(post.perm)  # full[:, j] = [u_b, u_i][:, perm[j]]
+    node = np.empty_like(perm)
+    node[perm] = np.arange(len(perm))
+    return node[:post.n_boundary], node[post.n_boundary:]
+
+
+def nodal_draws(problem, result, rows):
+    """Nodal displacement draws ``(S, N, 3)`` mm in mesh node order for ``rows`` (a slice or
+    indices) of the pooled ``(C*D)`` draws: sampled boundary and solved interior nodes
+    written straight to their places (no copy of all draws)."""
+    b, i = node_slots(problem)
+    n_chains, n_draws = result.positions.shape[:2]
+    chain, draw = np.divmod(np.arange(n_chains * n_draws)[rows], n_draws)
+    pos, ui = result.positions[chain, draw], result.interior[chain, draw]
+    out = np.empty((len(pos), len(b) + len(i), 3))
+    out[:, b] = pos[:, : 3 * len(b)].reshape(len(pos), len(b), 3)
+    out[:, i] = ui
+    return out
+
+
+def _draw_chunks(result):
+    n, chunk = result.positions.shape[0] * result.positions.shape[1], CHUNK_DRAWS
+    return [slice(a, min(a + chunk, n)) for a in range(0, n, chunk)]
+
+
+def nodal_mean(problem, result) -> np.ndarray:
+    """Posterior mean nodal displacement ``(N, 3)`` mm: the means of the stored ``u_b`` and
+    ``u_i`` draws put in mesh node order (no nodal draws assembled)."""
+    b, i = node_slots(problem)
+    mean = np.empty((len(b) + len(i), 3))
+    mean[b] = result.positions[..., : 3 * len(b)].mean(axis=(0, 1)).reshape(len(b), 3)
+    mean[i] = result.interior.mean(axis=(0, 1))
+    return mean
+
+
+def nodal_spread(problem, result, mean, *, block=128):
+    """Per-node spread of the draws about ``mean``, over chunks of draws.
+
+    Returns ``cov (3, N, N)`` (covariance per axis, mm^2), ``sd (N, 3)``, and the sd and
+    inter-quartile range of ``|u|`` per node ``(N,)`` (mm).  Memory: the ``(C*D, N)``
+    norms and one chunk, not the ``(C*D, N, 3)`` draws.
+    """
+    n_nodes = mean.shape[0]
+    norm = np.empty((result.positions.shape[0] * result.positions.shape[1], n_nodes))
+
+    def accumulate(rows):
+        cov = np.zeros((3, n_nodes, n_nodes))
+        for r in rows:
+            x = nodal_draws(problem, result, r)
+            norm[r] = np.linalg.norm(x, axis=2)
+            x -= mean
+            for c in range(3):
+                xc = np.ascontiguousarray(x[:, :, c])
+                cov[c] += xc.T @ xc
+        return cov
+
+    # the chunks shared among threads (BLAS and NumPy release the GIL), one (3, N, N)
+    # accumulator each, as many as fit in SPREAD_MAX_BYTES (the 10k-node mesh: one)
+    chunks = _draw_chunks(result)
+    workers = max(1, min(available_cores(), len(chunks), SPREAD_MAX_BYTES // (24 * n_nodes * n_nodes)))
+    with ThreadPoolExecutor(workers) as pool:
+        covs = list(pool.map(accumulate, [chunks[k::workers] for k in range(workers)]))
+    cov = covs.pop(0)
+    for other in covs:  # in place: no third (3, N, N) array
+        cov += other
+    cov /= len(norm)
+    sd = np.sqrt(np.maximum(np.stack([np.diag(cov[c]) for c in range(3)], axis=1), 0.0))
+    norm_sd, norm_iqr = np.empty(n_nodes), np.empty(n_nodes)
+    for a in range(0, n_nodes, block):
+        cols = norm[:, a:a + block]
+        norm_sd[a:a + block] = cols.std(axis=0)
+        q75, q25 = np.quantile(cols, [0.75, 0.25], axis=0)
+        norm_iqr[a:a + block] = q75 - q25
+    return cov, sd, norm_sd, norm_iqr
+
+
+VOXEL_DRAWS = 400  # evenly spaced draws behind the voxel-wise spread of |u|
+
+
+def voxel_norm_spread(w, draws, max_draws=VOXEL_DRAWS, block=8192):
+    """Per-voxel sd and inter-quartile range of ``|u|`` from FE-interpolated draws.
+
+    ``w`` is the ``(P, N)`` interpolation matrix, ``draws`` ``(S, N, 3)``; at most
+    ``max_draws`` evenly spaced draws are used, voxels in blocks (memory ``block x S x 3``).
+    Returns two ``(P,)`` arrays, mm.
+    """
+    step = max(1, len(draws) // max_draws)
+    d = np.asarray(draws[::step], np.float64)
+    flat = d.transpose(1, 0, 2).reshape(d.shape[1], -1)  # (N, S*3)
+    sd = np.zeros(w.shape[0])
+    iqr = np.zeros(w.shape[0])
+    rows = np.flatnonzero(np.diff(w.indptr) > 0)
+    for a in range(0, len(rows), block):
+        r = rows[a:a + block]
+        vals = (w[r] @ flat).reshape(len(r), len(d), 3)
+        norm = np.linalg.norm(vals, axis=2)
+        sd[r] = norm.std(axis=1)
+        q75, q25 = np.quantile(norm, [0.75, 0.25], axis=1)
+        iqr[r] = q75 - q25
+    return sd, iqr

@@ -1,0 +1,375 @@
+"""Gradient kernels (MALA, HMC, NUTS) for the boundary displacements, in Gibbs with the
+elastic parameters.
+
+One transition (Metropolis-within-Gibbs, each part leaving the posterior invariant):
+
+1. ``u_b | lam, mu``: one step of a BlackJAX gradient kernel on the boundary displacements,
+   in preconditioned coordinates ``u_b = c + F w`` (``c`` the start's centre, ``F`` a fixed
+   factor, by default ``R^-T`` of the Gauss-Newton precision ``R R^T`` at the start:
+   a constant affine map, so the target is unchanged).  NUTS (:func:`blackjax.nuts`,
+   multinomial, iterative), HMC (:func:`blackjax.hmc`; by default the number of leapfrog
+   steps is drawn uniformly from ``1 .. 2L - 1`` each transition, mean ``L``, as
+   :func:`blackjax.dynamic_hmc` does, which breaks the periodicity of a fixed trajectory
+   length: Mackenzie 1989; Neal 2011, "MCMC using Hamiltonian dynamics") or MALA (HMC with one leapfrog step, which is MALA preconditioned by the inverse mass matrix).
+   With ``condensed`` the interior comes from a cached dense map ``u_i = H(lam, mu) u_b``
+   (no CG solve in the gradient), else from the CG solve with implicit differentiation.
+2. ``lam, mu | u_b``: ``elastic_moves`` random-walk Metropolis steps on ``eta``, the logit of the free
+   parameters on their prior support, with the log-Jacobian (:func:`bayesreg.model.parameters.
+   from_unconstrained`) and, for ``prior_normaliser: exact``, the normaliser
+   ``(1/2) log pdet S(lam, mu)`` (:func:`bayesreg.model.posterior.log_normaliser`).  If any move
+   was accepted, the cache (``H`` and the normaliser) and the gradient state of part 1 are
+   rebuilt once.
+3. Optionally (``collapsed_moves``), moves of ``(eta, u_b)`` together: ``eta`` by a random
+   walk and ``u_b`` carried along by a Gaussian approximation of ``u_b`` given the
+   parameters (:attr:`bayesreg.sampling.kernels.target.Target.conditional`), with the Jacobian of
+   that map in the acceptance (exact whatever the approximation); they move parameters
+   that ``u_b`` pins down given it but not in the marginal.
+
+With a joint target (:func:`bayesreg.sampling.kernels.target.joint_target`) part 1 moves ``u_b`` and
+the elastic parameters together along one trajectory, through the CG solve with implicit
+differentiation, and parts 2 and 3 are empty (the target has no separate parameters):
+Gibbs alternation mixes slowly where ``u_b`` pins the parameters down.  Under the exact
+normaliser the trajectory sees a smooth surrogate of it (:mod:`bayesreg.fem.normaliser`), and a
+Metropolis step after the trajectory (4.) makes the chain exact.
+
+4. With a joint target that has a :attr:`~bayesreg.sampling.kernels.target.Target.correction`
+   (exact normaliser less its surrogate): the trajectory's end ``z'`` is kept with
+   probability ``min(1, exp(correction(z') - correction(z)))``, else the chain stays at
+   ``z`` (a surrogate transition: the trajectory leaves the surrogate posterior invariant
+   and is reversible, so this step leaves the exact one invariant; Liu 2001, *Monte Carlo
+   Strategies in Scientific Computing*, Sec. 9.4).  Its acceptance is a second column
+   (block ``normaliser``); the cache holds the correction at the chain's position.
+
+Warm-up: :mod:`bayesreg.sampling.kernels.adaptation`; the driver: :func:`bayesreg.sampling.driver.sample_gradient`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import solve_triangular
+
+from bayesreg.sampling.kernels.base import Kernel
+from bayesreg.sampling.kernels.target import Cache, Target
+
+__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
+           "default_target_acceptance"]
+
+
+KINDS = ("mala", "hmc", "nuts")
+
+
+ELASTIC_TARGET_ACCEPTANCE = 0.3
+
+
+def default_target_acceptance(kind: str) -> float:
+    """Warm-up target of the u_b kernel's acceptance: 0.8 (HMC, NUTS), 0.57 (MALA), 0.25 (RW)."""
+    return {"nuts": 0.8, "hmc": 0.8, "mala": 0.57, "rwmh": 0.25}[kind]
+
+
+class GibbsState(NamedTuple):
+    """State of one chain.
+
+    Attributes
+    ----------
+    position : (dim,)
+        ``[u_b.ravel() (mm), phi]`` (natural parameters, what is stored)
+    logdensity : ()
+        log posterior at ``position`` in the natural parameters
+    interior : (n_i, 3)
+        interior FE solution at ``position`` (mm)
+    u : blackjax HMCState
+        ``w`` (``(3 n_b,)``), its conditional log-density and gradient
+    eta : (n_free,)
+        unconstrained elastic parameters
+    """
+
+    position: jax.Array
+    logdensity: jax.Array
+    interior: jax.Array
+    u: object
+    eta: jax.Array
+
+
+class GibbsInfo(NamedTuple):
+    """One transition.
+
+    Attributes
+    ----------
+    acceptance_rate : (B,)
+        u_b kernel's (NUTS: mean over the trajectory), elastic move's
+    is_accepted : (B,) bool
+        (NUTS: whether the chain moved)
+    cg_iterations : ()
+        CG iterations of the transition's solves
+    solve_failed : ()
+        solves that did not converge (their moves are rejected)
+    grad_evals : ()
+        gradient evaluations (leapfrog steps, plus one after an accepted
+        elastic move)
+    divergent : () bool
+    tree_depth : ()
+        NUTS trajectory doublings (0 for MALA, HMC)
+    energy : ()
+        Hamiltonian (negative conditional log-density plus kinetic energy) at the end of
+        the u_b trajectory (ArviZ's ``energy``: BFMI, energy plot)
+    """
+
+    acceptance_rate: jax.Array
+    is_accepted: jax.Array
+    cg_iterations: jax.Array
+    solve_failed: jax.Array
+    grad_evals: jax.Array
+    divergent: jax.Array
+    tree_depth: jax.Array
+    energy: jax.Array
+
+
+class GibbsParams(NamedTuple):
+    """Tuned values of one chain: ``step_size`` ``()``, ``inverse_mass`` ``(3 n_b,)`` or
+    ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
+    of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
+    ``(n_free,)`` is accepted as independent scales; ``collapsed_scale``, the same for the
+    collapsed moves (``None``: ``eta_scale``)."""
+
+    step_size: jax.Array
+    inverse_mass: jax.Array
+    eta_scale: jax.Array
+    collapsed_scale: jax.Array | None = None
+
+
+def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
+    """State and cache at the natural position ``theta`` ``(dim,)``."""
+    from blackjax.mcmc import hmc as bj_hmc
+
+    w, eta = target.coordinates(jnp.asarray(theta))
+    cache = target.build_cache(eta, target.log_norm(eta))
+    lp, interior, _, _ = target.u_evaluate(w, eta, cache, interior0)
+    grad = jax.grad(target.u_logdensity)(w, eta, cache, interior)
+    _, lp_nat, interior, _, _ = target.evaluate(w, eta, interior, cache.log_norm)
+    if target.correction is not None:  # the trajectories' surrogate normaliser, corrected
+        delta = jnp.asarray(target.correction(w), jnp.float64)
+        cache = cache._replace(log_norm=delta)
+        lp_nat = lp_nat + delta
+    return GibbsState(target.position(w, eta), lp_nat, interior, bj_hmc.HMCState(w, lp, grad), eta), cache
+
+
+def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
+                 jitter_integration_steps: bool = True, max_num_doublings: int = 10,
+                 divergence_threshold: float = 1000.0, elastic_moves: int = 1,
+                 collapsed_moves: int = 0) -> Kernel:
+    """The Gibbs kernel over a :class:`~bayesreg.sampling.kernels.target.Target`.
+
+    Parameters
+    ----------
+    target : Target
+    kind : {"mala", "hmc", "nuts"}
+    num_integration_steps : int
+        HMC's leapfrog steps per transition (the mean number if jittered).
+    jitter_integration_steps : bool
+        HMC: draw the number of leapfrog steps of each transition uniformly from
+        ``1 .. 2 num_integration_steps - 1`` (independently of the state, so each transition
+        is a mixture of reversible kernels and the target is unchanged).  A fixed length
+        can make the trajectory nearly periodic for some directions (antithetic or stuck
+        draws: bulk ESS above the number of draws next to a high tail R-hat).
+    max_num_doublings : int
+        NUTS' maximum tree depth.
+    divergence_threshold : float
+        Energy error above which a trajectory is divergent (BlackJAX's default 1000).
+    elastic_moves : int
+        Random-walk updates of the elastic parameters per transition (each a full
+        Metropolis step given ``u_b``; the cache is rebuilt once after them if any was
+        accepted).  Their acceptance is reported as the mean over the moves.
+    collapsed_moves : int
+        Collapsed moves of the parameters per transition, after the random-walk ones (a
+        third acceptance column): ``eta' = eta + L z`` with ``u_b`` carried along by the
+        target's Gaussian approximation of ``u_b`` given the parameters
+        (:attr:`~bayesreg.sampling.kernels.target.Target.conditional`), ``u_b' = m' + C'^-T C^T
+        (u_b - m)``, accepted with the joint density ratio times the Jacobian ``det C /
+        det C'``.  Where that approximation is exact the move samples the parameters'
+        marginal (``u_b`` integrated out) however strongly ``u_b`` and the parameters are
+        coupled; elsewhere it stays exact and accepts less.  Needs a target with
+        ``conditional``.
+
+    Returns
+    -------
+    Kernel
+        ``step(rng_key, state, params, cache) -> (state, GibbsInfo, cache)`` with ``params``
+        a :class:`GibbsParams` and ``cache`` a :class:`~bayesreg.sampling.kernels.target.Cache`
+        (``init_cache(state)``); parameters are per chain.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``kind``, fewer than one leapfrog step, or collapsed moves on a
+        target without ``conditional`` or without free parameters.
+    """
+    if collapsed_moves and (target.conditional is None or not target.n_free):
+        raise ValueError("collapsed moves need free elastic parameters and a target with a "
+                         "Gaussian conditional of u_b (make_target(likelihood=...))")
+    if kind not in KINDS:
+        raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
+    # BlackJAX is imported where a kernel is built, not with this module: importing it starts
+    # JAX's backend, which must wait for bayesreg.configure_jax (the XLA flags)
+    from blackjax.mcmc import hmc as bj_hmc
+    from blackjax.mcmc import nuts as bj_nuts
+    from blackjax.mcmc.proposal import static_binomial_sampling
+
+    if kind == "nuts":
+        inner = bj_nuts.build_kernel(divergence_threshold=divergence_threshold)
+    else:
+        inner = bj_hmc.build_kernel(divergence_threshold=divergence_threshold)
+    n_leap = 1 if kind == "mala" else int(num_integration_steps)
+    if n_leap < 1:
+        raise ValueError(f"num_integration_steps must be >= 1, got {num_integration_steps}")
+    jitter = kind == "hmc" and bool(jitter_integration_steps) and n_leap > 1
+
+    def u_step(key, ustate, logdensity_fn, params):
+        if kind == "nuts":
+            new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass,
+                              max_num_doublings=max_num_doublings)
+            moved = jnp.any(new.position != ustate.position)
+            return new, (info.acceptance_rate, moved, info.num_integration_steps, info.is_divergent,
+                         info.num_trajectory_expansions, info.energy)
+        if jitter:
+            key, k_n = jax.random.split(key)
+            n = jax.random.randint(k_n, (), 1, 2 * n_leap)  # 1 .. 2L - 1, mean L
+        else:
+            n = jnp.asarray(n_leap)
+        new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n)
+        return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0),
+                     info.energy)
+
+    def step(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
+        k_u, k_e = jax.random.split(rng_key)
+        eta = state.eta
+
+        def evaluate(w_, eta_, interior_, log_norm_):
+            if target.build_precond is None:  # (a target of one's own may take 4 arguments)
+                return target.evaluate(w_, eta_, interior_, log_norm_)
+            return target.evaluate(w_, eta_, interior_, log_norm_, cache.precond)
+
+        def cond_fn(w):
+            return target.u_logdensity(w, eta, cache, state.interior)
+
+        ustate, (acc_u, moved_u, n_grad, divergent, depth, energy) = u_step(k_u, state.u, cond_fn, params)
+        _, interior, its, ok_u = target.u_evaluate(ustate.position, eta, cache, state.interior)
+        # a rejected trajectory keeps the old interior (the cached map gives the same)
+        interior = jnp.where(moved_u, interior, state.interior)
+        its = jnp.where(moved_u, its, 0)
+        w = ustate.position
+        acc = [acc_u]
+        accepted = [moved_u]
+        failed = (~ok_u & moved_u).astype(jnp.int32)
+        grads = n_grad
+        if target.n_free:
+            # the chain's own parameters at its new u_b: a failed solve there (never seen)
+            # leaves the elastic parameters where they are and is counted, rather than let
+            # -inf accept whatever is proposed
+            lz_c, lnat_c, int_c, its_c, ok_c = evaluate(w, eta, interior, cache.log_norm)
+
+            def elastic_move(carry, key):
+                eta_c, lz, lnat, int_, ln, n_its, n_fail = carry
+                k_prop, k_a = jax.random.split(key)
+                z = jax.random.normal(k_prop, eta_c.shape)
+                scale = params.eta_scale
+                eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
+                norm_p = target.log_norm(eta_p)
+                lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w, eta_p, int_, norm_p)
+                log_ratio = jnp.where(jnp.isnan(lz_p - lz) | ~ok_c, -jnp.inf, lz_p - lz)
+                _, (do, p_acc, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()), jnp.ones(()))
+                carry = (jnp.where(do, eta_p, eta_c), jnp.where(do, lz_p, lz), jnp.where(do, lnat_p, lnat),
+                         jnp.where(do, int_p, int_), jnp.where(do, norm_p, ln), n_its + its_p,
+                         n_fail + (~ok_p).astype(jnp.int32))
+                return carry, (p_acc, do)
+
+            carry0 = (eta, lz_c, lnat_c, int_c, cache.log_norm, its_c, (~ok_c).astype(jnp.int32))
+            if collapsed_moves:  # (without them the random stream is the one it always was)
+                k_e, k_c = jax.random.split(k_e)
+            (eta_new, lz, lp_nat, interior, norm_new, its_e, fail_e), (p_acc, dos) = jax.lax.scan(
+                elastic_move, carry0, jax.random.split(k_e, elastic_moves))
+            do = jnp.any(dos)
+            acc.append(jnp.mean(p_acc))
+            accepted.append(do)
+            if collapsed_moves:
+                def collapsed_move(carry, key):
+                    w_c, eta_c, lz, lnat, int_, ln, mean_c, chol_c, n_its, n_fail = carry
+                    k_prop, k_a = jax.random.split(key)
+                    z = jax.random.normal(k_prop, eta_c.shape)
+                    scale = params.eta_scale if params.collapsed_scale is None else params.collapsed_scale
+                    eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
+                    mean_p, chol_p = target.conditional(eta_p)
+                    u_c = target.position(w_c, eta_c)[:-target.n_free]
+                    r = chol_c.T @ (u_c - mean_c)
+                    u_p = mean_p + solve_triangular(chol_p, r, lower=True, trans="T")
+                    phi_p = target.position(w_c, eta_p)[-target.n_free:]
+                    w_p, _ = target.coordinates(jnp.concatenate([u_p, phi_p]))
+                    norm_p = target.log_norm(eta_p)
+                    lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w_p, eta_p, int_, norm_p)
+                    log_jac = (jnp.sum(jnp.log(jnp.diag(chol_c))) - jnp.sum(jnp.log(jnp.diag(chol_p))))
+                    log_ratio = lz_p - lz + log_jac
+                    log_ratio = jnp.where(jnp.isnan(log_ratio) | ~ok_c, -jnp.inf, log_ratio)
+                    _, (do_, p_acc_, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()),
+                                                                  jnp.ones(()))
+                    keep = (w_p, eta_p, lz_p, lnat_p, int_p, norm_p, mean_p, chol_p)
+                    old = (w_c, eta_c, lz, lnat, int_, ln, mean_c, chol_c)
+                    new = tuple(jnp.where(do_, a, b) for a, b in zip(keep, old))
+                    return new + (n_its + its_p, n_fail + (~ok_p).astype(jnp.int32)), (p_acc_, do_)
+
+                mean0, chol0 = target.conditional(eta_new)
+                carry0 = (w, eta_new, lz, lp_nat, interior, norm_new, mean0, chol0, its_e, fail_e)
+                (w, eta_new, _, lp_nat, interior, norm_new, _, _, its_e, fail_e), (p_c, dos_c) = \
+                    jax.lax.scan(collapsed_move, carry0, jax.random.split(k_c, collapsed_moves))
+                do = do | jnp.any(dos_c)
+                acc.append(jnp.mean(p_c))
+                accepted.append(jnp.any(dos_c))
+
+            def rebuild(_):
+                new_cache = target.build_cache(eta_new, norm_new)._replace(precond=cache.precond)
+                lp, g = jax.value_and_grad(target.u_logdensity)(w, eta_new, new_cache, interior)
+                return new_cache, bj_hmc.HMCState(w, lp, g)
+
+            cache, ustate = jax.lax.cond(do, rebuild, lambda _: (cache, ustate), None)
+            eta = eta_new
+            its = its + its_e
+            failed = failed + fail_e
+            grads = grads + do.astype(grads.dtype)
+        else:
+            if target.correction is not None:  # the surrogate transition's Metropolis step
+                def correct(_):
+                    delta = jnp.asarray(target.correction(ustate.position), jnp.float64)
+                    log_ratio = delta - cache.log_norm
+                    log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
+                    _, (do_, p_acc_, _) = static_binomial_sampling(k_e, log_ratio, jnp.zeros(()),
+                                                                  jnp.ones(()))
+                    return do_, p_acc_, jnp.where(do_, delta, cache.log_norm)
+
+                keep, p_c, delta = jax.lax.cond(
+                    moved_u, correct,
+                    lambda _: (jnp.asarray(True), jnp.ones(()), cache.log_norm), None)
+                ustate = jax.tree.map(lambda a, b: jnp.where(keep, a, b), ustate, state.u)
+                interior = jnp.where(keep, interior, state.interior)
+                w = ustate.position
+                cache = cache._replace(log_norm=delta)
+                acc.append(p_c)
+                accepted.append(moved_u & keep)
+            lp_nat = ustate.logdensity + cache.log_norm
+            if target.log_jacobian is not None:  # a joint target: its w holds the logits
+                lp_nat = lp_nat - target.log_jacobian(w)
+        state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)
+        info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth,
+                         energy)
+        return state, info, cache
+
+    def init_cache(state: GibbsState) -> Cache:
+        cache = target.build_cache(state.eta, target.log_norm(state.eta))
+        if target.correction is not None:
+            cache = cache._replace(log_norm=jnp.asarray(target.correction(state.u.position),
+                                                        jnp.float64))
+        if target.build_precond is None:
+            return cache
+        return cache._replace(precond=target.build_precond(state.eta))
+
+    return Kernel(step, init_cache, per_chain_params=True)
