@@ -18,7 +18,7 @@ import scipy.sparse.linalg as spla
 
 from bayesreg.fem import element as fem
 from bayesreg.data import labels
-from bayesreg.fem.element import stiffness
+from bayesreg.fem import stiffness
 from bayesreg.data.images import Image
 from bayesreg.sampling.kernels.target import Cache, Target
 from bayesreg.model.parameters import ParamLayout

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bayesreg.outputs.write import fields
+from bayesreg.outputs import fields
 from helpers import fake_run
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bayesreg.mesh.tetmesh import meshing
+from bayesreg.mesh import meshing
 from bayesreg.data.images import Image
 from bayesreg.mesh.tetmesh import Mesh, MeshError, mesh_quality
 from bayesreg.mesh.meshing import mesh_brain_sized

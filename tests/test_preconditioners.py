@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.fem.element import stiffness
+from bayesreg.fem import stiffness
 from bayesreg.fem.preconditioners import (PACKED_BLOCK_ROWS, DensePreconditioner, dense_preconditioner,
                                       pack_symmetric, spectral_preconditioner, unpack_symmetric)
 from bayesreg.fem.solver import solve_interior_blocks

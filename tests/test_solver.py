@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesreg.fem.element import stiffness
+from bayesreg.fem import stiffness
 from bayesreg.fem.preconditioners import DENSE_MAX_ITERATIONS, DensePreconditioner, dense_preconditioner
 from bayesreg.fem.solver import interior_map, pcg, solve_interior, solve_interior_blocks
 from conftest import box_mesh

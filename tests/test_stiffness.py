@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bayesreg.fem import element as fem
-from bayesreg.fem.element import stiffness
+from bayesreg.fem import stiffness
 from conftest import box_mesh
 
 
