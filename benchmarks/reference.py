@@ -159,7 +159,7 @@ class ReferencePosterior:
         if cfg.data.smoothing_mm > 0:
             f, m = (type(i)(ndi.gaussian_filter(i.data, cfg.data.smoothing_mm / i.spacing), i.affine)
                     for i in (f, m))
-        self.cval = float(np.asarray(post.ssd.cval))
+        self.cval = float(np.asarray(post.similarity.cval))
         self.f_q = self._sample(np.asarray(f.data, np.float64), f.affine, self.points)
         # stored as the posterior stores it (model.moving_dtype: its values rounded once)
         self.m = np.asarray(m.data, np.float64).astype(cfg.model.moving_dtype).astype(np.float64)

@@ -23,6 +23,7 @@ from bayesreg.data.images import Image
 from bayesreg.sampling.kernels.target import Cache, Target
 from bayesreg.model.parameters import ParamLayout
 from bayesreg.model.posterior import Aux, build_posterior, log_density
+from bayesreg.model.lncc import build_lncc
 from bayesreg.model.similarity import build_ssd
 from bayesreg.fem.solver import solve_interior
 from conftest import box_mesh, centred_cube
@@ -113,10 +114,11 @@ def box_skull() -> Image:
     return Image(np.broadcast_to((x > 36.0)[:, None, None], shape).astype(np.uint8), affine)
 
 
-def box_posterior(prior, t_r, phi, *, quadrature_level=0, every_node=False):
+def box_posterior(prior, t_r, phi, *, quadrature_level=0, every_node=False, similarity="ssd"):
     """The posterior of a 30 mm box mesh (3 tissues by x thirds; ``mu_gm`` fixed at 1) on a
     smooth random image shifted by one voxel, with a skull at world x > 36 mm; with
-    ``every_node`` every node sampled (``model.interior: sample``).
+    ``every_node`` every node sampled (``model.interior: sample``); ``similarity`` ``"lncc"``:
+    the LNCC term (10 mm windows) instead of SSD.
 
     Returns ``(mesh, post, theta)``, ``theta`` a start near the rest state at ``phi``.
     """
@@ -133,8 +135,10 @@ def box_posterior(prior, t_r, phi, *, quadrature_level=0, every_node=False):
     layout = ParamLayout(("csf", "gm", "wm"),
                          free=(("lam", 0), ("lam", 1), ("lam", 2), ("mu", 0), ("mu", 2)),
                          fixed=(("mu", 1, 1.0),))
-    post = build_posterior(mesh, build_ssd(mesh.nodes, mesh.tets, f, m, quadrature_level=quadrature_level),
-                           forbidden, t_s=0.5,
+    term = (build_ssd(mesh.nodes, mesh.tets, f, m, quadrature_level=quadrature_level)
+            if similarity == "ssd" else
+            build_lncc(mesh.nodes, mesh.tets, f, m, window_mm=10.0, quadrature_level=quadrature_level))
+    post = build_posterior(mesh, term, forbidden, t_s=0.5,
                            t_r=t_r, layout=layout, element_group=mesh.tissue, prior=prior,
                            phi_ref=phi)
     theta = np.concatenate([0.3 * rng.normal(size=3 * len(mesh.boundary)), phi])

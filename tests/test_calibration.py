@@ -53,14 +53,14 @@ def test_simulated_data_have_the_likelihoods_noise(problem):
     truths = cal.simulate(problem, 4, rng)
     post = problem.posterior
     for theta, f_q in zip(truths.theta, truths.f_q):
-        p = post._replace(ssd=post.ssd._replace(f_q=jnp.asarray(f_q)))
+        p = post._replace(similarity=post.similarity._replace(f_q=jnp.asarray(f_q)))
         lp, aux = log_p(p, theta)
         n_q = f_q.size
         stat = 2 * float(aux.e_s) * float(post.inv_t_s)
         assert abs(stat - n_q) < 5 * np.sqrt(2 * n_q)
         assert np.isfinite(float(lp))
     assert truths.theta.shape == (4, post.dim)
-    assert truths.f_q.shape == (4, *post.ssd.f_q.shape)
+    assert truths.f_q.shape == (4, *post.similarity.f_q.shape)
 
 
 @pytest.mark.parametrize("sets", [["model.t_s_prior={shape: 3, rate: 1.5}"], ["model.data_t_s=2.0"]])
@@ -72,7 +72,7 @@ def test_simulated_noise_has_each_replicas_temperature(sets):
     cp = cal.calibration_problem(spec)
     truths = cal.simulate(cp, 40, np.random.default_rng(4))
     post = cp.posterior
-    n_q = post.ssd.f_q.size
+    n_q = post.similarity.f_q.size
     if cp.t_s_prior is not None:
         assert float(post.t_s_shape) == 3 + n_q / 2 and float(post.t_s_rate) == 1.5
         tau = 1 / truths.t_s
@@ -81,7 +81,7 @@ def test_simulated_noise_has_each_replicas_temperature(sets):
         np.testing.assert_array_equal(truths.t_s, 2.0)
         assert float(post.inv_t_s) == 1 / spec.model.t_s and float(post.t_s_shape) == 0
     for theta, f_q, t_s in list(zip(truths.theta, truths.f_q, truths.t_s))[:3]:
-        p = post._replace(ssd=post.ssd._replace(f_q=jnp.asarray(f_q)))
+        p = post._replace(similarity=post.similarity._replace(f_q=jnp.asarray(f_q)))
         stat = 2 * float(log_p(p, theta)[1].e_s) / t_s
         assert abs(stat - n_q) < 5 * np.sqrt(2 * n_q)
 
@@ -105,7 +105,7 @@ def test_build_posterior_refuses_a_bad_rigid_sd(problem):
     skull = Image(np.zeros((8, 8, 8), np.uint8), np.diag([8.0, 8.0, 8.0, 1.0]))
     for bad in (-1.0, 0.0, float("inf")):
         with pytest.raises(ValueError, match="rigid_sd"):
-            build_posterior(cp.mesh, cp.posterior.ssd, skull, t_s=1.0, t_r=1.0,
+            build_posterior(cp.mesh, cp.posterior.similarity, skull, t_s=1.0, t_r=1.0,
                             layout=cp.layout, element_group=cp.element_group,
                             prior={"lam": (1, 1, 0, 20), "mu": (1, 1, 0.5, 2)},
                             phi_ref=[5.0, 5.0, 1.0], rigid_sd=bad)

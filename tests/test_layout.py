@@ -57,6 +57,7 @@ LAYERS = [
     ["truth", "truth.synthetic"],
     ["truth.contact"],
     ["model", "model.similarity"],
+    ["model.lncc"],
     ["model.parameters"],
     ["model.posterior"],
     ["model.problem"],

@@ -23,7 +23,7 @@ def test_find_mode_reaches_a_stationary_point_from_a_far_start(small):
     phi = np.array([5.0, 10.0, 97.0])
     prior = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
     _, base, theta = small  # its image term and skull, with lam alone free
-    post = build_posterior(mesh, base.ssd, box_skull(), t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
+    post = build_posterior(mesh, base.similarity, box_skull(), t_s=0.5, t_r=3.0, layout=layout, element_group=mesh.tissue,
                            prior=prior, phi_ref=phi)
     theta = np.concatenate([theta[: 3 * len(mesh.boundary)], phi])
     with compilations() as compiled:

@@ -67,7 +67,7 @@ def _element_posterior(small):
                          fixed=())
     rng = np.random.default_rng(4)
     phi = np.r_[rng.uniform(1.0, 40.0, m), rng.uniform(0.5, 3.0, m)]
-    el = build_posterior(mesh, post.ssd, _skull_image(), t_s=0.5, t_r=3.0, layout=layout,
+    el = build_posterior(mesh, post.similarity, _skull_image(), t_s=0.5, t_r=3.0, layout=layout,
                          element_group=np.arange(m), prior={"lam": (1, 1, 0, 100), "mu": (1, 1, 0, 10)},
                          phi_ref=phi)
     return el, phi
@@ -93,7 +93,7 @@ def test_sparse_normaliser_equals_the_dense_reference_in_value_and_gradient(smal
     phi = jnp.asarray(theta[-5:]) * jnp.array([1.3, 0.7, 1.1, 2.0, 0.8])
     if model == "uniform":
         layout = ParamLayout(("all",), free=(("lam", 0), ("mu", 0)), fixed=())
-        post = build_posterior(mesh, post.ssd, _skull_image(), t_s=0.5, t_r=3.0, layout=layout,
+        post = build_posterior(mesh, post.similarity, _skull_image(), t_s=0.5, t_r=3.0, layout=layout,
                                element_group=np.zeros(len(mesh.tets), np.int64),
                                prior={"lam": (1, 1, 0, 100), "mu": (1, 1, 0, 10)}, phi_ref=[12.0, 1.5])
         phi = jnp.array([17.0, 2.5])

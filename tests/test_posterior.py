@@ -191,9 +191,9 @@ def test_bad_temperatures_and_priors_raise(small):
               phi_ref=[5.0])
     forb = Image(np.zeros((4, 4, 4), np.uint8), np.eye(4))
     with pytest.raises(ValueError, match="temperatures"):
-        build_posterior(mesh, post.ssd, forb, t_s=0.0, t_r=1.0, **kw)
+        build_posterior(mesh, post.similarity, forb, t_s=0.0, t_r=1.0, **kw)
     with pytest.raises(ValueError, match="outside the prior support"):
-        build_posterior(mesh, post.ssd, forb, t_s=1.0, t_r=1.0, **{**kw, "phi_ref": [50.0]})
+        build_posterior(mesh, post.similarity, forb, t_s=1.0, t_r=1.0, **{**kw, "phi_ref": [50.0]})
 
 
 def test_condensed_log_density_equals_the_solved_one(small):
@@ -357,9 +357,9 @@ def test_marginal_similarity_temperature_is_the_integral_over_its_gamma_prior():
     phi = np.array([5.0, 5.0, 5.0, 1.0, 1.0])
     mesh, post, theta = box_posterior(prior, 3.0, phi)
     a, b = 2.0, 0.3
-    marg = post._replace(t_s_shape=jnp.asarray(a + 0.5 * post.ssd.sqrt_w.size),
+    marg = post._replace(t_s_shape=jnp.asarray(a + 0.5 * post.similarity.sqrt_w.size),
                          t_s_rate=jnp.asarray(b))
-    n = post.ssd.sqrt_w.size
+    n = post.similarity.sqrt_w.size
 
     def log_integral(e_s):
         shape = a + n / 2

@@ -332,8 +332,30 @@ class FixedParam(_Strict):
     value: Float = Field(1.0, gt=0, description="its value")
 
 
+class LNCCConfig(_Strict):
+    """The local normalised cross-correlation term (model.similarity: lncc)."""
+
+    window_mm: Float = Field(9.0, gt=0, description="side of the windows' cubes (mm), laid every "
+                             "window_mm / 2 over the quadrature points (ANTs' CC radius r at "
+                             "spacing h: (2r + 1) h)")
+    t_s: Float = Field(8.0, gt=0, description="temperature of the LNCC term, in mm^3 (its value "
+                       "is sum_k W_k (1 - rho_k^2), windows weighted by their volume / 8); the "
+                       "default gives the Gauss-Newton curvature that SSD has at t_s 0.1 on the "
+                       "quickstart's truth with 9 mm windows")
+    eps: Float = Field(1e-4, gt=0, description="variance floor of a window (intensity^2, "
+                       "intensities scaled to about [0, 1]): keeps the term smooth where the "
+                       "image is flat")
+
+
 class ModelConfig(_Strict):
     """The posterior (paper Eqs. 8-12): elastic parameterisation, temperatures, priors."""
+
+    similarity: Literal["ssd", "lncc"] = Field(
+        "ssd", description="the similarity term E_s: ssd (the paper's sum of squared differences, "
+        "Eq. 1, temperature t_s) or lncc (local normalised cross-correlation, ANTs' CC: blind "
+        "to an intensity change that is affine within a window, such as a bias field or "
+        "another contrast; settings and temperature under lncc)")
+    lncc: LNCCConfig = Field(LNCCConfig(), description="the LNCC term (similarity: lncc)")
 
     elastic: Literal["uniform", "tissue", "element"] = Field(
         "tissue", description="groups of elements sharing Lamé parameters: uniform (one pair), "
@@ -402,6 +424,13 @@ class ModelConfig(_Strict):
                                      description="the chains' central start of mu per tissue")
 
     _partial = model_validator(mode="before")(classmethod(_fill_from_defaults))
+
+    @model_validator(mode="after")
+    def _similarity(self):
+        if self.similarity != "ssd" and self.t_s_prior is not None:
+            raise ValueError("model.t_s_prior (the SSD's noise precision integrated out) needs "
+                             "model.similarity: ssd")
+        return self
 
 
 class SolverConfig(_Strict):

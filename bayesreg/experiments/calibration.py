@@ -193,7 +193,7 @@ def simulate(cp: CalibrationProblem, n: int, rng, *, max_redraws: int = 1000) ->
         is too wide for the mesh: lower ``t_r`` or ``rigid_sd_mm``).
     """
     post, mesh = cp.posterior, cp.mesh
-    term = post.ssd
+    term = post.similarity
     m_at = jax.jit(lambda u: moving_values(term, u[jnp.asarray(mesh.tets)]))
     w_q = np.asarray(term.sqrt_w) ** 2
     gamma = cp.t_s_prior
@@ -297,7 +297,7 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
         def residuals(u):
             u_i = (h @ u).reshape(-1, 3)
             u_n = full_displacement(p, u.reshape(-1, 3), u_i)
-            return ssd_residuals(p.ssd, u_n[p.tets]).ravel()
+            return ssd_residuals(p.similarity, u_n[p.tets]).ravel()
 
         jac = jax.jacfwd(residuals)(theta[:nb3])
         r = residuals(theta[:nb3])
@@ -312,7 +312,7 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
                                           collapsed_moves=s.collapsed_moves)
 
     def one_chain(key, f_q, theta0):
-        p = post._replace(ssd=post.ssd._replace(f_q=f_q))
+        p = post._replace(similarity=post.similarity._replace(f_q=f_q))
         target, kernel = kernel_of(p, theta0)
         ws_init, ws_step, ws_final = gw.build_warmup_step(
             kernel, target_acceptance=gibbs.default_target_acceptance("nuts"))

@@ -33,7 +33,6 @@ from bayesreg.mesh.tetmesh import Mesh
 from bayesreg.model.posterior import Posterior, elastic_groups, energies, similarity_weight
 from bayesreg.model.problem import Problem
 from bayesreg.data.registration import displacement_at, optical_flow_displacement
-from bayesreg.model.similarity import sample_moving
 from bayesreg.inference.targets import make_logdensity
 
 __all__ = ["Initialisation", "initialise", "start_center", "start_check", "registration_field",
@@ -229,7 +228,7 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
 
     ``P = 2 J^T J / T_s + S / T_r + R_b R_b^T / (n_b sigma^2)`` (``1 / T_s`` the posterior's
     :func:`~bayesreg.model.posterior.similarity_weight` at ``theta``): ``J`` is the Jacobian of the
-    SSD residuals with respect to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib
+    similarity term's residuals with respect to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib
     u_b``, ``S`` the Schur complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b
     / 2``), the last term the posterior's prior along the rigid-body modes (0 if flat).
 
@@ -258,24 +257,7 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     u[bd] = u_b
     u[idf] = h @ u_b
     u = u.reshape(-1, 3)
-    term = post.ssd
-    bary = np.asarray(term.bary)  # (Q, 4)
-    nq = len(bary)
-    u_q = np.einsum("qa,mad->mqd", bary, u[mesh.tets])
-    y = np.asarray(term.points) + u_q
-    grad_m = jax.jit(jax.vmap(jax.grad(lambda p: sample_moving(term, p))))(
-        jnp.asarray(y.reshape(-1, 3))
-    )
-    grad_m = np.asarray(grad_m).reshape(len(mesh.tets), nq, 3)
-    vals = -np.asarray(term.sqrt_w)[:, :, None, None] * bary[None, :, :, None] * grad_m[:, :, None, :]
-    rows = np.broadcast_to(np.arange(nq * len(mesh.tets)).reshape(-1, nq)[:, :, None, None], vals.shape)
-    cols = 3 * mesh.tets[:, None, :, None] + np.arange(3)[None, None, None, :]
-    cols = np.broadcast_to(cols, vals.shape)
-    jac = sp.csr_array((vals.ravel(), (rows.ravel(), cols.ravel())),
-                       shape=(nq * len(mesh.tets), 3 * len(mesh.nodes)))
-    # J_b^T J_b with J_b = J_b' + J_i H, through the sparse Gram matrix (J_b itself is dense
-    # with one row per quadrature point: too large for a composite rule)
-    gram = (jac.T @ jac).tocsr()
+    gram = post.similarity.gram(u, mesh.tets, len(mesh.nodes))
     g_ib = gram[idf][:, bd]
     jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
     # E_s matters only where the temperature is integrated out (similarity_weight)

@@ -48,7 +48,8 @@ from bayesreg.model.parameters import log_prior as prior_log_density
 from bayesreg.fem.preconditioners import (
     DENSE_MAX_DOFS, DensePreconditioner, SpectralPreconditioner, dense_preconditioner,
     spectral_preconditioner)
-from bayesreg.model.similarity import SSDTerm, ssd_residuals
+from bayesreg.model.lncc import LNCCTerm
+from bayesreg.model.similarity import SSDTerm
 from bayesreg.fem.solver import SolveInfo, interior_map_blocks, solve_interior_blocks
 from bayesreg.fem.stiffness import ElasticOperator, GroupBlocks, build_operator, group_blocks
 
@@ -125,7 +126,9 @@ class Posterior(NamedTuple):
     phi_ref : (n_free,)
         A valid parameter vector, substituted in the solve when a proposal leaves the
         support (its log-density is ``-inf`` anyway; this keeps ``K_ii`` SPD under vmap).
-    ssd : SSDTerm
+    similarity : SSDTerm or LNCCTerm
+        The similarity term ``E_s`` (:mod:`bayesreg.model.similarity`: SSD, the paper's;
+        :mod:`bayesreg.model.lncc`: local normalised cross-correlation).
     skull : SkullConstraint
         The hard constraint and the barrier (:mod:`bayesreg.mesh.constraints`).
     inv_t_s, inv_t_r : ()
@@ -166,7 +169,7 @@ class Posterior(NamedTuple):
     free_index: jax.Array
     prior: BetaPriors
     phi_ref: jax.Array
-    ssd: SSDTerm
+    similarity: SSDTerm | LNCCTerm
     skull: SkullConstraint
     inv_t_s: jax.Array
     inv_t_r: jax.Array
@@ -215,7 +218,7 @@ class Aux(NamedTuple):
 
 def build_posterior(
     mesh: Mesh,
-    ssd_term: SSDTerm,
+    similarity: SSDTerm | LNCCTerm,
     forbidden,
     *,
     t_s: float,
@@ -229,13 +232,15 @@ def build_posterior(
     rigid_sd: float | None = None,
     t_s_prior: tuple[float, float] | None = None,
 ) -> Posterior:
-    """Assemble :class:`Posterior` from a mesh, the SSD term and the parameter layout.
+    """Assemble :class:`Posterior` from a mesh, the similarity term and the parameter layout.
 
     Parameters
     ----------
     mesh : Mesh
-    ssd_term : SSDTerm
-        :func:`bayesreg.model.similarity.build_ssd` of the mesh and the images.
+    similarity : SSDTerm or LNCCTerm
+        The similarity term of the mesh and the images:
+        :func:`bayesreg.model.similarity.build_ssd` (the paper's SSD) or
+        :func:`bayesreg.model.lncc.build_lncc`.
     forbidden : Image
         Boolean/0-1 image of the hard-constraint (skull) region.
     t_s, t_r : float
@@ -304,6 +309,9 @@ def build_posterior(
     if t_s_prior is not None and not (len(t_s_prior) == 2 and all(
             np.isfinite(v) and v > 0 for v in t_s_prior)):
         raise ValueError(f"t_s_prior must be (shape, rate), both finite and > 0, got {t_s_prior}")
+    if t_s_prior is not None and similarity.kind != "ssd":
+        raise ValueError(f"t_s_prior (the SSD's noise precision integrated out) needs the SSD term, "
+                         f"got the {similarity.kind} term")
     forbidden = check_image(forbidden, "forbidden")
     n_groups = len(layout.group_names)
     base = np.ones(2 * n_groups)
@@ -345,7 +353,7 @@ def build_posterior(
         free_index=jnp.asarray(free_index, dtype=jnp.int32),
         prior=priors,
         phi_ref=jnp.asarray(phi_ref),
-        ssd=ssd_term,
+        similarity=similarity,
         skull=skull,
         inv_t_s=jnp.asarray(1.0 / t_s),
         inv_t_r=jnp.asarray(1.0 / t_r),
@@ -354,7 +362,7 @@ def build_posterior(
         unit_blocks=group_blocks(op, element_group, n_groups) if n_groups <= MAX_GROUPED else None,
         inv_rigid_var=jnp.asarray(0.0 if rigid_sd is None else 1.0 / (n_b * rigid_sd**2)),
         t_s_shape=jnp.asarray(0.0 if t_s_prior is None
-                              else t_s_prior[0] + 0.5 * np.size(ssd_term.sqrt_w)),
+                              else t_s_prior[0] + 0.5 * similarity.n_observations),
         t_s_rate=jnp.asarray(1.0 if t_s_prior is None else float(t_s_prior[1])),
     )
     if spectral and n_groups == 1 and 3 * n_i <= DENSE_MAX_DOFS:
@@ -464,8 +472,7 @@ def energies(post: Posterior, u, phi):
     with jax.named_scope(SCOPES["strain_energy"]):
         e_r = element_strain_energy(post.grads, post.volumes, u_e, lam_g[post.group], mu_g[post.group])
     with jax.named_scope(SCOPES["similarity"]):
-        r = ssd_residuals(post.ssd, u_e)
-        e_s = jnp.sum(r * r)
+        e_s = post.similarity.energy(u_e)
     return e_s, e_r
 
 

@@ -34,6 +34,7 @@ from bayesreg.mesh.tetmesh import Mesh, boundary_nodes, read_mesh, signed_volume
 from bayesreg.mesh.meshing import carve_skull, mesh_brain, mesh_brain_sized
 from bayesreg.model.parameters import ParamLayout
 from bayesreg.model.posterior import Posterior, build_posterior
+from bayesreg.model.lncc import build_lncc
 from bayesreg.model.similarity import build_ssd
 from bayesreg.stages import Stages
 from bayesreg.truth.synthetic import Truth, brain_shift, bump_field, field_truth
@@ -440,6 +441,17 @@ def sampled_mesh(cfg: Config, mesh: Mesh) -> Mesh:
     return mesh
 
 
+def similarity_term(cfg: Config, mesh: Mesh, f: Image, m: Image, reach: Image):
+    """The similarity term ``model.similarity`` selects, for a mesh and an image pair:
+    :func:`bayesreg.model.similarity.build_ssd` or :func:`bayesreg.model.lncc.build_lncc`."""
+    common = dict(quadrature_level=cfg.model.quadrature_level, reach=reach,
+                  moving_dtype=cfg.model.moving_dtype, interpolation=cfg.model.interpolation)
+    if cfg.model.similarity == "lncc":
+        lc = cfg.model.lncc
+        return build_lncc(mesh.nodes, mesh.tets, f, m, window_mm=lc.window_mm, eps=lc.eps, **common)
+    return build_ssd(mesh.nodes, mesh.tets, f, m, **common)
+
+
 def assemble(cfg: Config, data: ProblemData) -> Problem:
     """Build the parameter layout, priors and posterior of :func:`make_data`'s output.
 
@@ -474,11 +486,9 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
     reach = Image((labels.data != L.SKULL).astype(np.uint8), labels.affine)
     choice = cfg.solver.preconditioner  # spectral is validated to have one group (config)
     post = build_posterior(
-        mesh, build_ssd(mesh.nodes, mesh.tets, f_s, m_s, quadrature_level=cfg.model.quadrature_level,
-                        reach=reach, moving_dtype=cfg.model.moving_dtype,
-                        interpolation=cfg.model.interpolation),
-        forbidden,
-        t_s=cfg.model.t_s, t_r=cfg.model.t_r, layout=layout, element_group=group,
+        mesh, similarity_term(cfg, mesh, f_s, m_s, reach), forbidden,
+        t_s=cfg.model.t_s if cfg.model.similarity == "ssd" else cfg.model.lncc.t_s,
+        t_r=cfg.model.t_r, layout=layout, element_group=group,
         t_s_prior=(None if cfg.model.t_s_prior is None
                    else (cfg.model.t_s_prior.shape, cfg.model.t_s_prior.rate)),
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,

@@ -1,4 +1,23 @@
-"""SSD similarity ``E_s`` (paper Eq. 1) by 4-point Gauss quadrature on every tetrahedron.
+"""The similarity term's interface, and SSD ``E_s`` (paper Eq. 1) by Gauss quadrature on every
+tetrahedron.
+
+A similarity term is a pytree (a NamedTuple) with
+
+* ``residuals(u_e)``: weighted residuals ``r`` (any shape) for element displacements ``u_e``
+  ``(M, 4, 3)`` mm, with the term's value ``E = sum r^2``;
+* ``energy(u_e)``: ``E`` ``()``, the value the log-density takes as ``-E / T_s``;
+* ``gram(u, tets, n_nodes)``: the Gauss-Newton Gram matrix ``J^T J`` ``(3N, 3N)`` of the
+  residuals with respect to the nodal displacements (DOF order ``3*i + axis``), for the
+  Laplace proposal (:func:`bayesreg.inference.initialisation.laplace_precision`);
+* ``kind``: its name in ``model.similarity``; ``n_observations``: how many values it sees.
+
+Its temperature ``T_s`` is the posterior's (:func:`bayesreg.model.posterior.build_posterior`),
+set per term in the config.  :class:`SSDTerm` (here) is the paper's; :class:`LNCCTerm`
+(:mod:`bayesreg.model.lncc`, local normalised cross-correlation) the one for image pairs of
+different intensities.
+
+SSD
+---
 
 ``E_s(u) = sum_e sum_q w_eq (f(x_eq) - m(x_eq + u(x_eq)))^2`` with the degree-2 exact
 4-point rule (Zienkiewicz & Taylor, ref. [11] of the paper): barycentric points
@@ -33,6 +52,7 @@ import warnings
 from typing import NamedTuple
 
 import numpy as np
+import scipy.sparse as sp
 
 import jax
 import jax.numpy as jnp
@@ -42,7 +62,8 @@ from bayesreg.data.interpolation import cubic_clamped, cubic_coefficients, inter
 from bayesreg.mesh.tetmesh import signed_volumes
 
 __all__ = ["GAUSS_BARY", "MOVING_DTYPES", "quadrature_rule", "gauss_points", "SSDTerm", "build_ssd",
-           "reach_box", "sample_moving", "moving_values", "ssd_residuals", "ssd"]
+           "reach_box", "sample_moving", "moving_values", "ssd_residuals", "ssd", "moving_jacobian",
+           "ssd_gram", "residual_gram"]
 
 _A = (5.0 + 3.0 * np.sqrt(5.0)) / 20.0
 _B = (5.0 - np.sqrt(5.0)) / 20.0
@@ -140,10 +161,29 @@ class SSDTerm(NamedTuple):
     cval: jax.Array
     spline: jax.Array = None
 
+    kind = "ssd"
+
     @property
     def interpolation(self) -> str:
         """``"cubic"`` or ``"linear"`` (trilinear)."""
         return "cubic" if self.spline is not None and self.spline.shape[0] else "linear"
+
+    @property
+    def n_observations(self) -> int:
+        """The number of quadrature points ``M * Q``."""
+        return int(np.size(self.sqrt_w))
+
+    def residuals(self, u_e):
+        """:func:`ssd_residuals` ``(M, Q)``."""
+        return ssd_residuals(self, u_e)
+
+    def energy(self, u_e):
+        """:func:`ssd` ``()``, intensity^2 mm^3."""
+        return ssd(self, u_e)
+
+    def gram(self, u, tets, n_nodes: int):
+        """:func:`ssd_gram` (sparse, exact for this term's residuals)."""
+        return ssd_gram(self, u, tets, n_nodes)
 
 
 def reach_box(reach: Image):
@@ -362,3 +402,88 @@ def ssd(term: SSDTerm, u_e):
     """``E_s`` (paper Eq. 1) for element displacements ``u_e`` ``(M, 4, 3)``."""
     r = ssd_residuals(term, u_e)
     return jnp.sum(r * r)
+
+
+def moving_jacobian(term: SSDTerm, u, tets, n_nodes: int, scale=None):
+    """The Jacobian of the moving image's values at the displaced quadrature points,
+    ``scale * m(x_q + u(x_q))`` ``(M * Q,)``, with respect to the nodal displacements: sparse
+    (CSR) ``(M * Q, 3N)``, 12 entries a row (each point moves with its element's four nodes).
+
+    Parameters
+    ----------
+    term : SSDTerm
+        The quadrature and the moving image.
+    u : (N, 3) array_like
+        Nodal displacements, mm.
+    tets : (M, 4) int array_like
+    n_nodes : int
+    scale : (M, Q) array_like, optional
+        A factor per point (default 1).
+    """
+    tets = np.asarray(tets)
+    bary = np.asarray(term.bary)  # (Q, 4)
+    nq = len(bary)
+    u_q = np.einsum("qa,mad->mqd", bary, np.asarray(u)[tets])
+    y = np.asarray(term.points) + u_q
+    grad_m = jax.jit(jax.vmap(jax.grad(lambda p: sample_moving(term, p))))(
+        jnp.asarray(y.reshape(-1, 3))
+    )
+    grad_m = np.asarray(grad_m).reshape(len(tets), nq, 3)
+    scale = np.ones((len(tets), nq)) if scale is None else np.asarray(scale)
+    vals = scale[:, :, None, None] * bary[None, :, :, None] * grad_m[:, :, None, :]
+    rows = np.broadcast_to(np.arange(nq * len(tets)).reshape(-1, nq)[:, :, None, None], vals.shape)
+    cols = 3 * tets[:, None, :, None] + np.arange(3)[None, None, None, :]
+    cols = np.broadcast_to(cols, vals.shape)
+    return sp.csr_array((vals.ravel(), (rows.ravel(), cols.ravel())),
+                        shape=(nq * len(tets), 3 * n_nodes))
+
+
+def ssd_gram(term: SSDTerm, u, tets, n_nodes: int):
+    """Gauss-Newton Gram matrix ``J^T J`` of :func:`ssd_residuals` with respect to the nodal
+    displacements, ``(3N, 3N)`` sparse (CSR): ``J = -diag(sqrt w) dm/du``
+    (:func:`moving_jacobian`).
+
+    Parameters
+    ----------
+    term : SSDTerm
+    u : (N, 3) array_like
+        Nodal displacements, mm.
+    tets : (M, 4) int array_like
+    n_nodes : int
+    """
+    jac = moving_jacobian(term, u, tets, n_nodes, scale=-np.asarray(term.sqrt_w))
+    return (jac.T @ jac).tocsr()
+
+
+#: basis vectors per batch of :func:`residual_gram` (memory: this many residual vectors)
+GRAM_BATCH = 32
+
+
+def residual_gram(residuals, u, *, batch: int = GRAM_BATCH):
+    """``J^T J`` ``(3N, 3N)`` (CSR) of any residual function at nodal displacements ``u``.
+
+    ``J`` is the Jacobian of ``residuals(u)`` (any shape) with respect to ``u`` ``(N, 3)``;
+    its Gram matrix is formed column by column, ``J^T (J e_j)``, by forward- then
+    reverse-mode products in batches of ``batch`` columns (``3N`` of each in all), never
+    ``J`` itself (one row per residual).  For terms without a sparse structure of their
+    own (:class:`bayesreg.model.lncc.LNCCTerm`).
+    """
+    u = jnp.asarray(u, jnp.float64)
+    n = u.size
+    _, vjp = jax.vjp(residuals, u)
+
+    @jax.jit
+    def columns(basis):
+        def one(e):
+            _, jv = jax.jvp(residuals, (u,), (e.reshape(u.shape),))
+            return vjp(jv)[0].ravel()
+        return jax.vmap(one)(basis)
+
+    out = np.empty((n, n))
+    eye = np.eye(n)
+    for start in range(0, n, batch):
+        stop = min(start + batch, n)
+        block = np.zeros((batch, n))
+        block[: stop - start] = eye[start:stop]
+        out[start:stop] = np.asarray(columns(jnp.asarray(block)))[: stop - start]
+    return sp.csr_array(0.5 * (out + out.T))
