@@ -45,8 +45,11 @@ from bayesreg.mesh.tetmesh import Mesh, boundary_nodes, orient_tets  # noqa: E40
 
 # Files of the longest tests (end-to-end runs, notebooks, a Dask cluster), collected first:
 # pytest-xdist hands tests out in collection order, so that two workers then finish
-# together instead of one running a two-minute test alone at the end.
-_LONG_FIRST = ("test_sweep.py", "test_cli.py", "test_faults.py", "test_calibration.py",
+# together instead of one running a two-minute test alone at the end.  The tiny runs of the
+# same programs (the CLI's, the notebook's, the sweep's) share one worker (xdist_group
+# "tiny_run"), in this order, so that the later ones find the first one's programs in the
+# session's compilation cache instead of compiling them at the same time on another core.
+_LONG_FIRST = ("test_cli.py", "test_sweep.py", "test_faults.py", "test_calibration.py",
                "pipeline.py", "test_gibbs.py", "test_normaliser.py", "test_rwmh.py")
 
 

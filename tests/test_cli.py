@@ -76,6 +76,7 @@ def tiny_run(tmp_path_factory, tiny_mesh):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tiny_run")
 def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, capsys):
     out, _, args, printed, compiled = tiny_run
     # one compilation for each program that evaluates the posterior (one trace per shape):
@@ -427,6 +428,7 @@ def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tiny_run")  # after the CLI's tiny run: its programs are cached
 def test_quickstart_notebook_executes(tmp_path, tiny_mesh):
     import nbformat
     from nbclient import NotebookClient

@@ -82,6 +82,7 @@ def _rows(folder: Path) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("tiny_run")  # after the CLI's tiny run: its programs are cached
 def test_a_sweep_on_a_local_cluster_isolates_a_failure_and_resumes(tmp_path, capsys, tiny_mesh):
     """Two tiny runs on a two-worker LocalCluster, one with a truth pushed into the skull:
     that run fails in its truth stage and the other finishes; a second pass reuses the
