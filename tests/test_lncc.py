@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from bayesreg.data.images import Image
 from bayesreg.mesh.tetmesh import box_mesh
 from bayesreg.model.lncc import OVERLAP, build_lncc, lncc_windows
-from bayesreg.model.similarity import build_ssd, gauss_points
+from bayesreg.model.similarity import build_ssd, gauss_points, residual_gram
 
 SHAPE = (40, 40, 40)
 
@@ -106,6 +106,8 @@ def test_value_matches_a_numpy_reference_and_the_gradient_finite_differences():
 
 
 def test_gram_matches_the_jacobian():
+    """LNCC's structured Gram matrix and the generic column-by-column one equal ``J^T J`` of
+    the residuals' Jacobian (``jax.jacfwd``)."""
     mesh = box_mesh((2, 2, 2), (20.0, 20.0, 20.0), origin=(8.0, 8.0, 8.0))
     f, m = _images((0.5, 0.0, 0.0))
     term = build_lncc(mesh.nodes, mesh.tets, f, m, window_mm=10.0)
@@ -114,6 +116,9 @@ def test_gram_matches_the_jacobian():
     jac = jax.jacfwd(lambda v: term.residuals(v.reshape(-1, 3)[tets]).ravel())(jnp.asarray(u.ravel()))
     gram = term.gram(jnp.asarray(u), tets, len(mesh.nodes)).toarray()
     np.testing.assert_allclose(gram, np.asarray(jac.T @ jac), rtol=1e-9, atol=1e-12)
+    # the generic fallback for a term without a structure of its own
+    generic = residual_gram(lambda v: term.residuals(v[tets]), jnp.asarray(u), batch=16).toarray()
+    np.testing.assert_allclose(generic, np.asarray(jac.T @ jac), rtol=1e-9, atol=1e-12)
 
 
 def test_lncc_finds_the_shift_under_a_bias_field_and_another_contrast_where_ssd_fails():

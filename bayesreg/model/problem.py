@@ -42,7 +42,7 @@ from bayesreg.interop.transforms import load_displacement
 from bayesreg.mesh.warp import warp_image, warp_image_field
 
 __all__ = ["ProblemData", "Problem", "make_data", "assemble", "prepare", "parameter_layout",
-           "sampled_mesh"]
+           "sampled_mesh", "similarity_term"]
 
 
 SYNTHETIC_ORDER = 3

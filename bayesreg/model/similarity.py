@@ -465,8 +465,22 @@ def residual_gram(residuals, u, *, batch: int = GRAM_BATCH):
     ``J`` is the Jacobian of ``residuals(u)`` (any shape) with respect to ``u`` ``(N, 3)``;
     its Gram matrix is formed column by column, ``J^T (J e_j)``, by forward- then
     reverse-mode products in batches of ``batch`` columns (``3N`` of each in all), never
-    ``J`` itself (one row per residual).  For terms without a sparse structure of their
-    own (:class:`bayesreg.model.lncc.LNCCTerm`).
+    ``J`` itself (one row per residual).  The fallback for a new term without a structure
+    of its own (SSD's and LNCC's ``gram`` use theirs: :func:`ssd_gram`,
+    :func:`bayesreg.model.lncc.lncc_gram`); dense work ``O(N^2)`` memory, ``3N`` products.
+
+    Parameters
+    ----------
+    residuals : callable
+        ``u`` ``(N, 3)`` -> residuals (any shape), differentiable by JAX.
+    u : (N, 3) array_like
+        Nodal displacements, mm.
+    batch : int
+        Columns per compiled batch.
+
+    Returns
+    -------
+    (3N, 3N) scipy.sparse.csr_array
     """
     u = jnp.asarray(u, jnp.float64)
     n = u.size
