@@ -1,11 +1,11 @@
 """Local normalised cross-correlation (LNCC) as a similarity term, for image pairs whose
 intensities differ by more than noise (a bias field, another contrast, another scanner).
 
-ANTs' ``CC`` metric (Avants et al. 2008, Sec. 2.4) compares ``f`` and the warped ``m`` in a
+ANTs' ``CC`` metric (Avants et al. 2008) compares ``f`` and the warped ``m`` in a
 window around every voxel, and so is blind to an intensity change that is affine within a
 window.  Here the windows are laid over the same quadrature points as the SSD term
 (:mod:`bayesreg.model.similarity`): cubes of side ``window_mm`` centred on a regular grid of
-spacing ``window_mm / 2`` (each point lies in eight windows, as ANTs' dense windows
+spacing ``window_mm / 2`` (each point lies in up to eight windows, as ANTs' dense windows
 overlap), holding the points whose *reference* positions lie inside.  A window ``k`` weighs
 its points by their quadrature weights ``w_q`` normalised to ``a_kq`` (sum 1) and has weight
 ``W_k = sum_q w_q / 8`` (mm^3, so that ``sum_k W_k`` is about the brain's volume).
@@ -51,7 +51,8 @@ __all__ = ["LNCCTerm", "build_lncc", "lncc_windows", "lncc_residuals", "lncc", "
 #: values is all noise)
 MIN_WINDOW_POINTS = 8
 
-#: each point lies in this many windows (cubes of side ``window_mm`` every ``window_mm / 2``)
+#: each point lies in at most this many windows (cubes of side ``window_mm`` every
+#: ``window_mm / 2``; fewer near the brain's edge, where thin windows are dropped)
 OVERLAP = 8
 
 
