@@ -33,6 +33,7 @@ registration with cross-correlation", Medical Image Analysis 12 (2008) 26-41.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
@@ -205,18 +206,34 @@ def build_lncc(nodes, tets, f: Image, m: Image, *, window_mm: float = 9.0, eps: 
     pts = np.asarray(quad.points).reshape(-1, 3)
     wq = np.asarray(quad.sqrt_w).ravel() ** 2
     window, point, a, w = lncc_windows(pts, wq, window_mm)
-    n_win = len(w)
-    fq = np.asarray(quad.f_q).ravel()[point]
-    f_tilde = fq - np.bincount(window, weights=a * fq, minlength=n_win)[window]
-    s_f = np.sqrt(np.bincount(window, weights=a * f_tilde**2, minlength=n_win) + eps)
-    return LNCCTerm(quad=quad, window=jnp.asarray(window, jnp.int32), point=jnp.asarray(point, jnp.int32),
-                    a=jnp.asarray(a), sqrt_w=jnp.asarray(np.sqrt(w)), f_hat=jnp.asarray(f_tilde / s_f[window]),
-                    eps=jnp.asarray(float(eps)))
+    window, a = jnp.asarray(window, jnp.int32), jnp.asarray(a)
+    f_hat, _ = _standardise(window, a, jnp.asarray(quad.f_q).ravel()[point], float(eps), n_win=len(w))
+    return LNCCTerm(quad=quad, window=window, point=jnp.asarray(point, jnp.int32), a=a,
+                    sqrt_w=jnp.asarray(np.sqrt(w)), f_hat=f_hat, eps=jnp.asarray(float(eps)))
 
 
-def _window_sum(term: LNCCTerm, values):
-    return jax.ops.segment_sum(values, term.window, num_segments=term.sqrt_w.shape[0],
-                               indices_are_sorted=True)
+def _window_sum(window, values, n_win: int):
+    return jax.ops.segment_sum(values, window, num_segments=n_win, indices_are_sorted=True)
+
+
+@partial(jax.jit, static_argnames="n_win")
+def _standardise(window, a, values, eps, *, n_win: int):
+    """Each pair's value centred and scaled within its window: ``(v - mean_k v) / s_k`` ``(P,)``,
+    and ``s_k = sqrt(var_k v + eps)`` per pair ``(P,)`` (means and variances weighted by
+    ``a``).  The fixed image's ``f^`` (:func:`build_lncc`) and the moving image's ``m^``
+    (:func:`lncc_residuals`, :func:`lncc_gram`) alike."""
+    tilde = values - _window_sum(window, a * values, n_win)[window]
+    s = jnp.sqrt(_window_sum(window, a * tilde * tilde, n_win) + eps)[window]
+    return tilde / s, s
+
+
+def _moving_standardised(term: LNCCTerm, u_e):
+    """``(m^, s_m, rho)`` per pair ``(P,)`` at element displacements ``u_e`` ``(M, 4, 3)``."""
+    n_win = term.sqrt_w.shape[0]
+    mv = moving_values(term.quad, u_e).reshape(-1)[term.point]  # (P,)
+    m_hat, s_m = _standardise(term.window, term.a, mv, term.eps, n_win=n_win)
+    rho = _window_sum(term.window, term.a * term.f_hat * m_hat, n_win)[term.window]
+    return m_hat, s_m, rho
 
 
 def lncc_residuals(term: LNCCTerm, u_e):
@@ -229,12 +246,8 @@ def lncc_residuals(term: LNCCTerm, u_e):
     u_e : (M, 4, 3) array
         Displacements of each element's nodes, mm.
     """
-    mv = moving_values(term.quad, u_e).reshape(-1)[term.point]  # (P,)
-    a, k = term.a, term.window
-    m_tilde = mv - _window_sum(term, a * mv)[k]
-    s_m = jnp.sqrt(_window_sum(term, a * m_tilde * m_tilde) + term.eps)
-    rho = _window_sum(term, a * term.f_hat * m_tilde) / s_m
-    return (term.sqrt_w[k] * jnp.sqrt(a)) * (m_tilde / s_m[k] - rho[k] * term.f_hat)
+    m_hat, _, rho = _moving_standardised(term, u_e)
+    return (term.sqrt_w[term.window] * jnp.sqrt(term.a)) * (m_hat - rho * term.f_hat)
 
 
 def lncc(term: LNCCTerm, u_e):
@@ -263,12 +276,9 @@ def lncc_gram(term: LNCCTerm, u, tets, n_nodes: int):
     def wsum(v):
         return np.bincount(k, weights=v, minlength=n_win)
 
-    mv = np.asarray(moving_values(term.quad, jnp.asarray(u)[jnp.asarray(tets)])).ravel()[pt]
+    m_hat, s_m, rho = (np.asarray(v) for v in jax.jit(_moving_standardised)(
+        term, jnp.asarray(u)[jnp.asarray(tets)]))
     f_hat = np.asarray(term.f_hat)
-    m_tilde = mv - wsum(a * mv)[k]
-    s_m = np.sqrt(wsum(a * m_tilde**2) + float(term.eps))[k]
-    m_hat = m_tilde / s_m
-    rho = wsum(a * f_hat * m_hat)[k]
     g = np.asarray(term.sqrt_w)[k] * np.sqrt(a) / s_m  # (S,)
     u_t = g[:, None] * np.stack([np.ones_like(a), m_hat - rho * f_hat, f_hat], axis=-1)
     v = -np.stack([a, a * m_hat, a * f_hat], axis=-1)
