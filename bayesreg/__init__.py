@@ -12,7 +12,8 @@ subpackages follow the data flow::
 with the run shell around them: ``config``, ``rundir``, ``checkpoint``, ``pipeline`` (the
 main job), ``apply`` (a finished run's posterior on new data) and ``cli``.
 
-:func:`run` is the main job (a config in, a run directory out).  Importing the package
+:func:`run` is the main job (a config in, a run directory out); :func:`open_run` reopens a
+finished run directory as the result :func:`run` returned.  Importing the package
 changes nothing in the process; :func:`configure_jax` (float64, XLA flags, BLAS threads) is
 called by the CLI and :func:`run`, and by a notebook before it uses the lower-level modules.
 
@@ -24,7 +25,8 @@ from bayesreg.config import Config, load_config
 from bayesreg.jaxconfig import configure_jax
 from bayesreg.pipeline import run, sample_problem
 from bayesreg.model.problem import prepare
+from bayesreg.outputs.result import open_run
 
 __version__ = "0.1.0"
-__all__ = ["Config", "load_config", "configure_jax", "prepare", "run", "sample_problem",
-           "__version__"]
+__all__ = ["Config", "load_config", "configure_jax", "prepare", "run", "open_run",
+           "sample_problem", "__version__"]

@@ -7,6 +7,8 @@ name, flushed to disk, then ``os.replace``; :mod:`bayesreg._files`)::
     checkpoint/config.sha256    the SHA-256 of config.json as written (a resume refuses an edit)
     checkpoint/problem.npz      images, mesh and truth (:meth:`Checkpoint.save_problem`)
     checkpoint/init.npz         chain starts and initial jumping kernels
+    checkpoint/warmup.npz       :class:`bayesreg.sampling.driver.WarmupCheckpoint` after the last
+                                warm-up chunk (while the warm-up goes)
     checkpoint/state.npz        :class:`bayesreg.sampling.driver.SamplerCheckpoint` after the last chunk
     checkpoint/draws/chunk_00000.npz ...  the stored draws of each sampling chunk
 
@@ -35,7 +37,7 @@ from bayesreg.data.images import Image
 from bayesreg.inference.initialisation import Initialisation
 from bayesreg.mesh.tetmesh import Mesh
 from bayesreg.model.problem import ProblemData
-from bayesreg.sampling.driver import SamplerCheckpoint
+from bayesreg.sampling.driver import SamplerCheckpoint, WarmupCheckpoint
 from bayesreg.truth.synthetic import Truth
 
 __all__ = ["Checkpoint", "savez_atomic"]
@@ -84,6 +86,7 @@ class Checkpoint:
         self.dir = Path(run_dir) / "checkpoint"
         self.draws_dir = self.dir / "draws"
         self.chunks_done: int | None = None  # sampling chunks saved by on_chunk (None: warm-up)
+        self.warmup_chunks_done = 0  # warm-up chunks saved by on_warmup_chunk
 
     # ---- config, problem, starts ----
     @property
@@ -236,6 +239,31 @@ class Checkpoint:
                 "timings": ckpt.timings}
         savez_atomic(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
                      meta=np.array(dumps_json(meta, default=float)), **sig, **st)
+        (self.dir / "warmup.npz").unlink(missing_ok=True)  # the warm-up's end supersedes it
+
+    def on_warmup_chunk(self, ckpt: WarmupCheckpoint) -> None:
+        """Callback for :func:`bayesreg.sampling.driver.sample` during the warm-up."""
+        self.warmup_chunks_done = ckpt.chunks_done
+        st = {f"state_{j}": np.asarray(v) for j, v in enumerate(ckpt.states)}
+        ad = {f"adaptation_{j}": np.asarray(v) for j, v in enumerate(ckpt.adaptation)}
+        meta = {"chunks_done": ckpt.chunks_done, "timings": ckpt.timings}
+        savez_atomic(self.dir / "warmup.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
+                     meta=np.array(dumps_json(meta, default=float)), **st, **ad)
+
+    def load_warmup(self) -> WarmupCheckpoint | None:
+        """The warm-up's progress, or ``None`` if no warm-up chunk was saved."""
+        path = self.dir / "warmup.npz"
+        if not path.is_file():
+            return None
+        with _reading(path):
+            z = np.load(path, allow_pickle=False)
+            meta = json.loads(str(z["meta"]))
+            n_st = sum(1 for k in z.files if k.startswith("state_"))
+            n_ad = sum(1 for k in z.files if k.startswith("adaptation_"))
+            return WarmupCheckpoint([z[f"state_{j}"] for j in range(n_st)],
+                                    [z[f"adaptation_{j}"] for j in range(n_ad)],
+                                    int(meta["chunks_done"]), z["warmup_acceptance"],
+                                    meta["timings"])
 
     def load_state(self):
         """``(SamplerCheckpoint, draws or None)``, or ``None`` if the warm-up never finished."""
@@ -270,9 +298,10 @@ class Checkpoint:
         return ckpt, draws
 
     def clear_progress(self) -> None:
-        """Remove the draws and the sampler state (after the outputs are written)."""
+        """Remove the draws and the sampler and warm-up states (after the outputs are written)."""
         shutil.rmtree(self.draws_dir, ignore_errors=True)
         (self.dir / "state.npz").unlink(missing_ok=True)
+        (self.dir / "warmup.npz").unlink(missing_ok=True)
 
 
 def _history_entry(h) -> tuple:

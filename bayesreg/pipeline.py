@@ -18,21 +18,21 @@ from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, load_config, override_config
 from bayesreg.inference.initialisation import Initialisation, initialise, registration_field
 from bayesreg.jaxconfig import configure_jax
-from bayesreg.outputs.write import RunResult, write_outputs
+from bayesreg.outputs.result import RunResult
+from bayesreg.outputs.write import write_outputs
 from bayesreg.model.posterior import elastic_groups
 from bayesreg.model.problem import Problem, assemble, make_data
 from bayesreg.rundir import RunDirectory
-from bayesreg.sampling.driver import SamplerResult, sample, sample_gradient
+from bayesreg.sampling.driver import SamplerResult, sample
 from bayesreg.stages import Stages
-from bayesreg.inference.targets import (
-    cg_preconditioner, dense_preconditioning, gradient_target, make_logdensity, rw_condensation,
-    rw_preconditioner)
+from bayesreg.inference.targets import sampling_algorithm
 
 __all__ = ["sample_problem", "run", "RunInterrupted"]
 
 
 def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = None, *,
-                   on_chunk=None, resume=None, resume_draws=None) -> tuple[SamplerResult, Initialisation]:
+                   on_chunk=None, resume=None, resume_draws=None,
+                   on_warmup_chunk=None) -> tuple[SamplerResult, Initialisation]:
     """Initialise (unless ``init`` is given) and sample, as ``cfg.sampler`` says.
 
     The monitored estimands are every boundary coordinate, every free parameter and the
@@ -44,7 +44,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     cfg : Config
     init : Initialisation, optional
         Starts and proposal scales (default :func:`bayesreg.inference.initialisation.initialise`).
-    on_chunk, resume, resume_draws
+    on_chunk, resume, resume_draws, on_warmup_chunk
         Checkpointing (:func:`bayesreg.sampling.driver.sample`; see :func:`run`).
 
     Returns
@@ -68,30 +68,10 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
                   rhat_threshold=s.rhat_threshold, rhat_split=s.rhat_split, stop=s.stop,
                   rhat_rank_max=s.rhat_rank_max, ess_min=s.ess_min, estimands=estimands,
                   progress=cfg.output.progress, on_chunk=on_chunk, resume=resume,
-                  resume_draws=resume_draws, chain_method=s.chain_method)
-    interior0 = jnp.zeros((post.op.n_interior, 3))
-    if s.gradient:
-        target = gradient_target(problem, cfg, init.center, init.sigma[0])
-        result = sample_gradient(
-            jax.random.key(cfg.seed), target, init.x0, interior0, kind=s.kind, step_size=s.step_size,
-            eta_scale=init.sigma[1] if target.n_free else np.zeros(0),
-            dense_mass=s.dense_mass, adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
-            collapsed_moves=s.collapsed_moves,
-            num_integration_steps=s.hmc_steps, jitter_integration_steps=s.hmc_jitter,
-            max_tree_depth=s.max_tree_depth, target_acceptance=s.target_acceptance, **common)
-        return result, init
-    if init.blocked:
-        blocks, adapt, names = (np.arange(nb3), np.arange(nb3, post.dim)), (True, True), ("u_b", "elastic")
-    else:
-        blocks, adapt, names = None, None, ("joint",)
-    condensation = rw_condensation(problem, cfg) if init.blocked and s.use_condensed else None
-    preconditioner = rw_preconditioner(problem, cfg) if dense_preconditioning(problem, cfg) else None
-    result = sample(
-        jax.random.key(cfg.seed), make_logdensity(problem, cfg), init.x0, interior0,
-        tuple(init.sigma), blocks=blocks, adapt_diagonal=adapt,
-        target_acceptance=s.target_acceptance or 0.25, condensation=condensation,
-        preconditioner=preconditioner, block_names=names,
-        cg_preconditioner=cg_preconditioner(problem, cfg), **common)
+                  resume_draws=resume_draws, chain_method=s.chain_method,
+                  on_warmup_chunk=on_warmup_chunk)
+    result = sample(jax.random.key(cfg.seed), sampling_algorithm(problem, cfg, init), init.x0,
+                    **common)
     return result, init
 
 
@@ -124,7 +104,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
 
     Returns
     -------
-    bayesreg.outputs.write.RunResult
+    bayesreg.outputs.result.RunResult
 
     Raises
     ------
@@ -213,6 +193,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
                 ckpt.save_init(init)
         resumable = cfg.output.checkpoint
         state = ckpt.load_state() if resume is not None else None
+        warm = ckpt.load_warmup() if resume is not None and state is None else None
 
         def on_chunk(checkpoint, out):
             if out is None:  # the warm-up ended
@@ -224,8 +205,9 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
                 problem, cfg, init,
                 on_chunk=on_chunk if cfg.output.checkpoint else
                 (lambda c, out: stages.switch("sampling") if out is None else None),
-                resume=None if state is None else state[0],
+                resume=warm if state is None else state[0],
                 resume_draws=None if state is None else state[1],
+                on_warmup_chunk=ckpt.on_warmup_chunk if cfg.output.checkpoint else None,
             )
         init_info = dict(init.info)
         timings = {**problem.timings, "init_s": init_info.pop("init_s", float("nan")),
@@ -277,7 +259,9 @@ def _abandon(run_dir: RunDirectory, ckpt: Checkpoint, stages: Stages, resume, re
     if resume is None and not resumable:
         run_dir.rollback()
         return f"interrupted {where}: nothing was kept"
-    if stages.current == "sampling" and ckpt.chunks_done:
+    if stages.current == "warm-up" and ckpt.warmup_chunks_done:
+        where = f"after warm-up chunk {ckpt.warmup_chunks_done}"
+    elif stages.current == "sampling" and ckpt.chunks_done:
         where = f"after chunk {ckpt.chunks_done}"
     elif stages.current == "sampling" and ckpt.chunks_done == 0:
         where = "after the warm-up"

@@ -26,7 +26,7 @@ Measured:
   The chains run as the samplers run them: chunks of :func:`bayesreg.sampling.chains.build_chunk`
   (the paper configs' 1,000 random-walk steps, ``--nuts-chunk`` NUTS transitions; each
   chain's preconditioner rebuilt at every chunk start), mapped by ``--chain-method`` (NUTS:
-  never in pieces, as :func:`bayesreg.sampling.driver.sample_gradient`); the first chunk, which
+  never in pieces, as :func:`bayesreg.sampling.kernels.gibbs.as_algorithm`); the first chunk, which
   compiles, is not timed.  More chains than starts repeat the starts with their own keys.
 
 Writes ``<out>/<UTC time>-<backend>[-quick].json`` and ``.md`` (the tables, also printed),
@@ -60,7 +60,7 @@ from bayesreg.inference.initialisation import initialise
 from bayesreg.sampling.kernels import gibbs, rwmh
 from bayesreg.model.posterior import log_density
 from bayesreg.model.problem import assemble, make_data
-from bayesreg.sampling.driver import sample_gradient
+from bayesreg.sampling.driver import sample
 from bayesreg.inference.targets import (
     cg_preconditioner, dense_preconditioning, gradient_target, make_logdensity, rw_preconditioner)
 
@@ -307,7 +307,8 @@ def rwmh_setup(problem, cfg, init, args):
 
 def nuts_setup(problem, cfg, init, args):
     """The default NUTS-in-Gibbs kernel, from the chains' states after a short warm-up
-    (:func:`bayesreg.sampling.driver.sample_gradient`, Stan's windows), at its tuned parameters.
+    (:func:`bayesreg.sampling.driver.sample` of :func:`bayesreg.sampling.kernels.gibbs.as_algorithm`,
+    Stan's windows), at its tuned parameters.
 
     Returns ``(at, warm)``: ``at(c) -> (row, run_chunks arguments)`` for ``c`` chains, and the
     warm-up's figures with the time of one gradient of the target (a leapfrog step's)."""
@@ -315,12 +316,13 @@ def nuts_setup(problem, cfg, init, args):
     interior0 = jnp.zeros((problem.posterior.op.n_interior, 3))
     target = gradient_target(problem, cfg, init.center, init.sigma[0])
     t = time.perf_counter()
-    tuned = sample_gradient(
-        jax.random.key(cfg.seed), target, init.x0, interior0, kind=s.kind, step_size=s.step_size,
-        eta_scale=init.sigma[1], dense_mass=s.dense_mass, adapt_mass=s.adapt_mass,
-        elastic_moves=s.elastic_moves, max_tree_depth=s.max_tree_depth, thinning=1,
-        warmup_steps=args.nuts_warmup, max_draws=args.nuts_chunk, min_draws=args.nuts_chunk,
-        chunk_draws=args.nuts_chunk, progress=False)
+    algorithm = gibbs.as_algorithm(
+        target, interior0, kind=s.kind, step_size=s.step_size, eta_scale=init.sigma[1],
+        dense_mass=s.dense_mass, adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
+        max_tree_depth=s.max_tree_depth)
+    tuned = sample(jax.random.key(cfg.seed), algorithm, init.x0, thinning=1,
+                   warmup_steps=args.nuts_warmup, max_draws=args.nuts_chunk,
+                   min_draws=args.nuts_chunk, chunk_draws=args.nuts_chunk, progress=False)
     warm = {"warmup_transitions": tuned.info.warmup_steps, "warmup_s": time.perf_counter() - t,
             "step_size": np.asarray(tuned.sigma[0]).tolist()}
     log(f"  nuts warm-up: {warm['warmup_transitions']} transitions per chain in {warm['warmup_s']:.0f} s, "
@@ -338,7 +340,7 @@ def nuts_setup(problem, cfg, init, args):
     def at(c):
         t_c = gradient_target(problem, with_chains(cfg, c), init.center, init.sigma[0])
         method = args.chain_method
-        if method in ("auto", "pieces"):  # a NUTS chunk is not cut into pieces (as sample_gradient)
+        if method in ("auto", "pieces"):  # a NUTS chunk is not cut into pieces (as gibbs.as_algorithm)
             method = chains.resolve_method("auto", c)
         row = {"kernel": "nuts", "chains": c, "preconditioner": t_c.preconditioner,
                "solves_per_step": float(s.elastic_moves + 1) if t_c.condensed and t_c.n_free else None}

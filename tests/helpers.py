@@ -312,3 +312,30 @@ def assert_moments(x, mean, var, fourth, *, n_se=5.0, what=None):
     assert abs(x.mean() - mean) < n_se * se_mean, (what, x.mean(), mean, se_mean)
     assert abs(x.var() - var) < n_se * se_var, (what, x.var(), var, se_var)
     return ess_x, ess_sq
+
+
+#: Keywords of the kernels' ``as_algorithm`` (the rest go to the driver).
+_RWMH_KW = {"blocks", "adapt_diagonal", "target_acceptance", "condensation", "preconditioner",
+            "block_names", "cg_preconditioner"}
+_GIBBS_KW = {"kind", "step_size", "eta_scale", "dense_mass", "adapt_mass", "num_integration_steps",
+             "jitter_integration_steps", "max_tree_depth", "elastic_moves", "collapsed_moves",
+             "target_acceptance"}
+
+
+def sample_rwmh(rng_key, logdensity_fn, x0, interior0, sigma, **kw):
+    """The driver (:func:`bayesreg.sampling.driver.sample`) on the random walk: the keywords of
+    :func:`bayesreg.sampling.kernels.rwmh.as_algorithm` to it, the rest to the driver."""
+    from bayesreg.sampling.driver import sample
+    from bayesreg.sampling.kernels import rwmh
+
+    alg = {k: kw.pop(k) for k in list(kw) if k in _RWMH_KW}
+    return sample(rng_key, rwmh.as_algorithm(logdensity_fn, interior0, sigma, **alg), x0, **kw)
+
+
+def sample_gibbs(rng_key, target, x0, interior0, **kw):
+    """The driver on the gradient Gibbs kernel (:func:`bayesreg.sampling.kernels.gibbs.as_algorithm`)."""
+    from bayesreg.sampling.driver import sample
+    from bayesreg.sampling.kernels import gibbs
+
+    alg = {k: kw.pop(k) for k in list(kw) if k in _GIBBS_KW}
+    return sample(rng_key, gibbs.as_algorithm(target, interior0, **alg), x0, **kw)

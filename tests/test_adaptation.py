@@ -7,8 +7,7 @@ import arviz as az
 import jax
 import jax.numpy as jnp
 
-from bayesreg.sampling.driver import sample_gradient
-from helpers import ETA_COV, assert_moments, correlated_target
+from helpers import assert_moments, correlated_target, ETA_COV, sample_gibbs
 
 
 def test_elastic_random_walk_adapts_a_dense_factor_to_correlated_parameters():
@@ -16,7 +15,7 @@ def test_elastic_random_walk_adapts_a_dense_factor_to_correlated_parameters():
     draws recover their covariance within Monte Carlo error."""
     rng = np.random.default_rng(3)
     x0 = np.concatenate([rng.normal(size=(3, 2)), rng.multivariate_normal([0, 0], ETA_COV, size=3)], axis=1)
-    res = sample_gradient(jax.random.key(4), correlated_target(), x0, jnp.zeros((1, 3)), kind="hmc",
+    res = sample_gibbs(jax.random.key(4), correlated_target(), x0, jnp.zeros((1, 3)), kind="hmc",
                           step_size=0.5, eta_scale=0.05, num_integration_steps=4, warmup_steps=1000,
                           elastic_moves=4, max_draws=2000, min_draws=2000, chunk_draws=100, progress=False)
     factor = res.sigma[2]  # (C, 2, 2)

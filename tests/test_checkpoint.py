@@ -1,5 +1,5 @@
 """The run's checkpoint (bayesreg.checkpoint): damaged files are named; a config saved
-before later keys existed resumes as it ran."""
+before later keys existed resumes as it ran; the warm-up's progress is kept until its end."""
 
 import json
 
@@ -9,7 +9,7 @@ import pytest
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import load_config
 from bayesreg.inference.initialisation import Initialisation
-from bayesreg.sampling.driver import SamplerCheckpoint
+from bayesreg.sampling.driver import SamplerCheckpoint, WarmupCheckpoint
 
 
 @pytest.mark.parametrize("damage", ["truncated", "emptied", "text"])
@@ -53,3 +53,32 @@ def test_run_written_before_the_barrier_resumes_without_it(tmp_path):
     assert resumed.moving_dtype == "float64"  # m exactly as given, as such runs had it
     assert load_config(None).model.skull_barrier_mm == 1.0
     assert load_config(None).model.moving_dtype == "float32"
+
+
+def test_the_warmup_is_kept_chunk_by_chunk_until_it_ends(tmp_path):
+    """A warm-up checkpoint reads back as written (the leaves of the states and of the
+    adaptation, its timings); the warm-up's end (the sampler's state) removes it, and so
+    does a finished run; a damaged one is named."""
+    ck = Checkpoint(tmp_path)
+    ck.dir.mkdir(parents=True)
+    assert ck.load_warmup() is None
+    rng = np.random.default_rng(0)
+    warm = WarmupCheckpoint([rng.normal(size=(2, 5)), np.arange(2)],
+                            [rng.normal(size=(2, 5, 5)), np.asarray(3, np.int32)], 4,
+                            np.array([0.3, 0.25]), {"first_chunk_incl_compile_s": 1.5, "warmup_s": 9.0})
+    ck.on_warmup_chunk(warm)
+    back = ck.load_warmup()
+    assert back.chunks_done == 4 and ck.warmup_chunks_done == 4 and back.timings == warm.timings
+    for a, b in zip(back.states + back.adaptation, warm.states + warm.adaptation):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+    np.testing.assert_array_equal(back.warmup_acceptance, warm.warmup_acceptance)
+    (ck.dir / "warmup.npz").write_bytes(b"")
+    with pytest.raises(ValueError, match="warmup.npz is damaged or incomplete"):
+        ck.load_warmup()
+    ck.on_warmup_chunk(warm)
+    ck.on_chunk(SamplerCheckpoint([np.zeros((2, 5))], (np.ones(5),), np.array([0.3]), 0, [], {}), None)
+    assert ck.load_warmup() is None and ck.load_state() is not None
+    ck.on_warmup_chunk(warm)
+    ck.clear_progress()
+    assert ck.load_warmup() is None and ck.load_state() is None

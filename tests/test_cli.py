@@ -39,10 +39,11 @@ OUTPUTS = [
 ]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # (session: built once in the worker of the group "tiny_run")
 def tiny_run(tmp_path_factory, tiny_mesh):
-    """The quickstart through the CLI on tiny settings (4 chunks of 10 draws per chain), with
-    a copy of its run directory as it stood after chunk 2 (a run killed there).
+    """The quickstart through the CLI on tiny settings (3 warm-up chunks, then 4 chunks of 10
+    draws per chain), with a copy of its run directory as it stood after warm-up chunk 2 (a
+    run killed there).
 
     One run serves the output checks and the resume check (a tiny run is the costliest
     setup of the suite).  Returns ``(out, killed, args, printed, compiled)``, ``compiled``
@@ -56,10 +57,10 @@ def tiny_run(tmp_path_factory, tiny_mesh):
 
     root = tmp_path_factory.mktemp("tiny")
     out, killed = root / "run", root / "killed"
-    original = Checkpoint.on_chunk
+    original = Checkpoint.on_warmup_chunk
 
-    def snapshot(self, ckpt, run_out):  # copy the run directory as it stands after chunk 2
-        original(self, ckpt, run_out)
+    def snapshot(self, ckpt):  # copy the run directory as it stands after warm-up chunk 2
+        original(self, ckpt)
         if ckpt.chunks_done == 2 and self.dir.parent == out:
             shutil.copytree(out, killed)
 
@@ -70,7 +71,7 @@ def tiny_run(tmp_path_factory, tiny_mesh):
     printed = io.StringIO()
     with (pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed),
           compilations() as compiled):
-        mp.setattr(Checkpoint, "on_chunk", snapshot)
+        mp.setattr(Checkpoint, "on_warmup_chunk", snapshot)
         assert main(args) == 0
     return out, killed, args, printed.getvalue(), compiled
 
@@ -136,7 +137,28 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     # module's fixture (the tiny run) again
     _killed_run_resumes_to_the_uninterrupted_result(tiny_run)
     _arviz_reads_the_posterior_as_its_own(out)
+    _open_run_gives_what_run_returned(out, info)
     _exported_transforms_and_applied_posterior(out, capsys)
+
+
+def _open_run_gives_what_run_returned(out, info):
+    """:func:`bayesreg.open_run`: the files read back into a RunResult; a missing file named."""
+    import arviz as az
+    import pandas as pd
+
+    import bayesreg
+
+    res = bayesreg.open_run(out)
+    assert res.dir == out and res.info == info
+    assert res.errors == json.loads((out / "errors.json").read_text())
+    assert res.summary.index[0].startswith(("lam", "mu", "ratio")) and "r_hat" in res.summary
+    pd.testing.assert_frame_equal(res.summary, pd.read_csv(out / "summary.csv", index_col=0))
+    tree = az.from_netcdf(out / "posterior.nc")
+    np.testing.assert_array_equal(res.posterior.posterior["u_b"].values,
+                                  tree.posterior["u_b"].values)
+    tree.close()
+    with pytest.raises(FileNotFoundError, match="summary.csv not found in .*resume"):
+        bayesreg.open_run(out / "checkpoint")
 
 
 def _arviz_reads_the_posterior_as_its_own(out):
@@ -408,11 +430,13 @@ def test_reproduce_reuses_or_resumes_only_a_run_of_the_same_config(tmp_path, cap
 
 
 def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
-    """A run killed after its second chunk, resumed, gives the draws of the run never killed."""
+    """A run killed in its warm-up (after warm-up chunk 2 of 3), resumed, gives the draws of
+    the run never killed: the adaptation's state was kept."""
     import arviz as az
 
     full, killed, *_ = tiny_run
-    assert len(list((killed / "checkpoint" / "draws").iterdir())) == 2
+    assert (killed / "checkpoint" / "warmup.npz").is_file()
+    assert not (killed / "checkpoint" / "draws").exists() and not (killed / "checkpoint" / "state.npz").exists()
     assert not (killed / "run.json").exists()
     # a plain run into the killed directory is refused and points at --resume
     assert main(["run", "configs/quickstart.yaml", "--out", str(killed)]) == 2
@@ -427,23 +451,40 @@ def _killed_run_resumes_to_the_uninterrupted_result(tiny_run):
     assert info["resumed"] is True and full_info["resumed"] is False
 
 
-@pytest.mark.slow
-@pytest.mark.xdist_group("tiny_run")  # after the CLI's tiny run: its programs are cached
-def test_quickstart_notebook_executes(tmp_path, tiny_mesh):
+def _quickstart_notebook(first_cell=None, replace=None):
+    """Notebook 01 executed in a fresh kernel; ``replace`` ``(old, new)`` edits the one cell
+    that calls :func:`bayesreg.run`, ``first_cell`` replaces it.  Returns the text printed."""
     import nbformat
     from nbclient import NotebookClient
 
     nb = nbformat.read("notebooks/01_quickstart.ipynb", as_version=4)
-    # on the session's tiny mesh instead of meshing its own: the run's compiled programs are
-    # then the tiny runs' above, from the session's cache
-    cells = [c for c in nb.cells if c.cell_type == "code" and '"mesh.edge_length_mm=26"' in c.source]
+    cells = [c for c in nb.cells if c.cell_type == "code" and "bayesreg.run(" in c.source]
     assert len(cells) == 1
-    cells[0].source = cells[0].source.replace('"mesh.edge_length_mm=26"', repr(f"mesh.file={tiny_mesh}"))
+    if replace is not None:
+        assert replace[0] in cells[0].source
+        cells[0].source = cells[0].source.replace(*replace)
+    if first_cell is not None:
+        cells[0].source = first_cell
     NotebookClient(nb, timeout=600, kernel_name="python3",
                    resources={"metadata": {"path": "notebooks"}}).execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not any(o.get("output_type") == "error" for o in outputs)
-    text = "".join(o.get("text", "") for o in outputs)
+    return "".join(o.get("text", "") for o in outputs)
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("tiny_run")
+def test_quickstart_notebook_executes_on_a_finished_run(tiny_run):
+    """Every cell after the run, on the CLI's tiny run reopened by :func:`bayesreg.open_run`
+    (the run cell itself is the CLI's call: its full execution is the heavy test below)."""
+    out = tiny_run[0]
+    text = _quickstart_notebook(first_cell=f"import bayesreg\nresult = bayesreg.open_run({str(out)!r})")
+    assert "lam/mu posterior" in text
+
+
+@pytest.mark.heavy
+def test_quickstart_notebook_executes(tiny_mesh):
+    text = _quickstart_notebook(replace=('"mesh.edge_length_mm=26"', repr(f"mesh.file={tiny_mesh}")))
     assert "lam/mu posterior" in text
 
 
@@ -532,7 +573,7 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
 def test_strict_gives_each_failure_its_own_exit_status(monkeypatch, tmp_path, capsys):
     """``run --strict``: 3 for chains that never moved, 4 for a stop rule not met by
     ``max_draws``, 0 for a converged run; without ``--strict`` every finished run is 0."""
-    from bayesreg.outputs.write import RunResult
+    from bayesreg.outputs.result import RunResult
 
     monkeypatch.setattr(cli, "format_report", lambda errors, info: "")
     for sampler, strict in (({"converged": True, "stuck_chains": []}, 0),

@@ -22,7 +22,7 @@ import meshio
 import numpy as np
 import pytest
 
-import bayesreg.sampling.kernels.adaptation
+import bayesreg.sampling.driver
 import bayesreg.outputs.write
 import bayesreg.model.problem
 from bayesreg.checkpoint import Checkpoint
@@ -57,7 +57,7 @@ def _draws(run_dir) -> np.ndarray:
                            for v in ("u_b", "lam", "mu")], axis=-1)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # (session: built once in the worker of the group "faults")
 def reference(tmp_path_factory, tiny_mesh):
     """``(root, mesh file, reference run directory)``: the uninterrupted run (on the
     session's tiny mesh)."""
@@ -81,7 +81,7 @@ def _interrupt_at(monkeypatch, stage: str) -> None:
     if stage == "mesh":
         monkeypatch.setattr(bayesreg.model.problem, "read_mesh", stop)
     elif stage == "warm-up":
-        monkeypatch.setattr(bayesreg.sampling.kernels.adaptation, "rwmh_warmup", stop)
+        monkeypatch.setattr(bayesreg.sampling.driver, "run_warmup", stop)
     elif stage == "sampling":
         original = Checkpoint.on_chunk
 

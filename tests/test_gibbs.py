@@ -10,8 +10,9 @@ import jax.numpy as jnp
 from bayesreg.sampling.chains import build_chunk
 from bayesreg.sampling.kernels import gibbs as gk
 from bayesreg.sampling.kernels.target import make_target
-from bayesreg.sampling.driver import sample_gradient
-from helpers import D, M_ETA, S, SD_ETA, assert_moments, gaussian_target, toy_moments, toy_target
+from helpers import (
+    assert_moments, D, gaussian_target, M_ETA, S, sample_gibbs, SD_ETA, toy_moments,
+    toy_target)
 
 
 @pytest.mark.parametrize("kind,adapt_mass", [("mala", True), ("hmc", True), ("nuts", True), ("nuts", False)])
@@ -20,7 +21,7 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
     ArviZ's ESS of the quantity averaged (:func:`helpers.assert_moments`)."""
     rng = np.random.default_rng(0)
     x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
-    res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
+    res = sample_gibbs(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
                           step_size=0.3, eta_scale=0.5, num_integration_steps=8, warmup_steps=600,
                           adapt_mass=adapt_mass, elastic_moves=1 if adapt_mass else 3,
                           max_draws=1500, min_draws=1500, chunk_draws=100, thinning=1, progress=False)
@@ -51,7 +52,7 @@ def test_joint_nuts_samples_the_known_joint():
     x0 = np.concatenate([rng.normal(size=(4, D)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
     tg = joint_target(toy_target(), center_eta=jnp.array([M_ETA]), eta_scale=SD_ETA,
                       log_jacobian=lambda eta: jnp.zeros(()))
-    res = sample_gradient(jax.random.key(1), tg, x0, jnp.zeros((1, 3)), kind="nuts", step_size=0.3,
+    res = sample_gibbs(jax.random.key(1), tg, x0, jnp.zeros((1, 3)), kind="nuts", step_size=0.3,
                           eta_scale=np.zeros(0), warmup_steps=600, max_draws=1500, min_draws=1500,
                           chunk_draws=100, thinning=1, progress=False)
     assert res.info.blocks == ("joint",) and res.acceptance.shape[-1] == 1
@@ -83,7 +84,7 @@ def test_a_surrogate_normaliser_corrected_per_transition_samples_the_exact_joint
 
     tg = joint_target(toy_target(), center_eta=jnp.array([M_ETA]), eta_scale=SD_ETA,
                       log_jacobian=lambda eta: jnp.zeros(()), surrogate=surrogate)
-    res = sample_gradient(jax.random.key(1), tg, x0, jnp.zeros((1, 3)), kind="nuts", step_size=0.3,
+    res = sample_gibbs(jax.random.key(1), tg, x0, jnp.zeros((1, 3)), kind="nuts", step_size=0.3,
                           eta_scale=np.zeros(0), warmup_steps=600, max_draws=1500, min_draws=1500,
                           chunk_draws=100, thinning=1, progress=False)
     assert res.info.blocks == ("joint", "normaliser") and res.acceptance.shape[-1] == 2
@@ -117,7 +118,7 @@ def test_a_failed_evaluation_at_the_chains_own_parameters_moves_nothing_and_is_c
         return jnp.where(bad, -jnp.inf, lp), jnp.where(bad, -jnp.inf, lnat), interior, its, ok & ~bad
 
     # a small step: the first u_b moves are accepted (fixed seed), so every re-evaluation fails
-    res = sample_gradient(jax.random.key(2), target._replace(evaluate=evaluate), x0,
+    res = sample_gibbs(jax.random.key(2), target._replace(evaluate=evaluate), x0,
                           jnp.zeros((1, 3)), kind="mala", step_size=0.05, eta_scale=0.5,
                           warmup_steps=0, max_draws=10, min_draws=10, chunk_draws=10, thinning=1,
                           progress=False)
@@ -215,7 +216,7 @@ def test_collapsed_moves_keep_the_joint(shift, scale):
     target = toy_target()._replace(conditional=_toy_conditional(shift, scale))
     common = dict(kind="nuts", step_size=0.3, eta_scale=0.5, warmup_steps=300, elastic_moves=1,
                   max_draws=1000, min_draws=1000, chunk_draws=100, progress=False)
-    res = sample_gradient(jax.random.key(2), target, x0, jnp.zeros((1, 3)), collapsed_moves=2,
+    res = sample_gibbs(jax.random.key(2), target, x0, jnp.zeros((1, 3)), collapsed_moves=2,
                           **common)
     mean_true, var_true, fourth_true = toy_moments()
     for j in range(D + 1):
@@ -226,7 +227,7 @@ def test_collapsed_moves_keep_the_joint(shift, scale):
     assert res.info.blocks == ("u_b", "elastic", "collapsed")
     assert res.sigma[3].shape == (4, 1, 1)
     if shift == 0.0:
-        base = sample_gradient(jax.random.key(2), toy_target(), x0, jnp.zeros((1, 3)), **common)
+        base = sample_gibbs(jax.random.key(2), toy_target(), x0, jnp.zeros((1, 3)), **common)
         ess_c = float(az.ess(res.positions[..., D], method="bulk"))
         ess_b = float(az.ess(base.positions[..., D], method="bulk"))
         assert ess_c > 1.5 * ess_b, (ess_c, ess_b)

@@ -13,9 +13,8 @@ from bayesreg.model.parameters import ParamLayout
 from bayesreg.model.posterior import (
     build_posterior, elastic_groups, log_normaliser, log_normaliser_dense, normaliser_surrogate,
     surrogate_normaliser)
-from bayesreg.sampling.driver import sample_gradient
 from bayesreg.inference.targets import logdensity_fn
-from helpers import box_posterior
+from helpers import box_posterior, sample_gibbs
 
 
 def _dense_schur(mesh, post, phi):
@@ -215,7 +214,7 @@ def test_exact_normaliser_returns_the_prior_when_the_images_say_nothing(exact):
     x0 = np.concatenate([u0, lam0, mu0], axis=1)
     # the paper's collapse is gross: a short run shows it
     warmup, draws, chunk = (250, 1000, 250) if exact else (50, 100, 50)
-    res = sample_gradient(jax.random.key(11), target, x0, jnp.zeros((post.op.n_interior, 3)), kind="nuts",
+    res = sample_gibbs(jax.random.key(11), target, x0, jnp.zeros((post.op.n_interior, 3)), kind="nuts",
                           step_size=0.5, eta_scale=0.5, max_tree_depth=4, elastic_moves=8,
                           warmup_steps=warmup, max_draws=draws, min_draws=draws, chunk_draws=chunk,
                           progress=False)

@@ -12,8 +12,7 @@ from bayesreg.sampling import chains
 from bayesreg.sampling.convergence import gelman_rubin
 from bayesreg.sampling.kernels import rwmh
 from bayesreg.model.posterior import condensation, log_density, log_density_condensed, preconditioner
-from bayesreg.sampling.driver import sample
-from helpers import box_posterior, quadratic_problem
+from helpers import box_posterior, quadratic_problem, sample_rwmh
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +31,7 @@ def test_rwmh_reproduces_known_gaussian_posterior():
     chol = sla.cholesky(cov, lower=True)
     chains = 4
     x0 = mean + 3.0 * np.random.default_rng(0).normal(size=(chains, d)) @ chol.T
-    res = sample(
+    res = sample_rwmh(
         jax.random.key(7), logdensity, x0, jnp.zeros((n_i, 3)), 2.38 / np.sqrt(d) * chol,
         thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
         target_acceptance=0.25, progress=False,
@@ -63,7 +62,7 @@ def test_blocked_kernel_targets_the_same_posterior():
     blocks = (np.arange(half), np.arange(half, d))
     sig = tuple(2.38 / np.sqrt(len(b)) * sla.cholesky(cov[np.ix_(b, b)], lower=True) for b in blocks)
     x0 = mean + np.random.default_rng(4).normal(size=(4, d)) @ sla.cholesky(cov, lower=True).T
-    res = sample(jax.random.key(11), logdensity, x0, jnp.zeros((n_i, 3)), sig, blocks=blocks,
+    res = sample_rwmh(jax.random.key(11), logdensity, x0, jnp.zeros((n_i, 3)), sig, blocks=blocks,
                  thinning=5, warmup_steps=2500, max_draws=3000, min_draws=3000, chunk_draws=500,
                  progress=False)
     assert res.acceptance.shape[-1] == 2
@@ -154,10 +153,10 @@ def test_condensed_kernel_samples_the_same_posterior(identified):
     sig = (np.full(nb3, 0.02), np.abs(theta[nb3:]) * 0.05)
     kw = dict(blocks=blocks, adapt_diagonal=(True, True), thinning=4, warmup_steps=2000,
               max_draws=1000, min_draws=1000, chunk_draws=250, progress=False)
-    plain = sample(jax.random.key(1), partial_ld, x0, jnp.zeros((post.op.n_interior, 3)), sig, **kw)
+    plain = sample_rwmh(jax.random.key(1), partial_ld, x0, jnp.zeros((post.op.n_interior, 3)), sig, **kw)
     cond = rwmh.Condensation(lambda th, h: log_density_condensed(post, th, h),
                         lambda th: condensation(post, th), 0, moves=3)
-    fast = sample(jax.random.key(2), ld, x0, jnp.zeros((post.op.n_interior, 3)), sig,
+    fast = sample_rwmh(jax.random.key(2), ld, x0, jnp.zeros((post.op.n_interior, 3)), sig,
                   condensation=cond, **kw)
     assert fast.solve_failures.sum() == 0 and fast.cg_iterations.mean() > 0  # elastic moves solve
     for res in (plain, fast):

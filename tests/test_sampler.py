@@ -12,10 +12,12 @@ import scipy.linalg as sla
 from bayesreg.sampling.chains import CHAIN_METHODS
 from bayesreg.sampling.kernels.rwmh import Condensation, Preconditioner
 from bayesreg.model.posterior import Aux
-from bayesreg.sampling.driver import SamplerCheckpoint, sample, sample_gradient
+from bayesreg.sampling.driver import SamplerCheckpoint, WarmupCheckpoint
 from bayesreg.fem.solver import SolveInfo
 from conftest import compilations
-from helpers import D, M_ETA, SD_ETA, gaussian_target, quadratic_problem, toy_target
+from helpers import (
+    D, gaussian_target, M_ETA, quadratic_problem, sample_gibbs, sample_rwmh, SD_ETA,
+    toy_target)
 
 
 def test_sampler_stops_at_the_papers_rhat_and_is_reproducible():
@@ -23,7 +25,7 @@ def test_sampler_stops_at_the_papers_rhat_and_is_reproducible():
     d = len(mean)
     chol = sla.cholesky(cov, lower=True)
     x0 = mean + np.random.default_rng(1).normal(size=(3, d)) @ chol.T
-    run = partial(sample, jax.random.key(3), logdensity, x0, jnp.zeros((n_i, 3)),
+    run = partial(sample_rwmh, jax.random.key(3), logdensity, x0, jnp.zeros((n_i, 3)),
                   2.38 / np.sqrt(d) * chol, thinning=2, warmup_steps=200, max_draws=5000,
                   min_draws=100, chunk_draws=100, stop="paper", rhat_threshold=1.2, progress=False)
     a, b = run(), run()
@@ -50,7 +52,7 @@ def test_sampler_stops_at_the_first_chunk_meeting_the_rank_rule_as_arviz_measure
         return np.concatenate([draws, np.exp(draws[..., :1])], axis=-1)
 
     x0 = 2.0 * np.random.default_rng(1).normal(size=(3, 2))
-    res = sample(jax.random.key(3), logdensity, x0, jnp.zeros((0, 3)), np.full(2, 1.7),
+    res = sample_rwmh(jax.random.key(3), logdensity, x0, jnp.zeros((0, 3)), np.full(2, 1.7),
                  thinning=2, warmup_steps=200, max_draws=5000, min_draws=100, chunk_draws=100,
                  estimands=estimands, progress=False)
     assert res.info.stop_rule.kind == "rank" and res.converged
@@ -75,7 +77,7 @@ def test_the_paper_and_rank_rules_are_checked_and_unknown_rules_refused():
                        ({"rhat_rank_max": 1.0}, "R-hat thresholds must be > 1"),
                        ({"ess_min": 0.0}, "ess_min must be > 0")):
         with pytest.raises(ValueError, match=match):
-            sample(jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
+            sample_rwmh(jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
                    thinning=1, warmup_steps=0, max_draws=4, min_draws=4, chunk_draws=2,
                    progress=False, **bad)
 
@@ -90,19 +92,19 @@ def test_sampler_rejects_bad_start():
     x0 = np.tile(mean, (2, 1))
     x0[:, 0] = 200.0
     with pytest.raises(ValueError, match="zero posterior density"):
-        sample(jax.random.key(0), bad, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.1),
+        sample_rwmh(jax.random.key(0), bad, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.1),
                progress=False)
 
 
 def test_sampler_rejects_bad_scales_blocks_and_draw_counts():
     """Refused with the argument named, before anything is traced: a sigma NaN, 0 or
     negative, blocks that leave out (or repeat) a coordinate or are not integer indices,
-    min_draws > max_draws and chunk_draws > max_draws; the gradient driver also checks its
+    min_draws > max_draws and chunk_draws > max_draws; the gradient kernel also checks its
     step size and elastic scales."""
     logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     x0 = np.tile(mean, (2, 1))
-    run = partial(sample, jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), progress=False)
+    run = partial(sample_rwmh, jax.random.key(0), logdensity, x0, jnp.zeros((n_i, 3)), progress=False)
     ok = np.full(d, 0.1)
     for value, match in ((np.nan, "sigma of block 0 must be finite"),
                          (0.0, r"sigma of block 0 \(a vector of scales\) must be > 0, got minimum 0.0"),
@@ -130,8 +132,8 @@ def test_sampler_rejects_bad_scales_blocks_and_draw_counts():
         run(ok, max_draws=40, min_draws=100, chunk_draws=20)
     with pytest.raises(ValueError, match="chunk_draws must be <= max_draws"):
         run(ok, max_draws=4, min_draws=4, chunk_draws=8)
-    # the gradient driver shares the draw checks and checks its own scales (target unused)
-    grad = partial(sample_gradient, jax.random.key(0), None, x0, jnp.zeros((n_i, 3)), progress=False)
+    # the driver's draw checks hold for every kernel; the gradient kernel checks its own scales
+    grad = partial(sample_gibbs, jax.random.key(0), toy_target(), x0, jnp.zeros((n_i, 3)), progress=False)
     with pytest.raises(ValueError, match="chunk_draws must be <= max_draws"):
         grad(max_draws=4, min_draws=4, chunk_draws=8)
     with pytest.raises(ValueError, match="min_draws must be <= max_draws"):
@@ -150,7 +152,7 @@ def test_without_warmup_the_given_kernel_samples_unchanged():
     d = len(mean)
     sig = 2.38 / np.sqrt(d) * sla.cholesky(cov, lower=True)
     x0 = mean + np.random.default_rng(5).normal(size=(2, d)) @ sig.T
-    res = sample(jax.random.key(4), logdensity, x0, jnp.zeros((n_i, 3)), sig, thinning=2,
+    res = sample_rwmh(jax.random.key(4), logdensity, x0, jnp.zeros((n_i, 3)), sig, thinning=2,
                  warmup_steps=0, max_draws=40, min_draws=40, chunk_draws=20, progress=False)
     np.testing.assert_array_equal(res.sigma[0], sig)
     assert np.all(np.isnan(res.warmup_acceptance))
@@ -162,7 +164,7 @@ def test_without_warmup_the_given_kernel_samples_unchanged():
 def test_split_rhat_monitor_waits_for_enough_draws():
     logdensity, mean, cov, n_i = quadratic_problem()
     x0 = np.tile(mean, (2, 1)) + 0.01
-    res = sample(jax.random.key(2), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
+    res = sample_rwmh(jax.random.key(2), logdensity, x0, jnp.zeros((n_i, 3)), np.full(len(mean), 0.05),
                  thinning=1, warmup_steps=0, max_draws=6, min_draws=2, chunk_draws=2,
                  rhat_split=True, progress=False)
     assert res.positions.shape[1] >= 4
@@ -171,19 +173,27 @@ def test_split_rhat_monitor_waits_for_enough_draws():
 
 
 def test_resume_from_a_checkpoint_equals_an_uninterrupted_run():
-    """Checkpoints after the warm-up and every chunk; continuing from any equals not stopping."""
+    """Checkpoints after every warm-up chunk, the warm-up and every chunk; continuing from
+    any equals not stopping."""
     logdensity, mean, cov, n_i = quadratic_problem()
     d = len(mean)
     chol = sla.cholesky(cov, lower=True)
     x0 = mean + 2.0 * np.random.default_rng(3).normal(size=(3, d)) @ chol.T
     blocks = (np.arange(d // 2), np.arange(d // 2, d))
     sig = (np.full(d // 2, 0.1), np.full(d - d // 2, 0.1))
-    run = partial(sample, jax.random.key(5), logdensity, x0, jnp.zeros((n_i, 3)), sig,
+    run = partial(sample_rwmh, jax.random.key(5), logdensity, x0, jnp.zeros((n_i, 3)), sig,
                   blocks=blocks, adapt_diagonal=(True, True), thinning=3, warmup_steps=120,
                   max_draws=60, min_draws=60, chunk_draws=10, progress=False)
-    saved = []
-    full = run(on_chunk=lambda ckpt, out: saved.append((ckpt, out)))
+    saved, warm = [], []
+    full = run(on_chunk=lambda ckpt, out: saved.append((ckpt, out)), on_warmup_chunk=warm.append)
     assert len(saved) == 1 + 6 and saved[0][1] is None and saved[-1][0].chunks_done == 6
+    # the warm-up (4 chunks, its windows ending after chunks 2 and 3) cut after any chunk
+    assert [w.chunks_done for w in warm] == [1, 2, 3]
+    for w in warm:
+        assert isinstance(w, WarmupCheckpoint)
+        resumed = run(resume=w)
+        np.testing.assert_array_equal(resumed.positions, full.positions)
+        assert resumed.info == full.info
     for cut in (0, 2, 5):  # killed right after the warm-up, after chunk 2, after chunk 5
         ckpt = saved[cut][0]
         assert isinstance(ckpt, SamplerCheckpoint) and ckpt.chunks_done == cut
@@ -207,15 +217,15 @@ def test_without_warmup_a_gradient_kernel_samples_at_the_given_step_size(kind):
     rng = np.random.default_rng(0)
     x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
     for step in (0.05, 0.3):
-        res = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
+        res = sample_gibbs(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), kind=kind,
                               step_size=step, eta_scale=0.5, warmup_steps=0, max_draws=10,
                               min_draws=10, chunk_draws=10, thinning=1, progress=False)
         np.testing.assert_allclose(res.sigma[0], step)
 
 
 def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
-    """Checkpoint after chunk 2 (state leaves and tuned values as a file would hold them),
-    resume: the draws equal those of the run never interrupted."""
+    """Checkpoint in the warm-up and after chunk 2 (state leaves and tuned values as a file
+    would hold them), resume: the draws equal those of the run never interrupted."""
     rng = np.random.default_rng(2)
     x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
     saved = []
@@ -226,10 +236,16 @@ def test_gradient_sampler_resumes_to_the_uninterrupted_draws():
 
     kw = dict(kind="nuts", warmup_steps=40, max_draws=30, min_draws=30, chunk_draws=10, thinning=2,
               progress=False)
-    full = sample_gradient(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), on_chunk=keep, **kw)
+    warm = []
+    full = sample_gibbs(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), on_chunk=keep,
+                        on_warmup_chunk=warm.append, **kw)
+    assert [w.chunks_done for w in warm] == [1]  # cut in the warm-up: the adaptation's state kept
+    from_warmup = sample_gibbs(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), resume=warm[0], **kw)
+    np.testing.assert_array_equal(from_warmup.positions, full.positions)
+    np.testing.assert_array_equal(from_warmup.sigma[0], full.sigma[0])
     ckpt, _ = saved[2]
     draws = tuple(np.concatenate([o[j] for _, o in saved[1:3]], axis=1) for j in range(len(saved[1][1])))
-    resumed = sample_gradient(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), resume=ckpt,
+    resumed = sample_gibbs(jax.random.key(7), toy_target(), x0, jnp.zeros((1, 3)), resume=ckpt,
                               resume_draws=draws, **kw)
     np.testing.assert_array_equal(resumed.positions, full.positions)
     np.testing.assert_array_equal(resumed.grad_evals, full.grad_evals)
@@ -242,7 +258,7 @@ def test_warmup_and_sampling_chunks_compile_one_program():
     rng = np.random.default_rng(3)
     x0 = np.concatenate([rng.normal(size=(2, D)), rng.normal(M_ETA, SD_ETA, size=(2, 1))], axis=1)
     with compilations() as compiled:
-        sample_gradient(jax.random.key(8), toy_target(), x0, jnp.zeros((1, 3)), kind="nuts",
+        sample_gibbs(jax.random.key(8), toy_target(), x0, jnp.zeros((1, 3)), kind="nuts",
                         warmup_steps=80, max_draws=30, min_draws=30, chunk_draws=10, thinning=2,
                         progress=False)
     assert compiled.get("jit(mapped)") == 1, compiled
@@ -264,7 +280,7 @@ def test_sample_records_how_the_random_walk_ran():
     and no-warm-up tests above.)"""
     x0 = 0.1 * np.arange(8.0).reshape(2, 4)
     zero = jnp.zeros((0, 3))
-    run = partial(sample, jax.random.key(0), _standard_normal, x0, zero, thinning=3, max_draws=4,
+    run = partial(sample_rwmh, jax.random.key(0), _standard_normal, x0, zero, thinning=3, max_draws=4,
                   min_draws=4, chunk_draws=2, progress=False)
     info = run(np.ones(4), warmup_steps=7, chain_method="vectorized", cg_preconditioner="spectral").info
     assert info.kind == "rwmh" and info.blocks == ("joint",) and info.solves_per_step == 1.0
@@ -299,7 +315,7 @@ def test_sample_gradient_records_how_the_gradient_kernel_ran():
     # the chunk program of the MALA run without warm-up above (compiled once for both)
     kw = dict(kind="mala", elastic_moves=1, thinning=1, max_draws=10, min_draws=10, chunk_draws=10,
               progress=False)
-    info = sample_gradient(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), warmup_steps=15, **kw).info
+    info = sample_gibbs(jax.random.key(1), toy_target(), x0, jnp.zeros((1, 3)), warmup_steps=15, **kw).info
     assert info.kind == "mala" and info.blocks == ("u_b", "elastic")
     assert info.solves_per_step is None and info.preconditioner == "block-jacobi" and not info.condensed
     assert info.warmup_steps == 20 and info.thinning == 1  # 15 steps asked: two chunks of 10
@@ -307,11 +323,11 @@ def test_sample_gradient_records_how_the_gradient_kernel_ran():
     assert len(info.adapted["step_size_per_chain"]) == 2
 
     condensed = toy_target()._replace(condensed=True, preconditioner="dense")
-    info = sample_gradient(jax.random.key(1), condensed, x0, jnp.zeros((1, 3)), warmup_steps=0,
+    info = sample_gibbs(jax.random.key(1), condensed, x0, jnp.zeros((1, 3)), warmup_steps=0,
                            **{**kw, "elastic_moves": 3}).info
     assert info.solves_per_step == 4.0 and info.preconditioner == "dense" and info.condensed
     assert info.warmup_steps == 0
 
     no_free = gaussian_target(3)._replace(condensed=True, preconditioner="spectral")
-    info = sample_gradient(jax.random.key(1), no_free, x0[:, :3], jnp.zeros((1, 3)), warmup_steps=0, **kw).info
+    info = sample_gibbs(jax.random.key(1), no_free, x0[:, :3], jnp.zeros((1, 3)), warmup_steps=0, **kw).info
     assert info.blocks == ("u_b",) and info.solves_per_step is None and info.preconditioner == "spectral"

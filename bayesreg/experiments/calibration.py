@@ -315,12 +315,12 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
         p = post._replace(similarity=post.similarity._replace(f_q=f_q))
         target, kernel = kernel_of(p, theta0)
         ws_init, ws_step, ws_final = gw.build_warmup_step(
-            kernel, target_acceptance=gibbs.default_target_acceptance("nuts"))
+            kernel, gibbs.GibbsParams, target_acceptance=gibbs.default_target_acceptance("nuts"))
         state, _ = gibbs.init(target, theta0, interior0)
         cache = kernel.init_cache(state)
         ws = ws_init(nb3, 0.2, jnp.full((post.n_free,), 0.1))
         # weakly typed floats of BlackJAX's initial states made strong, as the scan's carry
-        # comes back (sampler.sample_gradient does the same)
+        # comes back (gibbs.as_algorithm does the same)
         ws = jax.tree.map(lambda a: jnp.asarray(a, jnp.asarray(a).dtype)
                           if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, ws)
         k_warm, k_draw = jax.random.split(key)

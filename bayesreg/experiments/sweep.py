@@ -40,7 +40,7 @@ from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, ConfigError, load_config
 from bayesreg.config.loading import load_model_file
-from bayesreg.outputs.write import RunResult
+from bayesreg.outputs.result import RunResult
 from bayesreg.pipeline import run
 from bayesreg.report.data import PAPER, load_run
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2

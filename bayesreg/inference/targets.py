@@ -6,7 +6,9 @@ config.  :func:`dense_preconditioning` decides whether the chains' CG solves use
 ``K_ii^-1`` per chain (``solver.preconditioner``), :func:`rw_preconditioner` and
 :func:`rw_condensation` build the random walk's cached preconditioner and interior map, and
 :func:`gradient_target` the gradient kernels' :class:`~bayesreg.sampling.kernels.target.Target` (a
-joint one where :func:`use_joint` says so).
+joint one where :func:`use_joint` says so).  :func:`sampling_algorithm` puts them together
+into the :class:`~bayesreg.sampling.kernels.base.SamplingAlgorithm` that ``sampler.kind``
+names, for the driver (:func:`bayesreg.sampling.driver.sample`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesreg.config import Config
+from bayesreg.sampling.kernels import gibbs, rwmh
+from bayesreg.sampling.kernels.base import SamplingAlgorithm
 from bayesreg.sampling.kernels.rwmh import Condensation, Preconditioner
 from bayesreg.sampling.kernels.target import Target, joint_target, laplace_likelihood, make_target
 from bayesreg.fem.normaliser import add_normaliser
@@ -30,7 +34,7 @@ from bayesreg.model.problem import Problem
 
 __all__ = ["logdensity_fn", "make_logdensity", "dense_budget_bytes", "dense_preconditioning",
            "cg_preconditioner", "rw_preconditioner", "rw_condensation", "gradient_target",
-           "use_joint", "DENSE_HOST_BUDGET"]
+           "use_joint", "sampling_algorithm", "DENSE_HOST_BUDGET"]
 
 
 def logdensity_fn(post: Posterior, *, exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000,
@@ -196,3 +200,48 @@ def _likelihood(problem: Problem, center, factor):
     f_inv = np.linalg.inv(np.asarray(factor))
     a_lik = f_inv.T @ f_inv - np.asarray(prior_precision(post, jnp.asarray(center[nb3:])))
     return laplace_likelihood(post, jnp.asarray(center), 0.5 * (a_lik + a_lik.T))
+
+
+def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm:
+    """The kernel ``cfg.sampler.kind`` names, with its warm-up, at the run's starts.
+
+    Parameters
+    ----------
+    problem : Problem
+    cfg : Config
+    init : bayesreg.inference.initialisation.Initialisation
+        Its centre and proposal scales (``init.sigma``: the random walk's per block, or the
+        gradient kernels' ``u_b`` factor and elastic scales) and whether the random walk
+        moves ``u_b`` and the parameters in blocks.
+
+    Returns
+    -------
+    SamplingAlgorithm
+        :func:`bayesreg.sampling.kernels.gibbs.as_algorithm` on :func:`gradient_target` for
+        ``mala``, ``hmc`` and ``nuts``; :func:`bayesreg.sampling.kernels.rwmh.as_algorithm` on
+        :func:`make_logdensity` (with the cached interior map and dense CG preconditioner
+        where the config asks for them) for ``rwmh``.
+    """
+    s = cfg.sampler
+    post = problem.posterior
+    nb3 = 3 * post.n_boundary
+    interior0 = jnp.zeros((post.op.n_interior, 3))
+    if s.gradient:
+        target = gradient_target(problem, cfg, init.center, init.sigma[0])
+        return gibbs.as_algorithm(
+            target, interior0, kind=s.kind, step_size=s.step_size,
+            eta_scale=init.sigma[1] if target.n_free else np.zeros(0), dense_mass=s.dense_mass,
+            adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
+            collapsed_moves=s.collapsed_moves, num_integration_steps=s.hmc_steps,
+            jitter_integration_steps=s.hmc_jitter, max_tree_depth=s.max_tree_depth,
+            target_acceptance=s.target_acceptance)
+    if init.blocked:
+        blocks, adapt, names = (np.arange(nb3), np.arange(nb3, post.dim)), (True, True), ("u_b", "elastic")
+    else:
+        blocks, adapt, names = None, None, ("joint",)
+    return rwmh.as_algorithm(
+        make_logdensity(problem, cfg), interior0, tuple(init.sigma), blocks=blocks,
+        adapt_diagonal=adapt, target_acceptance=s.target_acceptance or 0.25,
+        condensation=rw_condensation(problem, cfg) if init.blocked and s.use_condensed else None,
+        preconditioner=rw_preconditioner(problem, cfg) if dense_preconditioning(problem, cfg) else None,
+        block_names=names, cg_preconditioner=cg_preconditioner(problem, cfg))

@@ -46,8 +46,6 @@ import platform
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
-from pathlib import Path
-from typing import NamedTuple
 
 import meshio
 import numpy as np
@@ -63,6 +61,7 @@ from bayesreg.inference.initialisation import Initialisation, registration_field
 from bayesreg.data.labels import TISSUE_LABELS, tissue_label
 from bayesreg.mesh.tetmesh import boundary_nodes, mesh_quality
 from bayesreg.outputs.plots import plot_parameters, plot_uncertainty
+from bayesreg.outputs.result import RunResult
 from bayesreg.model.posterior import elastic_groups, solve_position
 from bayesreg.model.problem import Problem
 from bayesreg.rundir import RunDirectory
@@ -71,30 +70,7 @@ from bayesreg.data.registration import displacement_at
 from bayesreg.interop.transforms import FIXED_TO_MOVING, save_displacement
 from bayesreg.mesh.warp import grid_moments_from, interpolation_matrix, locate_grid
 
-__all__ = ["RunResult", "write_outputs", "error_table", "format_report", "verdict", "summary_table"]
-
-
-class RunResult(NamedTuple):
-    """What :func:`bayesreg.run` returns.
-
-    Attributes
-    ----------
-    dir : Path
-        the run directory
-    posterior : DataTree
-        ArviZ posterior and sample stats
-    summary : pandas.DataFrame
-    errors : dict or None
-        error table (synthetic truth)
-    info : dict
-        content of ``run.json``
-    """
-
-    dir: Path
-    posterior: object
-    summary: object
-    errors: dict | None
-    info: dict
+__all__ = ["write_outputs", "error_table", "format_report", "verdict", "summary_table"]
 
 
 def _versions():

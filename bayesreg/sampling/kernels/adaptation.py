@@ -1,33 +1,30 @@
-"""Warm-ups: the random walk's (:func:`rwmh_warmup`) and the gradient Gibbs kernel's.
+"""The gradient Gibbs kernel's warm-up, one transition at a time.
 
-The random walk tunes each block's scale by Robbins-Monro toward a target acceptance rate
-and re-estimates its marginal scales (or, for the few elastic parameters, a dense factor)
-from two windows of warm-up draws.  The gradient kernel (:mod:`bayesreg.sampling.kernels.gibbs`) uses
-Stan's windowed adaptation with BlackJAX's pieces
+The gradient kernel (:mod:`bayesreg.sampling.kernels.gibbs`) uses Stan's windowed adaptation with BlackJAX's pieces
 (:func:`blackjax.adaptation.step_size.dual_averaging_adaptation` for the step size,
 :func:`blackjax.adaptation.mass_matrix.mass_matrix_adaptation` for a diagonal or dense inverse
 mass matrix, :func:`blackjax.adaptation.window_adaptation.build_schedule` for the windows),
 the elastic random walk's covariance from the same windows' covariance of ``eta``
 (``2.38^2 / n_free`` times it, dense: Haario et al.'s adaptive Metropolis), and
 Robbins-Monro on the log of a common multiplier toward acceptance 0.3.  Each chain adapts
-its own values; they are frozen after the warm-up.
+its own values; they are frozen after the warm-up.  (The random walk's warm-up is
+:func:`bayesreg.sampling.kernels.rwmh.as_algorithm`'s.)
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
-import time
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from tqdm.auto import tqdm
 
 from bayesreg.sampling.kernels.base import Kernel
-from bayesreg.sampling.kernels.gibbs import ELASTIC_TARGET_ACCEPTANCE, GibbsParams
 
-__all__ = ["WarmupState", "schedule", "build_warmup_step", "rwmh_warmup", "DENSE_MAX"]
+__all__ = ["WarmupState", "schedule", "build_warmup_step", "ELASTIC_TARGET_ACCEPTANCE"]
+
+#: Warm-up target of the elastic random walk's (and the collapsed moves') acceptance.
+ELASTIC_TARGET_ACCEPTANCE = 0.3
 
 
 class WarmupState(NamedTuple):
@@ -58,9 +55,12 @@ def schedule(num_steps: int) -> np.ndarray:
     return np.array(build_schedule(num_steps), dtype=np.int32).reshape(-1, 2)
 
 
-def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: bool = False,
-                      adapt_mass: bool = True):
+def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptance: float,
+                      dense_mass: bool = False, adapt_mass: bool = True):
     """``(init, step, final)`` of the windowed warm-up of :func:`bayesreg.sampling.kernels.gibbs.build_kernel`'s kernel.
+
+    ``params_type(step_size, inverse_mass, eta_scale, collapsed_scale)`` makes the kernel's
+    parameters (:class:`bayesreg.sampling.kernels.gibbs.GibbsParams`).
 
     ``adapt_mass=False`` keeps the identity inverse mass matrix (the preconditioned
     coordinates ``w`` already have about unit scale) and adapts the step size alone, by
@@ -68,7 +68,7 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
 
     ``init(dim_u, initial_step_size, eta_scale) -> WarmupState``;
     ``step(key, state, ws, cache, stage) -> (state, ws, cache, info)`` with ``stage`` the
-    ``(slow?, window ends?)`` row of :func:`schedule`; ``final(ws) -> GibbsParams``.
+    ``(slow?, window ends?)`` row of :func:`schedule`; ``final(ws) -> params``.
     """
     # BlackJAX imported here, not with the module: importing it starts JAX's backend
     from blackjax.adaptation.mass_matrix import mass_matrix_adaptation
@@ -89,8 +89,8 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
                            mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0),
                            jnp.zeros(()))
 
-    def params_of(ws: WarmupState, step_size) -> GibbsParams:
-        return GibbsParams(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale),
+    def params_of(ws: WarmupState, step_size):
+        return params_type(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale),
                            ws.eta_base * jnp.exp(ws.log_collapsed_scale))
 
     def step(key, state, ws: WarmupState, cache, stage):
@@ -131,7 +131,7 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
                          log_eta, count, log_col)
         return state, ws, cache, info
 
-    def final(ws: WarmupState) -> GibbsParams:
+    def final(ws: WarmupState):
         # the dual average, once it has averaged anything: BlackJAX's initial state holds
         # log_step_size_avg = 0, so with no warm-up step (or none since a window's restart)
         # the step in use is kept
@@ -139,76 +139,3 @@ def build_warmup_step(kernel: Kernel, *, target_acceptance: float, dense_mass: b
         return params_of(ws, step_size)
 
     return init_ws, step, final
-
-
-def _scaled(sigmas, log_scales):
-    return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
-
-
-DENSE_MAX = 16  # blocks up to this size (the elastic parameters) adapt a dense proposal
-
-
-def rwmh_warmup(chunk, states, key_warm, sigmas, idxs, adapt, n_chains, warmup_steps, chunk_draws,
-                thinning, target_acceptance, progress):
-    """The random walk's warm-up (:func:`bayesreg.sampling.driver.sample`), run chunk by chunk on the
-    host: Robbins-Monro on each block's log-scale toward ``target_acceptance``; scales
-    re-estimated from the draws of two windows (``[n/4, n/2)`` and ``[n/2, 3n/4)`` of the
-    ``n`` warm-up chunks): a dense factor ``2.38 / sqrt(d) chol(C)`` (Haario et al.) for the
-    blocks ``adapt`` marks with at most :data:`DENSE_MAX` coordinates (the elastic
-    parameters), per-coordinate scales for larger ones.
-
-    ``chunk(keys (C,), states, sigmas) -> (states, out)`` runs one chunk
-    (:func:`bayesreg.sampling.chains.build_chunk`); ``idxs`` are the blocks' coordinate indices.
-
-    Returns
-    -------
-    states, frozen sigmas (tuple of arrays), acceptance per block in the last chunk, timings
-    """
-    t0 = time.perf_counter()
-    timings = {}
-    n_warm = int(np.ceil(warmup_steps / (chunk_draws * thinning))) if warmup_steps else 0
-    log_scales = np.zeros(len(idxs))
-    warm_acc = np.full(len(idxs), np.nan)
-    bar = tqdm(total=n_warm, disable=not progress or n_warm == 0, desc="warm-up", unit="chunk")
-    # windows: scales re-estimated from the draws of [n/4, n/2) and [n/2, 3n/4)
-    window_ends = {n_warm // 2, (3 * n_warm) // 4} - {0}
-    window: list[np.ndarray] = []
-    k_gain = 0
-    for k in range(n_warm):
-        states, out = chunk(jax.random.split(jax.random.fold_in(key_warm, k), n_chains), states,
-                            _scaled(sigmas, log_scales))
-        if k == 0:
-            timings["first_chunk_incl_compile_s"] = time.perf_counter() - t0
-        warm_acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
-        k_gain += 1
-        log_scales += 2.0 / np.sqrt(k_gain) * (warm_acc - target_acceptance)
-        if k >= n_warm // 4:
-            window.append(np.asarray(out[0]))  # (C, chunk, dim)
-        if k + 1 in window_ends and window:
-            pos = np.concatenate(window, axis=1)
-            window = []
-            new = list(sigmas)
-            for b, ix in enumerate(idxs):
-                sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
-                if not adapt[b] or not np.all(sd > 0):
-                    continue
-                if len(ix) <= DENSE_MAX:  # small block: the window's covariance (Haario et al.)
-                    cov = np.mean([np.atleast_2d(np.cov(p_[:, ix], rowvar=False)) for p_ in pos], axis=0)
-                    try:
-                        new[b] = 2.38 / np.sqrt(len(ix)) * np.linalg.cholesky(cov)
-                    except np.linalg.LinAlgError:
-                        new[b] = 2.38 / np.sqrt(len(ix)) * np.diag(sd)
-                elif sigmas[b].ndim == 1:
-                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
-                else:  # keep the correlations of the factor, match its marginal scales
-                    implied = np.sqrt(np.sum(sigmas[b] ** 2, axis=1))
-                    new[b] = (2.38 / np.sqrt(len(ix)) * sd / implied)[:, None] * sigmas[b]
-                log_scales[b] = 0.0
-            sigmas = tuple(new)
-            k_gain = 0
-        bar.set_postfix(acc=np.array2string(warm_acc, precision=2),
-                        scale=np.array2string(np.exp(log_scales), precision=2))
-        bar.update(1)
-    bar.close()
-    frozen = tuple(np.asarray(s_) for s_ in _scaled(sigmas, log_scales))
-    return states, frozen, warm_acc, timings

@@ -40,7 +40,8 @@ Metropolis step after the trajectory (4.) makes the chain exact.
    Strategies in Scientific Computing*, Sec. 9.4).  Its acceptance is a second column
    (block ``normaliser``); the cache holds the correction at the chain's position.
 
-Warm-up: :mod:`bayesreg.sampling.kernels.adaptation`; the driver: :func:`bayesreg.sampling.driver.sample_gradient`.
+:func:`as_algorithm` adds the windowed warm-up (:mod:`bayesreg.sampling.kernels.adaptation`)
+and hands the kernel to the driver, :func:`bayesreg.sampling.driver.sample`.
 """
 
 from __future__ import annotations
@@ -49,19 +50,19 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.linalg import solve_triangular
 
-from bayesreg.sampling.kernels.base import Kernel
+from bayesreg.sampling.chains import build_adaptive_chunk
+from bayesreg.sampling.kernels import adaptation
+from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup
 from bayesreg.sampling.kernels.target import Cache, Target
 
 __all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
-           "default_target_acceptance"]
+           "as_algorithm", "default_target_acceptance"]
 
 
 KINDS = ("mala", "hmc", "nuts")
-
-
-ELASTIC_TARGET_ACCEPTANCE = 0.3
 
 
 def default_target_acceptance(kind: str) -> float:
@@ -373,3 +374,166 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         return cache._replace(precond=target.build_precond(state.eta))
 
     return Kernel(step, init_cache, per_chain_params=True)
+
+
+def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: float = 0.2,
+                 eta_scale=0.1, dense_mass: bool = False, adapt_mass: bool = True,
+                 num_integration_steps: int = 16, jitter_integration_steps: bool = True,
+                 max_tree_depth: int = 10, elastic_moves: int = 1, collapsed_moves: int = 0,
+                 target_acceptance: float | None = None) -> SamplingAlgorithm:
+    """The gradient Gibbs kernel with its windowed warm-up, for
+    :func:`bayesreg.sampling.driver.sample`.
+
+    The warm-up is Stan's windowed adaptation (:mod:`bayesreg.sampling.kernels.adaptation`:
+    step size by dual averaging toward ``target_acceptance``, a diagonal or dense inverse
+    mass matrix from the slow windows) on each chain, plus the scale of the elastic random
+    walk; the tuned values are frozen after it as :class:`GibbsParams` with a leading chain
+    axis (``step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free),
+    collapsed_scale (C, n_free, n_free)``).  Warm-up and sampling run one compiled chunk
+    program (:func:`bayesreg.sampling.chains.build_adaptive_chunk`).
+
+    Parameters
+    ----------
+    target : bayesreg.sampling.kernels.target.Target
+    interior0 : (n_i, 3) array
+        warm start of the first solve
+    kind : {"mala", "hmc", "nuts"}
+    step_size : float
+        initial leapfrog step (in the preconditioned coordinates ``w``)
+    eta_scale : float, (n_free,) or (n_free, n_free) array
+        initial scale(s), or lower-triangular factor, of the elastic random walk
+    dense_mass : bool
+        adapt a dense inverse mass matrix instead of a diagonal one
+    adapt_mass : bool
+        adapt the inverse mass matrix at all (else identity in ``w``)
+    num_integration_steps : int
+        HMC's leapfrog steps (their mean if jittered)
+    jitter_integration_steps : bool
+        HMC: draw the number of leapfrog steps uniformly from
+        ``1 .. 2 num_integration_steps - 1`` each transition (:func:`build_kernel`)
+    max_tree_depth : int
+        NUTS' maximum number of trajectory doublings
+    elastic_moves : int
+        elastic random-walk updates per transition
+    collapsed_moves : int
+        collapsed moves of the elastic parameters per transition (a target with
+        ``conditional``; :func:`build_kernel`)
+    target_acceptance : float, optional
+        Default :func:`default_target_acceptance` of ``kind``.
+
+    Returns
+    -------
+    SamplingAlgorithm
+
+    Raises
+    ------
+    ValueError
+        ``step_size`` not finite and ``> 0``, ``eta_scale`` non-finite or, as scales, not
+        ``> 0``, ``target_acceptance`` outside ``(0, 1)``, an unknown ``kind``; at
+        :attr:`~bayesreg.sampling.kernels.base.SamplingAlgorithm.build`, chains cut into
+        ``"pieces"``.
+    """
+    target_acceptance = target_acceptance or default_target_acceptance(kind)
+    if not 0 < target_acceptance < 1:
+        raise ValueError(f"target_acceptance must lie in (0, 1), got {target_acceptance}")
+    if not (np.ndim(step_size) == 0 and np.isfinite(step_size) and step_size > 0):
+        raise ValueError(f"step_size must be a finite scalar > 0, got {step_size}")
+    eta0 = np.asarray(eta_scale, np.float64)
+    if not np.all(np.isfinite(eta0)) or (eta0.ndim < 2 and not np.all(eta0 > 0)):
+        raise ValueError(f"eta_scale must be finite and, as scales, > 0, got {eta_scale}")
+    kernel = build_kernel(target, kind, num_integration_steps=num_integration_steps,
+                          jitter_integration_steps=jitter_integration_steps,
+                          max_num_doublings=max_tree_depth, elastic_moves=elastic_moves,
+                          collapsed_moves=collapsed_moves)
+    ws_init, ws_step, ws_final = adaptation.build_warmup_step(
+        kernel, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
+        adapt_mass=adapt_mass)
+    n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
+    eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))  # scales: a diagonal factor in ws_init
+
+    def build(n_chains, dim, chunk_draws, thinning, n_warm, chain_method):
+        dim_u = dim - target.n_free  # the preconditioned u_b coordinates w
+        mapped = build_adaptive_chunk(kernel, ws_step, chunk_draws, thinning, n_chains,
+                                      method=chain_method)
+
+        @jax.jit
+        def ws_start():
+            ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
+            # BlackJAX's initial adaptation states hold weakly typed floats (python 0.0) that
+            # the warm-up step returns strongly typed: made strong here, so that the chunk
+            # program compiles once, not twice; the integer counters stay weak in and out
+            return jax.tree.map(lambda a: jnp.asarray(a, a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
+                                else a, ws)
+
+        @jax.jit
+        def ws_frozen(frozen):
+            # a warm-up state whose kernel parameters are exactly ``frozen`` (eta_scale * exp(0))
+            ws = ws_start()
+            # the collapsed moves' factor is the same base times its own multiplier (trace
+            # ratio); a checkpoint from before them has none
+            log_col = jnp.zeros_like(ws.log_eta_scale)
+            if frozen.collapsed_scale is not None and frozen.eta_scale.shape[-1]:
+                log_col = jnp.log(jnp.trace(frozen.collapsed_scale, axis1=-2, axis2=-1)
+                                  / jnp.trace(frozen.eta_scale, axis1=-2, axis2=-1))
+            return ws._replace(step_size=frozen.step_size, inverse_mass=frozen.inverse_mass,
+                               eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale),
+                               log_collapsed_scale=log_col)
+
+        # the draws' keys as a chunk of :func:`bayesreg.sampling.chains.build_chunk` takes them
+        samp_keys = jax.jit(jax.vmap(lambda k: jax.vmap(lambda kd: jax.random.split(kd, thinning))(
+            jax.random.split(k, chunk_draws))))
+        warm_keys = jax.jit(jax.vmap(lambda k: jax.random.split(k, chunk_draws * thinning).reshape(
+            chunk_draws, thinning)))
+        no_stage = np.zeros((n_chains, chunk_draws, thinning, 2), np.int32)
+        no_adapt = np.zeros(n_chains, bool)
+        per_chunk = chunk_draws * thinning
+        stages = adaptation.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
+        adapt = np.ones(n_chains, bool)
+
+        def chunk(keys, states, frozen):
+            (states, _, _), out = mapped.run(samp_keys(keys), states, (ws_frozen(frozen), no_stage, no_adapt))
+            return states, out
+
+        def warm_chunk(k, keys, states, ws):
+            stage = stages[k * per_chunk:(k + 1) * per_chunk].reshape(chunk_draws, thinning, 2)
+            (states, ws, (acc, div, grads)), _ = mapped.run(
+                warm_keys(keys), states, (ws, np.broadcast_to(stage, (n_chains,) + stage.shape), adapt))
+            acc = np.asarray(acc).mean(axis=0)
+            postfix = {"acc": np.array2string(acc, precision=2),
+                       "step": np.array2string(np.asarray(ws.step_size), precision=3),
+                       "grads": f"{float(np.mean(grads)):.0f}", "div": int(np.sum(div))}
+            return states, ws, acc, postfix
+
+        warmup = Warmup(lambda states: ws_start(), warm_chunk, jax.jit(jax.vmap(ws_final)))
+        return Program(chunk, warmup, mapped.method)
+
+    return SamplingAlgorithm(
+        kind=kind,
+        blocks=(("joint", "normaliser")[:n_blocks] if target.log_jacobian is not None
+                else ("u_b", "elastic", "collapsed")[:n_blocks]),
+        init=lambda x: init(target, x, interior0)[0], build=build,
+        params=lambda *a: GibbsParams(*a), describe=_describe,
+        # the solves counted: with the cached map the trajectory needs none, and the elastic
+        # block makes elastic_moves solves plus one evaluation before them; without it every
+        # gradient solves (uncounted) and the count per step varies
+        solves_per_step=(float(elastic_moves + 1) if target.condensed and target.n_free else None),
+        preconditioner=target.preconditioner, condensed=target.condensed)
+
+
+def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
+    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
+    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
+    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
+
+
+def _describe(sigma: tuple) -> dict:
+    """The frozen step sizes, mass matrices and elastic factors, for ``run.json``."""
+    step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
+    collapsed = {} if len(sigma) < 4 or sigma[3] is None else {
+        "collapsed_proposal_sd_per_chain": _marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
+    return {**collapsed, "step_size_per_chain": step.tolist(),
+            "inverse_mass_diag_quantiles_0_50_100": np.quantile(
+                inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
+                [0, 0.5, 1]).tolist(),
+            "elastic_proposal_sd_per_chain": _marginal_sd(eta_scale, eta_scale.ndim == 3).tolist(),
+            "elastic_factor_per_chain": eta_scale.tolist()}

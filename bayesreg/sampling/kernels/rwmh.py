@@ -9,8 +9,9 @@ symmetric, so the acceptance probability is the posterior ratio of Eq. 13.
 The state also carries the chain's interior FE solution, the warm start of the next solve.
 A :class:`KernelCache` (the condensation ``H``, the CG preconditioner ``K_ii^-1``) is built
 from the state at every chunk start (:attr:`bayesreg.sampling.kernels.base.Kernel.init_cache`) and
-carried from step to step.  The driver (warm-up, chunks, stopping) is
-:func:`bayesreg.sampling.driver.sample`.
+carried from step to step.  :func:`as_algorithm` adds the warm-up (Robbins-Monro on each
+block's scale, Haario-style windows) and hands the kernel to the driver,
+:func:`bayesreg.sampling.driver.sample` (chunks, stopping, checkpoints).
 """
 
 from __future__ import annotations
@@ -19,11 +20,15 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from bayesreg.sampling.kernels.base import Kernel
+from bayesreg.sampling.chains import build_chunk
+from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup
 
 __all__ = ["RWMHState", "RWMHInfo", "Condensation", "Preconditioner", "KernelCache", "init",
-           "build_kernel"]
+           "build_kernel", "as_algorithm", "DENSE_MAX"]
+
+DENSE_MAX = 16  # blocks up to this size (the elastic parameters) adapt a dense proposal
 
 
 #: :func:`jax.named_scope` names of the random walk's proposal and accept/reject (see
@@ -254,3 +259,204 @@ def build_kernel(logdensity_fn: Callable, blocks=None, condensation: Condensatio
                 None if preconditioner is None else preconditioner.build(state.position))
 
     return Kernel(step, init_cache, per_chain_params=False)
+
+
+def as_algorithm(logdensity_fn: Callable, interior0, sigma, *, blocks=None, adapt_diagonal=None,
+                 target_acceptance: float = 0.25, condensation: Condensation | None = None,
+                 preconditioner: Preconditioner | None = None, block_names=None,
+                 cg_preconditioner: str | None = None) -> SamplingAlgorithm:
+    """The random walk with its warm-up, for :func:`bayesreg.sampling.driver.sample`.
+
+    Warm-up (run chunk by chunk on the host): Robbins-Monro on each block's log-scale toward
+    ``target_acceptance``; the scales re-estimated from the draws of two windows
+    (``[n/4, n/2)`` and ``[n/2, 3n/4)`` of the ``n`` warm-up chunks) for the blocks that
+    ``adapt_diagonal`` marks: a dense factor ``2.38 / sqrt(d_b) chol(C)`` of the window's
+    within-chain covariance ``C`` (Haario et al.) for blocks of at most :data:`DENSE_MAX`
+    coordinates (the elastic parameters; their ``sigma`` is taken as a diagonal factor from
+    the start when there is a warm-up, so the kernel is traced once), ``2.38 / sqrt(d_b)``
+    times the within-chain standard deviations for larger ones (a matrix factor keeps its
+    correlations and has its rows rescaled).  The scale adaptation restarts after each
+    window.  The tuned scales are frozen after the warm-up.
+
+    Parameters
+    ----------
+    logdensity_fn : callable
+        ``(position (dim,), interior_guess (n_i, 3)) -> (logp, aux)``; ``aux.interior``
+        and ``aux.solve`` as in :class:`bayesreg.model.posterior.Aux`.
+    interior0 : (n_i, 3) array
+        Initial interior warm start.
+    sigma : array or tuple of arrays
+        Initial jumping-kernel scale per block: ``(d_b,)`` vector or ``(d_b, d_b)`` factor.
+    blocks : sequence of int arrays, optional
+        Coordinate blocks (:func:`build_kernel`); ``None``: one joint block.  They must
+        partition ``range(dim)`` (checked by :func:`bayesreg.sampling.driver.sample`).
+    adapt_diagonal : sequence of bool, optional
+        Per block: re-estimate its scales from the warm-up windows (above).
+    target_acceptance : float
+        Warm-up target of the mean acceptance probability (paper: about 0.25).
+    condensation, preconditioner
+        As :func:`build_kernel` (``condensation`` needs ``blocks``).
+    block_names : sequence of str, optional
+        Names of the blocks (default ``("joint",)`` for one block, else ``("block0", ...)``).
+    cg_preconditioner : str, optional
+        Name of the CG preconditioner of ``logdensity_fn``'s solves when no
+        ``preconditioner`` is given (recorded in ``run.json``).
+
+    Returns
+    -------
+    SamplingAlgorithm
+        ``kind="rwmh"``; its params are the tuple of the blocks' scales.
+
+    Raises
+    ------
+    ValueError
+        A ``sigma`` of the wrong shape, non-finite, or, as a vector of scales, not ``> 0``;
+        ``target_acceptance`` outside ``(0, 1)``; ``condensation`` without ``blocks``;
+        names and blocks of different counts.
+    """
+    sigmas = tuple(np.asarray(s_, np.float64) for s_ in (sigma if isinstance(sigma, tuple) else (sigma,)))
+    sizes = None if blocks is None else [len(np.asarray(b)) for b in blocks]
+    n_blocks = 1 if blocks is None else len(sizes)
+    if len(sigmas) != n_blocks:
+        raise ValueError(f"{n_blocks} blocks but {len(sigmas)} sigmas")
+    for k, s_ in enumerate(sigmas):
+        d_b = s_.shape[0] if sizes is None else sizes[k]
+        if s_.shape not in ((d_b,), (d_b, d_b)):
+            raise ValueError(f"sigma of block {k} has shape {s_.shape}, block size {d_b}")
+        if not np.all(np.isfinite(s_)):
+            raise ValueError(f"sigma of block {k} must be finite, got non-finite values")
+        if s_.ndim == 1 and not np.all(s_ > 0):
+            raise ValueError(f"sigma of block {k} (a vector of scales) must be > 0, got minimum "
+                             f"{s_.min()}")
+    if not 0 < target_acceptance < 1:
+        raise ValueError(f"target_acceptance must lie in (0, 1), got {target_acceptance}")
+    if condensation is not None and blocks is None:
+        raise ValueError("condensation needs coordinate blocks")
+    names = tuple(block_names) if block_names is not None else (
+        ("joint",) if n_blocks == 1 else tuple(f"block{k}" for k in range(n_blocks)))
+    if len(names) != n_blocks:
+        raise ValueError(f"{n_blocks} blocks but {len(names)} block_names")
+    adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * n_blocks
+    kernel = build_kernel(logdensity_fn, None if blocks is None else [np.asarray(b, np.int64) for b in blocks],
+                          condensation, preconditioner)
+
+    def build(n_chains, dim, chunk_draws, thinning, n_warm, chain_method):
+        idxs = [np.arange(dim)] if blocks is None else _check_blocks(blocks, dim)
+        if blocks is None and sigmas[0].shape[0] != dim:
+            raise ValueError(f"sigma of block 0 has shape {sigmas[0].shape}, block size {dim}")
+        # blocks adapted to a dense factor start as one (the kernel is traced once)
+        start = tuple(np.diag(np.broadcast_to(s_, (len(ix),))) if a_ and n_warm and s_.ndim < 2
+                      and len(ix) <= DENSE_MAX else s_ for s_, ix, a_ in zip(sigmas, idxs, adapt))
+        chunk = build_chunk(kernel, chunk_draws, thinning, n_chains, method=chain_method)
+        warmup = _robbins_monro(chunk.run, start, idxs, adapt, n_warm, target_acceptance)
+        return Program(chunk.run, warmup, chunk.method)
+
+    return SamplingAlgorithm(
+        kind="rwmh", blocks=names, init=lambda x: init(x, logdensity_fn, interior0), build=build,
+        params=lambda *a: tuple(a), describe=_describe,
+        solves_per_step=float(n_blocks - (condensation is not None)),
+        preconditioner="dense" if preconditioner is not None else (cg_preconditioner or "unknown"),
+        condensed=condensation is not None)
+
+
+def _check_blocks(blocks, dim: int) -> list:
+    """The coordinate blocks as int arrays; they must partition ``range(dim)``."""
+    idxs = []
+    for k, b in enumerate(blocks):
+        ix = np.asarray(b)
+        if ix.ndim != 1 or not (np.issubdtype(ix.dtype, np.integer) or ix.size == 0):
+            raise ValueError(f"block {k} must be a 1-D array of integer coordinate indices, got "
+                             f"shape {ix.shape} and dtype {ix.dtype}")
+        idxs.append(ix.astype(np.int64))
+    flat = np.concatenate(idxs) if idxs else np.zeros(0, np.int64)
+    counts = np.bincount(flat[(flat >= 0) & (flat < dim)], minlength=dim)
+    outside = flat[(flat < 0) | (flat >= dim)]
+    if outside.size or np.any(counts != 1):
+        detail = []
+        if outside.size:
+            detail.append(f"indices outside [0, {dim}): {outside[:10].tolist()}")
+        if np.any(counts == 0):
+            detail.append(f"missing: {np.flatnonzero(counts == 0)[:10].tolist()}")
+        if np.any(counts > 1):
+            detail.append(f"repeated: {np.flatnonzero(counts > 1)[:10].tolist()}")
+        raise ValueError(f"blocks must partition range({dim}) (each coordinate in exactly one "
+                         f"block), got {'; '.join(detail)}")
+    return idxs
+
+
+class _WarmupState(NamedTuple):
+    """The random walk's adaptation (host arrays: a checkpoint stores its leaves): the
+    blocks' scales, their Robbins-Monro log-multipliers, the current window's draws
+    ``(C, n, dim)`` and the gain's step count."""
+
+    sigmas: tuple
+    log_scales: np.ndarray
+    window: np.ndarray
+    k_gain: np.ndarray
+
+
+def _scaled(sigmas, log_scales):
+    return tuple(jnp.asarray(s_) * np.exp(ls) for s_, ls in zip(sigmas, log_scales))
+
+
+def _robbins_monro(chunk, sigmas, idxs, adapt, n_warm, target_acceptance) -> Warmup:
+    """The random walk's warm-up (:func:`as_algorithm`) as the driver runs it."""
+    window_ends = {n_warm // 2, (3 * n_warm) // 4} - {0}
+
+    def init_ws(states):
+        c, dim = np.shape(states.position)
+        return _WarmupState(tuple(np.asarray(s_) for s_ in sigmas), np.zeros(len(idxs)),
+                            np.zeros((c, 0, dim)), np.asarray(0))
+
+    def one_chunk(k, keys, states, ws):
+        sig, log_scales, window, k_gain = ws
+        sig, log_scales, window = tuple(np.asarray(s_) for s_ in sig), np.array(log_scales), np.asarray(window)
+        states, out = chunk(keys, states, _scaled(sig, log_scales))
+        acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
+        k_gain = int(k_gain) + 1
+        log_scales = log_scales + 2.0 / np.sqrt(k_gain) * (acc - target_acceptance)
+        if k >= n_warm // 4:
+            window = np.concatenate([window, np.asarray(out[0])], axis=1)  # (C, draws, dim)
+        if k + 1 in window_ends and window.shape[1]:
+            pos = window
+            window = window[:, :0]
+            new = list(sig)
+            for b, ix in enumerate(idxs):
+                sd = np.sqrt(pos[:, :, ix].var(axis=1).mean(axis=0))
+                if not adapt[b] or not np.all(sd > 0):
+                    continue
+                if len(ix) <= DENSE_MAX:  # small block: the window's covariance (Haario et al.)
+                    cov = np.mean([np.atleast_2d(np.cov(p_[:, ix], rowvar=False)) for p_ in pos], axis=0)
+                    try:
+                        new[b] = 2.38 / np.sqrt(len(ix)) * np.linalg.cholesky(cov)
+                    except np.linalg.LinAlgError:
+                        new[b] = 2.38 / np.sqrt(len(ix)) * np.diag(sd)
+                elif sig[b].ndim == 1:
+                    new[b] = 2.38 / np.sqrt(len(ix)) * sd
+                else:  # keep the correlations of the factor, match its marginal scales
+                    implied = np.sqrt(np.sum(sig[b] ** 2, axis=1))
+                    new[b] = (2.38 / np.sqrt(len(ix)) * sd / implied)[:, None] * sig[b]
+                log_scales[b] = 0.0
+            sig = tuple(new)
+            k_gain = 0
+        postfix = {"acc": np.array2string(acc, precision=2),
+                   "scale": np.array2string(np.exp(log_scales), precision=2)}
+        return states, _WarmupState(sig, log_scales, window, np.asarray(k_gain)), acc, postfix
+
+    def final(ws):
+        return tuple(np.asarray(s_) for s_ in _scaled(ws.sigmas, ws.log_scales))
+
+    return Warmup(init_ws, one_chunk, final)
+
+
+def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
+    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
+    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
+    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
+
+
+def _describe(sigma: tuple) -> dict:
+    """The frozen proposal scales, for ``run.json``."""
+    sds = [_marginal_sd(np.asarray(s_), np.ndim(s_) == 2) for s_ in sigma]
+    return {"proposal_sd_rms_per_block": [float(np.sqrt(np.mean(sd ** 2))) for sd in sds],
+            "elastic_proposal_sd": sds[-1].tolist() if len(sds) > 1 else None}
