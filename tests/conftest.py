@@ -63,6 +63,22 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=rank)
 
 
+def pytest_collection_finish(session):
+    """Warn where ``--dist loadgroup`` does not group (a pytest-xdist worker whose items carry
+    an ``xdist_group`` mark without the group in their node id, as with pytest 9.2 and
+    pytest-xdist 3.8): each worker would then make the groups' shared runs again."""
+    if not (os.environ.get("PYTEST_XDIST_WORKER") and session.config.getvalue("loadgroup")):
+        return
+    lost = [it.nodeid for it in session.items
+            if any(True for _ in it.iter_markers("xdist_group")) and "@" not in it.nodeid]
+    if lost:
+        import warnings
+
+        warnings.warn(pytest.PytestWarning(
+            f"--dist loadgroup does not group {len(lost)} tests (e.g. {lost[0]}): this pytest "
+            "and pytest-xdist do not work together (pytest-dev/pytest-xdist#1386)"))
+
+
 def pytest_unconfigure(config):
     """Remove the session's compilation cache (in the process that created it: the controller,
     or the single process of ``-n 0``)."""

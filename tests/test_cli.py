@@ -39,7 +39,7 @@ OUTPUTS = [
 ]
 
 
-@pytest.fixture(scope="session")  # (session: built once in the worker of the group "tiny_run")
+@pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory, tiny_mesh):
     """The quickstart through the CLI on tiny settings (3 warm-up chunks, then 4 chunks of 10
     draws per chain), with a copy of its run directory as it stood after warm-up chunk 2 (a
@@ -138,6 +138,7 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     _killed_run_resumes_to_the_uninterrupted_result(tiny_run)
     _arviz_reads_the_posterior_as_its_own(out)
     _open_run_gives_what_run_returned(out, info)
+    _quickstart_notebook_executes_on_a_finished_run(out)
     _exported_transforms_and_applied_posterior(out, capsys)
 
 
@@ -472,12 +473,10 @@ def _quickstart_notebook(first_cell=None, replace=None):
     return "".join(o.get("text", "") for o in outputs)
 
 
-@pytest.mark.slow
-@pytest.mark.xdist_group("tiny_run")
-def test_quickstart_notebook_executes_on_a_finished_run(tiny_run):
-    """Every cell after the run, on the CLI's tiny run reopened by :func:`bayesreg.open_run`
-    (the run cell itself is the CLI's call: its full execution is the heavy test below)."""
-    out = tiny_run[0]
+def _quickstart_notebook_executes_on_a_finished_run(out):
+    """Every cell of notebook 01 after the run, on the CLI's tiny run reopened by
+    :func:`bayesreg.open_run` (the run cell itself is the CLI's call: its full execution is
+    the heavy test below)."""
     text = _quickstart_notebook(first_cell=f"import bayesreg\nresult = bayesreg.open_run({str(out)!r})")
     assert "lam/mu posterior" in text
 
