@@ -285,7 +285,7 @@ def format_report(errors: dict | None, info: dict) -> str:
     if s.get("cg_preconditioner"):
         cg += f" ({s['cg_preconditioner']} preconditioner)"
     lines.append(f"{cg}  failed solves {s['solve_failures']}  steps/s per chain {_f(s['steps_per_s_per_chain'], '.1f')}")
-    if s.get("kind", "rwmh") != "rwmh":
+    if (s.get("gradient_evaluations_per_step_mean") or 0) > 0:  # a gradient kernel
         lines.append(f"{s['kind']}: gradients/step {_f(s['gradient_evaluations_per_step_mean'], '.1f')}  "
                      f"divergences {s['divergences']}  prior normaliser {s['prior_normaliser']}")
     if errors and "boundary_posterior_mean_mm" in errors:
@@ -458,14 +458,17 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         "cg_iterations": result.cg_iterations,
         "solve_failures": result.solve_failures,
     }
-    gradient = s_info.kind != "rwmh"
+    own = s_info.sample_stats  # what the kernel reports beyond acceptance, lp and CG
+    gradient = "n_steps" in own
     if gradient:
         stats["n_steps"] = result.grad_evals
-        stats["step_size"] = np.broadcast_to(np.asarray(result.sigma[0], np.float64)[:, None], (c, d))
-        if np.all(np.isfinite(result.energy)):
-            stats["energy"] = result.energy
-        if s_info.kind == "nuts":
-            stats["tree_depth"] = result.tree_depth
+    if "step_size" in own:
+        step = np.asarray(s_info.adapted["step_size_per_chain"], np.float64)
+        stats["step_size"] = np.broadcast_to(step[:, None], (c, d))
+    if "energy" in own and np.all(np.isfinite(result.energy)):
+        stats["energy"] = result.energy
+    if "tree_depth" in own:
+        stats["tree_depth"] = result.tree_depth
     tree = to_datatree(
         posterior, sample_stats=stats, dims=dims, coords=coords, constant_data=constant,
         attrs={"units_u_b": "mm (world RAS)", "name": cfg.name,
@@ -615,7 +618,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     if gradient:  # Stan's per-chain checks: divergences, tree depth cut, E-BFMI
         info["sampler"]["health"] = sampler_health(
             result.divergences, steps_per_draw=s_info.thinning,
-            tree_depth=result.tree_depth if s_info.kind == "nuts" else None,
+            tree_depth=result.tree_depth if "tree_depth" in own else None,
             max_tree_depth=cfg.sampler.max_tree_depth, energy=result.energy,
             skull_barrier_mm=cfg.model.skull_barrier_mm)
     info["sampler"]["verdict"] = verdict(info["sampler"])

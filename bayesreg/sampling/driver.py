@@ -65,6 +65,9 @@ class SamplerInfo(NamedTuple):
         their draws say nothing about the posterior (a :class:`RuntimeWarning` names them).
     stop_rule : StopRule
         The rule the run stopped by (or tried to).
+    sample_stats : tuple of str
+        The kernel's own sample stats
+        (:attr:`bayesreg.sampling.kernels.base.SamplingAlgorithm.sample_stats`).
     """
 
     kind: str
@@ -80,6 +83,7 @@ class SamplerInfo(NamedTuple):
     adapted: dict
     stuck_chains: tuple = ()
     stop_rule: StopRule = StopRule("paper")
+    sample_stats: tuple = ()
 
 
 class SamplerResult(NamedTuple):
@@ -365,7 +369,8 @@ def sample(
         solves_per_step=algorithm.solves_per_step, preconditioner=algorithm.preconditioner,
         condensed=algorithm.condensed, chain_method=program.method, thinning=int(thinning),
         warmup_steps=n_warm * per_chunk, rhat_threshold=float(rhat_threshold),
-        rhat_split=bool(rhat_split), adapted={}, stop_rule=rule)
+        rhat_split=bool(rhat_split), adapted={}, stop_rule=rule,
+        sample_stats=tuple(algorithm.sample_stats))
     return _drive(program.chunk, init_states, warm_up, key_samp, n_chains=n_chains,
                   n_blocks=n_blocks, max_draws=max_draws, min_draws=min_draws,
                   chunk_draws=chunk_draws, rule=rule, estimands=estimands, progress=progress,

@@ -102,6 +102,11 @@ class SamplingAlgorithm(NamedTuple):
         The counted solves' CG preconditioner (``"unknown"`` where not said).
     condensed : bool
         Moves of ``u_b`` take the interior from a cached dense map (no CG solve).
+    sample_stats : tuple of str
+        The ArviZ sample stats the kernel's draws carry beyond acceptance, ``lp`` and the
+        CG figures: any of ``"n_steps"`` (gradient evaluations), ``"step_size"`` (from
+        ``describe``'s ``step_size_per_chain``), ``"energy"``, ``"tree_depth"``; a gradient
+        kernel names ``"n_steps"`` (its runs get Stan's per-chain checks).
     """
 
     kind: str
@@ -113,3 +118,4 @@ class SamplingAlgorithm(NamedTuple):
     solves_per_step: float | None
     preconditioner: str
     condensed: bool
+    sample_stats: tuple = ()

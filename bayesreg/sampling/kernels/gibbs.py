@@ -517,7 +517,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         # block makes elastic_moves solves plus one evaluation before them; without it every
         # gradient solves (uncounted) and the count per step varies
         solves_per_step=(float(elastic_moves + 1) if target.condensed and target.n_free else None),
-        preconditioner=target.preconditioner, condensed=target.condensed)
+        preconditioner=target.preconditioner, condensed=target.condensed,
+        sample_stats=("n_steps", "step_size", "energy") + (("tree_depth",) if kind == "nuts" else ()))
 
 
 def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
