@@ -7,10 +7,13 @@
 and freezes what it tuned, then runs the chains in chunks of thinned draws (one jitted
 program per chunk, mapped over the chains by :mod:`bayesreg.sampling.chains`) until the stop
 rule holds (rank-normalised R-hat and ESS, or the paper's classic R-hat:
-:class:`bayesreg.sampling.convergence.StopRule`) or a maximum number of draws.  After the warm-up and after every chunk an ``on_chunk`` callback
-receives a :class:`SamplerCheckpoint` and the chunk's draws; a run given them back
-(``resume``) continues to the same draws as one never interrupted: the key of chunk ``k``
-is ``fold_in(key, k)``.  The result (:class:`SamplerResult`) describes its own run
+:class:`bayesreg.sampling.convergence.StopRule`) or a maximum number of draws.
+
+After every warm-up chunk an ``on_warmup_chunk`` callback receives a
+:class:`WarmupCheckpoint`; after the warm-up and after every sampling chunk an ``on_chunk``
+callback receives a :class:`SamplerCheckpoint` and the chunk's draws.  A run given either
+back (``resume``) continues to the same draws as one never interrupted: the key of chunk
+``k`` is ``fold_in(key, k)``.  The result (:class:`SamplerResult`) describes its own run
 (:class:`SamplerInfo`).
 """
 

@@ -1,6 +1,7 @@
 """The gradient Gibbs kernel's warm-up, one transition at a time.
 
-The gradient kernel (:mod:`bayesreg.sampling.kernels.gibbs`) uses Stan's windowed adaptation with BlackJAX's pieces
+The gradient kernel (:mod:`bayesreg.sampling.kernels.gibbs`) uses Stan's windowed adaptation
+with BlackJAX's pieces
 (:func:`blackjax.adaptation.step_size.dual_averaging_adaptation` for the step size,
 :func:`blackjax.adaptation.mass_matrix.mass_matrix_adaptation` for a diagonal or dense inverse
 mass matrix, :func:`blackjax.adaptation.window_adaptation.build_schedule` for the windows),

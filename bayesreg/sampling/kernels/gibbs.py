@@ -449,7 +449,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         kernel, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
         adapt_mass=adapt_mass)
     n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
-    eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))  # scales: a diagonal factor in ws_init
+    # scales become a diagonal factor in ws_init
+    eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
 
     def build(n_chains, dim, chunk_draws, thinning, n_warm, chain_method):
         dim_u = dim - target.n_free  # the preconditioned u_b coordinates w
@@ -518,7 +519,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         # gradient solves (uncounted) and the count per step varies
         solves_per_step=(float(elastic_moves + 1) if target.condensed and target.n_free else None),
         preconditioner=target.preconditioner, condensed=target.condensed,
-        sample_stats=("n_steps", "step_size", "energy") + (("tree_depth",) if kind == "nuts" else ()))
+        sample_stats=("n_steps", "step_size", "energy")
+        + (("tree_depth",) if kind == "nuts" else ()))
 
 
 def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:

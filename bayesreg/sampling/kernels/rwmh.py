@@ -337,7 +337,8 @@ def as_algorithm(logdensity_fn: Callable, interior0, sigma, *, blocks=None, adap
     if len(names) != n_blocks:
         raise ValueError(f"{n_blocks} blocks but {len(names)} block_names")
     adapt = list(adapt_diagonal) if adapt_diagonal is not None else [False] * n_blocks
-    kernel = build_kernel(logdensity_fn, None if blocks is None else [np.asarray(b, np.int64) for b in blocks],
+    kernel = build_kernel(logdensity_fn,
+                          None if blocks is None else [np.asarray(b, np.int64) for b in blocks],
                           condensation, preconditioner)
 
     def build(n_chains, dim, chunk_draws, thinning, n_warm, chain_method):
@@ -410,7 +411,8 @@ def _robbins_monro(chunk, sigmas, idxs, adapt, n_warm, target_acceptance) -> War
 
     def one_chunk(k, keys, states, ws):
         sig, log_scales, window, k_gain = ws
-        sig, log_scales, window = tuple(np.asarray(s_) for s_ in sig), np.array(log_scales), np.asarray(window)
+        sig = tuple(np.asarray(s_) for s_ in sig)
+        log_scales, window = np.array(log_scales), np.asarray(window)
         states, out = chunk(keys, states, _scaled(sig, log_scales))
         acc = np.asarray(out[3]).reshape(-1, len(idxs)).mean(axis=0)
         k_gain = int(k_gain) + 1
