@@ -236,7 +236,10 @@ def test_ctrl_c_in_a_terminal_after_or_during_meshing_puts_the_finished_run_back
     for s in TINY:
         args += ["--set", s]
     for stage, after in (("mesh", "bayesreg: data done"), ("warm-up", "bayesreg: starts done")):
-        proc = subprocess.Popen([sys.executable, "-m", "bayesreg.cli", *args], text=True,
+        # a warm-up of 30 chunks, the signal after the first is saved: inside it, whatever
+        # the machine's load and the compilation cache (a fixed sleep was not)
+        extra = ["--set", "sampler.warmup_steps=3000"] if stage == "warm-up" else []
+        proc = subprocess.Popen([sys.executable, "-m", "bayesreg.cli", *args, *extra], text=True,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 start_new_session=True)
         lines = _stage_line(proc, after)
@@ -244,7 +247,7 @@ def test_ctrl_c_in_a_terminal_after_or_during_meshing_puts_the_finished_run_back
             _wait_for_child(proc, "_tetwild_worker")
         else:
             assert any("bayesreg: mesh done" in line for line in lines), lines
-            time.sleep(2.0)  # into the warm-up (its compilation alone takes longer)
+            _wait_for(finished / "checkpoint" / "warmup.npz", proc)
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=120)
         assert proc.returncode == 130, err
