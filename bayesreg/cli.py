@@ -30,6 +30,7 @@ never moved and 4 when the stop rule was not met by ``max_draws``; 130 when inte
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from pathlib import Path
@@ -45,7 +46,7 @@ from bayesreg.report import write_report
 from bayesreg.stages import StageError
 from bayesreg.experiments.sweep import run_or_resume, run_sweep, sweep_report
 
-__all__ = ["main", "PAPER_CONFIGS"]
+__all__ = ["main", "console", "PAPER_CONFIGS"]
 
 PAPER_CONFIGS = {
     "three_compartment": "paper_three_compartment.yaml",
@@ -338,5 +339,19 @@ def main(argv=None) -> int:
     return status
 
 
+def console() -> None:
+    """The ``bayesreg`` command: :func:`main`, then exit with its status.  After an interrupt
+    the process exits without waiting for chains still running in worker threads
+    (:mod:`bayesreg.sampling.chains`: a chunk inside XLA cannot be stopped, and at a large
+    mesh it runs for minutes); the run's files are already written and its directory
+    released by then."""
+    status = main()
+    if status == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    sys.exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console()

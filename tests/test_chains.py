@@ -42,6 +42,47 @@ def test_chains_in_host_threads_equal_vmapped_chains(monkeypatch, per_chain):
     assert len(set(np.asarray(expect[1]).tolist())) > 1  # the chains' loops did differ in length
 
 
+@pytest.mark.parametrize("method", ["threads", "pieces"])
+def test_ctrl_c_while_chains_run_in_threads_is_raised_at_once(monkeypatch, method):
+    """Ctrl-C while the chains' chunk runs in worker threads reaches the caller at once, not
+    after the running tasks (at a large mesh a chunk runs for minutes)."""
+    import signal
+    import threading
+    import time
+
+    monkeypatch.setattr(chains, "chain_threads", lambda n: 2)
+    monkeypatch.setattr(chains, "available_cores", lambda: 2)
+
+    # tasks of 1 s: 2 chains in 2 threads of one chain each, or 3 chains cut into 2 pieces
+    # each on 2 workers
+    n_chains, n_draws, pause = (2, 2, 1.0) if method == "threads" else (3, 2, 1.0)
+
+    def slow(x):
+        time.sleep(pause)
+        return x
+
+    def piece(draw_keys, carry, params):
+        y = jax.pure_callback(slow, jax.ShapeDtypeStruct(carry.shape, carry.dtype), carry)
+        return y, jnp.zeros(draw_keys.shape[:1])
+
+    def one_chain(key, state, params):
+        return piece(jax.random.split(key, n_draws), state, params)
+
+    mapped = chains.map_chains(one_chain, n_chains, False, method=method, piece=piece,
+                               n_draws=n_draws)
+    assert mapped.method == method
+    keys, states = jax.random.split(jax.random.key(0), n_chains), jnp.zeros((n_chains, 3))
+    mapped.run(keys, states, None)  # the first call compiles (its first task in this thread)
+    main = threading.main_thread().ident
+    timer = threading.Timer(0.3, signal.pthread_kill, (main, signal.SIGINT))
+    t0 = time.monotonic()
+    timer.start()
+    with pytest.raises(KeyboardInterrupt):
+        mapped.run(keys, states, None)
+    assert time.monotonic() - t0 < 0.9  # before the running tasks ended (at 1 s)
+    time.sleep(pause)  # the abandoned tasks end on their own
+
+
 def test_chunk_pieces_on_a_cpu_equal_whole_chunks(monkeypatch):
     """3 chains on 2 cores: a chunk of 6 draws runs as 2 pieces per chain on 2 workers, and gives
     the draws of the whole chunks run by vmap (per-chain states and warm starts)."""

@@ -29,6 +29,7 @@ for a chunk of thinned draws on every chain, through :func:`map_chains`.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -213,11 +214,27 @@ def map_chains(one_chain: Callable, n_chains: int, params_per_chain: bool, *,
         # the first call compiles in this thread alone (no concurrent traces of one shape)
         first = [] if compiled else [group(0)]
         compiled = True
-        with ThreadPoolExecutor(n_threads) as pool:
+        with _workers(n_threads) as pool:
             outs = first + list(pool.map(group, range(len(first), n_threads)))
         return join(outs)
 
     return ChainMap(threaded, method)
+
+
+@contextlib.contextmanager
+def _workers(n: int):
+    """A pool of ``n`` threads that an exception (Ctrl-C while a chunk runs) leaves at once:
+    queued tasks are cancelled and running ones not waited for (a chunk inside XLA cannot be
+    stopped; its thread ends with it), so the interrupt reaches the caller now, not after
+    the chunk.  Without an exception the pool is shut down after its tasks, as ``with
+    ThreadPoolExecutor(n)`` would."""
+    pool = ThreadPoolExecutor(n)
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: int,
@@ -260,7 +277,7 @@ def _pieces_runner(mapped_piece, begin, n_chains: int, n_draws: int, n_pieces: i
 
         outs = [[None] * n_pieces for _ in range(n_chains)]
         finals = [None] * n_chains
-        with ThreadPoolExecutor(available_cores()) as pool:
+        with _workers(available_cores()) as pool:
             pending = {}
             for c in range(n_chains):
                 if not compiled:  # the first call compiles in this thread alone
