@@ -320,6 +320,9 @@ def as_algorithm(logdensity_fn: Callable, interior0, sigma, *, blocks=None, adap
     if len(sigmas) != n_blocks:
         raise ValueError(f"{n_blocks} blocks but {len(sigmas)} sigmas")
     for k, s_ in enumerate(sigmas):
+        if s_.ndim not in (1, 2):
+            raise ValueError(f"sigma of block {k} has shape {s_.shape}: a vector of scales or a "
+                             "square factor is needed")
         d_b = s_.shape[0] if sizes is None else sizes[k]
         if s_.shape not in ((d_b,), (d_b, d_b)):
             raise ValueError(f"sigma of block {k} has shape {s_.shape}, block size {d_b}")
