@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
-__all__ = ["Kernel", "Warmup", "Program", "SamplingAlgorithm"]
+import numpy as np
+
+__all__ = ["Kernel", "Warmup", "Program", "SamplingAlgorithm", "marginal_sd"]
 
 
 class Kernel(NamedTuple):
@@ -119,3 +121,10 @@ class SamplingAlgorithm(NamedTuple):
     preconditioner: str
     condensed: bool
     sample_stats: tuple = ()
+
+
+def marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
+    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
+    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``): what the
+    families' ``describe`` reports of a random walk's tuned proposal."""
+    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)

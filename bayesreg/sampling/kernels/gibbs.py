@@ -55,7 +55,7 @@ from jax.scipy.linalg import solve_triangular
 
 from bayesreg.sampling.chains import build_adaptive_chunk
 from bayesreg.sampling.kernels import adaptation
-from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup
+from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup, marginal_sd
 from bayesreg.sampling.kernels.target import Cache, Target
 
 __all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
@@ -523,20 +523,14 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         + (("tree_depth",) if kind == "nuts" else ()))
 
 
-def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
-    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
-    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
-    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
-
-
 def _describe(sigma: tuple) -> dict:
     """The frozen step sizes, mass matrices and elastic factors, for ``run.json``."""
     step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
     collapsed = {} if len(sigma) < 4 or sigma[3] is None else {
-        "collapsed_proposal_sd_per_chain": _marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
+        "collapsed_proposal_sd_per_chain": marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
     return {**collapsed, "step_size_per_chain": step.tolist(),
             "inverse_mass_diag_quantiles_0_50_100": np.quantile(
                 inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
                 [0, 0.5, 1]).tolist(),
-            "elastic_proposal_sd_per_chain": _marginal_sd(eta_scale, eta_scale.ndim == 3).tolist(),
+            "elastic_proposal_sd_per_chain": marginal_sd(eta_scale, eta_scale.ndim == 3).tolist(),
             "elastic_factor_per_chain": eta_scale.tolist()}

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bayesreg.sampling.chains import build_chunk
-from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup
+from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup, marginal_sd
 
 __all__ = ["RWMHState", "RWMHInfo", "Condensation", "Preconditioner", "KernelCache", "init",
            "build_kernel", "as_algorithm", "DENSE_MAX"]
@@ -454,14 +454,8 @@ def _robbins_monro(chunk, sigmas, idxs, adapt, n_warm, target_acceptance) -> War
     return Warmup(init_ws, one_chunk, final)
 
 
-def _marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:
-    """Marginal proposal standard deviations ``(..., d)`` of independent scales ``(..., d)``
-    or of lower-triangular factors ``L`` ``(..., d, d)`` (``sqrt(diag(L L^T))``)."""
-    return np.sqrt(np.sum(scale ** 2, axis=-1)) if factor else np.abs(scale)
-
-
 def _describe(sigma: tuple) -> dict:
     """The frozen proposal scales, for ``run.json``."""
-    sds = [_marginal_sd(np.asarray(s_), np.ndim(s_) == 2) for s_ in sigma]
+    sds = [marginal_sd(np.asarray(s_), np.ndim(s_) == 2) for s_ in sigma]
     return {"proposal_sd_rms_per_block": [float(np.sqrt(np.mean(sd ** 2))) for sd in sds],
             "elastic_proposal_sd": sds[-1].tolist() if len(sds) > 1 else None}
