@@ -319,10 +319,6 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
         state, _ = gibbs.init(target, theta0, interior0)
         cache = kernel.init_cache(state)
         ws = ws_init(nb3, 0.2, jnp.full((post.n_free,), 0.1))
-        # weakly typed floats of BlackJAX's initial states made strong, as the scan's carry
-        # comes back (gibbs.as_algorithm does the same)
-        ws = jax.tree.map(lambda a: jnp.asarray(a, jnp.asarray(a).dtype)
-                          if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, ws)
         k_warm, k_draw = jax.random.split(key)
 
         def warm(carry, xs):

@@ -67,7 +67,7 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
     coordinates ``w`` already have about unit scale) and adapts the step size alone, by
     dual averaging over the whole warm-up (no restarts at the window ends).
 
-    ``init(dim_u, initial_step_size, eta_scale) -> WarmupState``;
+    ``init(dim_u, initial_step_size, eta_scale) -> WarmupState`` (its floats strongly typed);
     ``step(key, state, ws, cache, stage) -> (state, ws, cache, info)`` with ``stage`` the
     ``(slow?, window ends?)`` row of :func:`schedule`; ``final(ws) -> params``.
     """
@@ -86,9 +86,14 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
         eta_scale = jnp.asarray(eta_scale, jnp.float64)
         if eta_scale.ndim == 1:
             eta_scale = jnp.diag(eta_scale)
-        return WarmupState(da, mm, jnp.asarray(initial_step_size, jnp.float64), mm.inverse_mass_matrix,
-                           mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0),
-                           jnp.zeros(()))
+        ws = WarmupState(da, mm, jnp.asarray(initial_step_size, jnp.float64), mm.inverse_mass_matrix,
+                         mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0),
+                         jnp.zeros(()))
+        # BlackJAX's initial states hold weakly typed floats (python 0.0) that the warm-up
+        # step returns strongly typed: made strong here, so that a program carrying the state
+        # (a scan, a chunk) compiles once, not twice; the integer counters stay weak in and out
+        return jax.tree.map(lambda a: jnp.asarray(a, jnp.asarray(a).dtype)
+                            if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, ws)
 
     def params_of(ws: WarmupState, step_size):
         return params_type(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale),

@@ -459,12 +459,7 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
 
         @jax.jit
         def ws_start():
-            ws = jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
-            # BlackJAX's initial adaptation states hold weakly typed floats (python 0.0) that
-            # the warm-up step returns strongly typed: made strong here, so that the chunk
-            # program compiles once, not twice; the integer counters stay weak in and out
-            return jax.tree.map(lambda a: jnp.asarray(a, a.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
-                                else a, ws)
+            return jax.vmap(lambda _: ws_init(dim_u, step_size, eta0))(jnp.arange(n_chains))
 
         @jax.jit
         def ws_frozen(frozen):
