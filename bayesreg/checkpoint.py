@@ -65,6 +65,16 @@ def savez_atomic(path: Path, *, compressed: bool = False, **arrays) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def _numbered(prefix: str, arrays) -> dict:
+    """``{prefix_0: arrays[0], ...}``: a list of arrays as the entries of an ``.npz``."""
+    return {f"{prefix}_{j}": np.asarray(a) for j, a in enumerate(arrays)}
+
+
+def _read_numbered(z, prefix: str) -> list:
+    """The list :func:`_numbered` wrote under ``prefix`` into the ``.npz`` ``z``."""
+    return [z[f"{prefix}_{j}"] for j in range(sum(1 for k in z.files if k.startswith(prefix + "_")))]
+
+
 @contextlib.contextmanager
 def _reading(path):
     """Errors of reading a damaged ``.npz`` (truncated, emptied, overwritten) as one
@@ -209,9 +219,8 @@ class Checkpoint:
                              "the problem cannot be read back") from exc
 
     def save_init(self, init: Initialisation) -> None:
-        arrays = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(init.sigma)}
         savez_atomic(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
-                     info=np.array(dumps_json(init.info, default=float)), **arrays)
+                     info=np.array(dumps_json(init.info, default=float)), **_numbered("sigma", init.sigma))
 
     def load_init(self) -> Initialisation | None:
         """The run's starts and proposal scales, or ``None`` if they were never saved."""
@@ -220,8 +229,7 @@ class Checkpoint:
             return None
         with _reading(path):
             z = np.load(path, allow_pickle=False)
-            n = sum(1 for k in z.files if k.startswith("sigma_"))
-            return Initialisation(z["x0"], z["center"], tuple(z[f"sigma_{k}"] for k in range(n)),
+            return Initialisation(z["x0"], z["center"], tuple(_read_numbered(z, "sigma")),
                                   bool(z["blocked"]), json.loads(str(z["info"])))
 
     # ---- sampler progress ----
@@ -232,23 +240,21 @@ class Checkpoint:
             self.draws_dir.mkdir(parents=True, exist_ok=True)
             savez_atomic(self.draws_dir / f"chunk_{ckpt.chunks_done - 1:05d}.npz",
                          **dict(zip(_OUT_NAMES, out)))
-        sig = {f"sigma_{k}": np.asarray(s) for k, s in enumerate(ckpt.sigma)}
         leaves = ckpt.states if isinstance(ckpt.states, list) else jax.tree.leaves(ckpt.states)
-        st = {f"state_{j}": np.asarray(v) for j, v in enumerate(leaves)}
         meta = {"chunks_done": ckpt.chunks_done, "rhat_history": [list(h) for h in ckpt.rhat_history],
                 "timings": ckpt.timings}
         savez_atomic(self.dir / "state.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
-                     meta=np.array(dumps_json(meta, default=float)), **sig, **st)
+                     meta=np.array(dumps_json(meta, default=float)), **_numbered("sigma", ckpt.sigma),
+                     **_numbered("state", leaves))
         (self.dir / "warmup.npz").unlink(missing_ok=True)  # the warm-up's end supersedes it
 
     def on_warmup_chunk(self, ckpt: WarmupCheckpoint) -> None:
         """Callback for :func:`bayesreg.sampling.driver.sample` during the warm-up."""
         self.warmup_chunks_done = ckpt.chunks_done
-        st = {f"state_{j}": np.asarray(v) for j, v in enumerate(ckpt.states)}
-        ad = {f"adaptation_{j}": np.asarray(v) for j, v in enumerate(ckpt.adaptation)}
         meta = {"chunks_done": ckpt.chunks_done, "timings": ckpt.timings}
         savez_atomic(self.dir / "warmup.npz", warmup_acceptance=np.asarray(ckpt.warmup_acceptance),
-                     meta=np.array(dumps_json(meta, default=float)), **st, **ad)
+                     meta=np.array(dumps_json(meta, default=float)), **_numbered("state", ckpt.states),
+                     **_numbered("adaptation", ckpt.adaptation))
 
     def load_warmup(self) -> WarmupCheckpoint | None:
         """The warm-up's progress, or ``None`` if no warm-up chunk was saved."""
@@ -258,10 +264,7 @@ class Checkpoint:
         with _reading(path):
             z = np.load(path, allow_pickle=False)
             meta = json.loads(str(z["meta"]))
-            n_st = sum(1 for k in z.files if k.startswith("state_"))
-            n_ad = sum(1 for k in z.files if k.startswith("adaptation_"))
-            return WarmupCheckpoint([z[f"state_{j}"] for j in range(n_st)],
-                                    [z[f"adaptation_{j}"] for j in range(n_ad)],
+            return WarmupCheckpoint(_read_numbered(z, "state"), _read_numbered(z, "adaptation"),
                                     int(meta["chunks_done"]), z["warmup_acceptance"],
                                     meta["timings"])
 
@@ -273,11 +276,9 @@ class Checkpoint:
         with _reading(path):
             z = np.load(path, allow_pickle=False)
             meta = json.loads(str(z["meta"]))
-            n_sig = sum(1 for k in z.files if k.startswith("sigma_"))
-            n_st = sum(1 for k in z.files if k.startswith("state_"))
-            states = [z[f"state_{j}"] for j in range(n_st)]  # the sampler rebuilds the pytree
+            states = _read_numbered(z, "state")  # the sampler rebuilds the pytree
             k = int(meta["chunks_done"])
-            ckpt = SamplerCheckpoint(states, tuple(z[f"sigma_{j}"] for j in range(n_sig)),
+            ckpt = SamplerCheckpoint(states, tuple(_read_numbered(z, "sigma")),
                                      z["warmup_acceptance"], k,
                                      [_history_entry(h) for h in meta["rhat_history"]],
                                      meta["timings"])
