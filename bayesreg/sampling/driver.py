@@ -362,8 +362,7 @@ def sample(
         if not 0 < w.chunks_done < n_warm:
             raise ValueError(f"the warm-up checkpoint holds {w.chunks_done} chunks of a warm-up "
                              f"of {n_warm}")
-        states = jax.tree.unflatten(jax.tree.structure(jax.eval_shape(init_states)),
-                                    [jnp.asarray(a) for a in w.states])
+        states = _rebuild_states(init_states, w.states)
         return run_warmup(program.warmup, states, key_warm, n_warm, n_chains, n_blocks,
                           progress, t0, on_chunk=on_warmup_chunk, resume=w)
 
@@ -446,6 +445,14 @@ def _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws
     return x0, x0.shape[0]
 
 
+def _rebuild_states(init_states, saved):
+    """The chains' states from a checkpoint's ``saved`` states: the pytree itself or the list
+    of its leaves (from a file), given the structure ``init_states()`` has."""
+    leaves = saved if isinstance(saved, list) else jax.tree.leaves(saved)
+    return jax.tree.unflatten(jax.tree.structure(jax.eval_shape(init_states)),
+                              [jnp.asarray(a) for a in leaves])
+
+
 def _check_finite(states):
     bad = ~np.isfinite(np.asarray(states.logdensity))
     if bad.any():
@@ -485,9 +492,7 @@ def _drive(chunk, init_states, warm_up, key_samp, *, n_chains, n_blocks, max_dra
     else:
         if resume_draws is None and resume.chunks_done:
             raise ValueError("resume needs resume_draws (the draws of the finished chunks)")
-        treedef = jax.tree.structure(jax.eval_shape(init_states))
-        leaves = resume.states if isinstance(resume.states, list) else jax.tree.leaves(resume.states)
-        states = jax.tree.unflatten(treedef, [jnp.asarray(a) for a in leaves])
+        states = _rebuild_states(init_states, resume.states)
         frozen = params_type(*(np.asarray(f_) for f_ in resume.sigma))
         warm_acc = np.asarray(resume.warmup_acceptance)
         timings = dict(resume.timings)
