@@ -314,12 +314,12 @@ def assert_moments(x, mean, var, fourth, *, n_se=5.0, what=None):
     return ess_x, ess_sq
 
 
-#: Keywords of the kernels' ``as_algorithm`` (the rest go to the driver).
-_RWMH_KW = {"blocks", "adapt_diagonal", "target_acceptance", "condensation", "preconditioner",
-            "block_names", "cg_preconditioner"}
-_GIBBS_KW = {"kind", "step_size", "eta_scale", "dense_mass", "adapt_mass", "num_integration_steps",
-             "jitter_integration_steps", "max_tree_depth", "elastic_moves", "collapsed_moves",
-             "target_acceptance"}
+def _split_keywords(as_algorithm, kw: dict) -> tuple[dict, dict]:
+    """``kw`` split into the keywords of ``as_algorithm`` and the rest (the driver's)."""
+    import inspect
+
+    own = inspect.signature(as_algorithm).parameters
+    return {k: v for k, v in kw.items() if k in own}, {k: v for k, v in kw.items() if k not in own}
 
 
 def sample_rwmh(rng_key, logdensity_fn, x0, interior0, sigma, **kw):
@@ -328,8 +328,8 @@ def sample_rwmh(rng_key, logdensity_fn, x0, interior0, sigma, **kw):
     from bayesreg.sampling.driver import sample
     from bayesreg.sampling.kernels import rwmh
 
-    alg = {k: kw.pop(k) for k in list(kw) if k in _RWMH_KW}
-    return sample(rng_key, rwmh.as_algorithm(logdensity_fn, interior0, sigma, **alg), x0, **kw)
+    alg, run = _split_keywords(rwmh.as_algorithm, kw)
+    return sample(rng_key, rwmh.as_algorithm(logdensity_fn, interior0, sigma, **alg), x0, **run)
 
 
 def sample_gibbs(rng_key, target, x0, interior0, **kw):
@@ -337,5 +337,5 @@ def sample_gibbs(rng_key, target, x0, interior0, **kw):
     from bayesreg.sampling.driver import sample
     from bayesreg.sampling.kernels import gibbs
 
-    alg = {k: kw.pop(k) for k in list(kw) if k in _GIBBS_KW}
-    return sample(rng_key, gibbs.as_algorithm(target, interior0, **alg), x0, **kw)
+    alg, run = _split_keywords(gibbs.as_algorithm, kw)
+    return sample(rng_key, gibbs.as_algorithm(target, interior0, **alg), x0, **run)
