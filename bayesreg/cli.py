@@ -1,7 +1,8 @@
 """Command line.
 
 ``bayesreg run CONFIG [--out DIR] [--set key=value ...] [--overwrite]``
-    one run (:func:`bayesreg.run`); ``bayesreg run --resume RUN_DIR`` continues a killed one.
+    one run (:func:`bayesreg.run`); ``bayesreg run --resume RUN_DIR [--set sampler.stop=rank
+    ...]`` continues a killed one (``--set`` only for the stop rule and the draw bounds).
 ``bayesreg reproduce [--variant paper|nuts] [--out DIR] [--set key=value ...]``
     the paper's two experiments (``configs/paper_uniform.yaml``,
     ``configs/paper_three_compartment.yaml``; ``--variant nuts``: their gradient-sampler
@@ -65,7 +66,10 @@ def _parser():
                    help="override a config value, e.g. --set sampler.max_draws=500 (repeatable)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     r.add_argument("--resume", metavar="RUN_DIR",
-                   help="continue the unfinished run in RUN_DIR (same draws as an uninterrupted run)")
+                   help="continue the unfinished run in RUN_DIR (same draws as an uninterrupted "
+                   "run); --set may then change only the stop rule and the draw bounds "
+                   "(sampler.stop, max_draws, min_draws, rhat_rank_max, ess_min, "
+                   "rhat_threshold, rhat_split)")
     r.add_argument("--no-progress", action="store_true",
                    help="no progress bars (the line per finished stage stays)")
     r.add_argument("--strict", action="store_true",
@@ -261,9 +265,10 @@ def main(argv=None) -> int:
             if (args.config is None) == (args.resume is None):
                 raise ValueError("give either CONFIG or --resume RUN_DIR")
             if args.resume is not None:
-                if args.set or args.out or args.overwrite:
-                    raise ValueError("--resume continues a run as configured: no --set/--out/--overwrite")
-                res = run(resume=args.resume, progress=progress)
+                if args.out or args.overwrite:
+                    raise ValueError("--resume continues a run in its own directory: no "
+                                     "--out/--overwrite")
+                res = run(resume=args.resume, overrides=args.set, progress=progress)
             else:
                 res = run(args.config, out=args.out, overrides=args.set,
                           overwrite=True if args.overwrite else None, progress=progress)

@@ -98,8 +98,10 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
     resume : str or Path, optional
         Continue the unfinished run in this directory, with its saved config, problem (mesh,
         images, truth), starts and sampler state: the result equals that of the run never
-        interrupted (same draws).  ``config``, ``overrides``, ``out`` and ``overwrite`` must
-        then be omitted.
+        interrupted (same draws).  ``config``, ``out`` and ``overwrite`` must then be omitted;
+        ``overrides`` may only change how long it runs (:data:`RESUME_KEYS`: the stop rule,
+        its thresholds, the draw bounds; the saved config is updated), so that a run can be
+        taken on to a stricter rule or more draws without losing the draws it has.
 
     Returns
     -------
@@ -115,7 +117,8 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
     ConfigError
         On a bad config, override or saved config (the message names the key or file).
     ValueError
-        ``resume`` given with a config, overrides, ``out`` or ``overwrite``; bad data.
+        ``resume`` given with a config, ``out``, ``overwrite`` or an override of a key
+        outside :data:`RESUME_KEYS`; bad data.
 
     Examples
     --------
@@ -138,13 +141,17 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
     configure_jax()
     t0 = time.perf_counter()
     if resume is not None:
-        if config is not None or overrides or out is not None or overwrite:
+        if config is not None or out is not None or overwrite:
             raise ValueError("resume continues a run with its own config and directory: give no "
-                             "config, overrides, out or overwrite")
+                             "config, out or overwrite")
+        _check_resume_overrides(overrides)
         run_dir = RunDirectory(resume, resume=True)  # locked from here on
         ckpt = Checkpoint(run_dir.path)
         try:
             cfg = ckpt.load_config()
+            if overrides:
+                cfg = override_config(cfg, overrides)
+                ckpt.save_config(cfg)
         except BaseException:
             run_dir.release()
             raise
@@ -223,6 +230,22 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         raise
     finally:
         run_dir.release()
+
+
+#: The config keys a resumed run may change (``run(resume=..., overrides=...)``, ``bayesreg
+#: run --resume DIR --set KEY=VALUE``): how long the chains run, never what they sample.
+RESUME_KEYS = ("sampler.stop", "sampler.max_draws", "sampler.min_draws", "sampler.rhat_rank_max",
+               "sampler.ess_min", "sampler.rhat_threshold", "sampler.rhat_split")
+
+
+def _check_resume_overrides(overrides) -> None:
+    """Refuse, by name, an override a resumed run cannot take (:data:`RESUME_KEYS`)."""
+    for item in overrides or ():
+        key = str(item).split("=", 1)[0].strip()
+        if "=" not in str(item) or key not in RESUME_KEYS:
+            raise ValueError(
+                f"resume: cannot change {key!r}: a resumed run keeps its model, data, starts "
+                f"and sampler; only how long it runs may change ({', '.join(RESUME_KEYS)})")
 
 
 def starts_line(info: dict, chains: int) -> str:

@@ -49,11 +49,11 @@ def _args(mesh, out, *extra):
     return args + list(extra)
 
 
-def _draws(run_dir) -> np.ndarray:
+def _draws(run_dir, n: int = 30) -> np.ndarray:
     import arviz as az
 
     tree = az.from_netcdf(Path(run_dir) / "posterior.nc")
-    return np.concatenate([np.asarray(tree.posterior[v].values).reshape(2, 30, -1)
+    return np.concatenate([np.asarray(tree.posterior[v].values).reshape(2, n, -1)
                            for v in ("u_b", "lam", "mu")], axis=-1)
 
 
@@ -141,8 +141,20 @@ def test_an_interrupted_new_run_keeps_what_a_resume_needs(reference, tmp_path, m
     assert main(["run", "--resume", str(out)]) == 2
     assert "config.json was changed after the run started" in capsys.readouterr().err
     config.write_text(original)
-    assert main(["run", "--resume", str(out)]) == 0
-    np.testing.assert_array_equal(_draws(out), _draws(ref))
+    if stage != "sampling":
+        assert main(["run", "--resume", str(out)]) == 0
+        np.testing.assert_array_equal(_draws(out), _draws(ref))
+        return
+    # a resume may take the run further (the stop rule, the draw bounds), nothing else
+    assert main(["run", "--resume", str(out), "--set", "model.t_s=1"]) == 2
+    assert "cannot change 'model.t_s'" in capsys.readouterr().err
+    assert main(["run", "--resume", str(out), "--set", "sampler.max_draws=40",
+                 "--set", "sampler.min_draws=40"]) == 0
+    longer = _draws(out, 40)
+    np.testing.assert_array_equal(longer[:, :30], _draws(ref))
+    assert np.all(np.isfinite(longer[:, 30:])) and not np.array_equal(longer[:, 30:], longer[:, 20:30])
+    saved = json.loads(config.read_text())["sampler"]
+    assert saved["max_draws"] == saved["min_draws"] == 40
 
 
 def _start(mesh, out, *extra) -> subprocess.Popen:
