@@ -17,6 +17,7 @@ Run from the repository root, on an otherwise idle machine::
     python benchmarks/profile_step.py                       # paper kernel, 16 mm mesh, 3 chains
     python benchmarks/profile_step.py --mesh 26@3 --chains 1 --top 12
     python benchmarks/profile_step.py --kernel nuts --mesh 24
+    python benchmarks/profile_step.py --kernel nuts --run runs/paper_brainweb/s5   # a run's own problem
 
 It prints, per part, the operations' time summed over the threads per step (ms) and its
 share, the wall time per step, and ``busy`` (seconds of operations per second profiled: on a
@@ -47,6 +48,9 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--kernel", choices=run.KERNELS, default="rwmh")
     p.add_argument("--mesh", default="16", help="EDGE[@RESOLUTION] in mm (default 16: the paper's size)")
+    p.add_argument("--run", type=Path, default=None, metavar="RUN_DIR",
+                   help="profile the problem, config and starts a run's checkpoint holds (e.g. a "
+                   "1 mm BrainWeb run of the paper's size) instead of --mesh's")
     p.add_argument("--chains", type=int, default=3)
     p.add_argument("--chain-method", default="auto", choices=run.chains.CHAIN_METHODS)
     p.add_argument("--rw-chunk-steps", type=int, default=1000, help="random-walk steps per chunk")
@@ -63,11 +67,25 @@ def main(argv=None) -> dict:
     args.timed_chunks, args.time_target_s = 1, 0.5
 
     run.bayesreg.configure_jax()
-    edge, res = run.parse_mesh(args.mesh)
-    data, _ = run.problem_data(edge, res, args.cache)
-    cfg = run.with_chains(run.kernel_config(args.kernel, edge, res), max(2, min(args.chains, 16)))
-    problem = run.assemble(cfg, data)
-    init = run.initialise(problem, cfg)
+    if args.run is not None:
+        from bayesreg.checkpoint import Checkpoint
+
+        ckpt = Checkpoint(args.run)
+        cfg = ckpt.load_config()
+        if (args.kernel == "rwmh") != (cfg.sampler.kind == "rwmh"):
+            p.error(f"--run {args.run} was sampled by {cfg.sampler.kind}: give --kernel to match")
+        problem = run.assemble(cfg, ckpt.load_problem())
+        init = ckpt.load_init()
+        if init is None:
+            p.error(f"--run {args.run}: its checkpoint holds no starts")
+        if len(init.x0) != args.chains:
+            p.error(f"--run {args.run} has {len(init.x0)} chains: give --chains {len(init.x0)}")
+    else:
+        edge, res = run.parse_mesh(args.mesh)
+        data, _ = run.problem_data(edge, res, args.cache)
+        cfg = run.with_chains(run.kernel_config(args.kernel, edge, res), max(2, min(args.chains, 16)))
+        problem = run.assemble(cfg, data)
+        init = run.initialise(problem, cfg)
     if args.kernel == "rwmh":
         at = run.rwmh_setup(problem, cfg, init, args)
     else:
