@@ -319,8 +319,7 @@ def nuts_setup(problem, cfg, init, args):
     algorithm = gibbs.as_algorithm(
         target, interior0, kind=s.kind, step_size=s.step_size,
         eta_scale=init.sigma[1] if target.n_free else np.zeros(0),  # (joint: none)
-        dense_mass=s.dense_mass, adapt_mass=s.adapt_mass, block_mass=s.block_mass,
-        elastic_moves=s.elastic_moves,
+        dense_mass=s.dense_mass, adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
         max_tree_depth=s.max_tree_depth)
     tuned = sample(jax.random.key(cfg.seed), algorithm, init.x0, thinning=1,
                    warmup_steps=args.nuts_warmup, max_draws=args.nuts_chunk,

@@ -35,9 +35,8 @@ def test_gibbs_gradient_kernel_samples_a_known_joint(kind, adapt_mass):
         assert_moments(x, mean_true[j], var_true[j], fourth_true[j], n_se=5.0, what=(kind, j))
     acc = res.acceptance.reshape(-1, 2).mean(axis=0)
     assert 0.25 < acc[0] < 0.99 and 0.1 < acc[1] < 0.7, acc  # targets 0.57 (MALA), 0.8; 0.3
-    step, inv_mass, eta_scale, collapsed, corr = res.sigma
+    step, inv_mass, eta_scale, collapsed = res.sigma
     assert step.shape == (4,) and inv_mass.shape == (4, D) and eta_scale.shape == (4, 1, 1)
-    assert corr.shape == (4, 0, 0)  # (Gibbs moves of the parameters: no joint block)
     if not adapt_mass:
         np.testing.assert_array_equal(inv_mass, 1.0)
     assert np.all(res.grad_evals >= 1)
@@ -237,53 +236,3 @@ def test_collapsed_moves_keep_the_joint(shift, scale):
 def test_collapsed_moves_need_a_conditional():
     with pytest.raises(ValueError, match="collapsed"):
         gk.build_kernel(toy_target(), "nuts", collapsed_moves=1)
-
-
-def _correlated_joint_target(n_w: int, sd, corr):
-    """A joint target (``n_free`` 0, its last ``len(sd)`` coordinates the "elastic" ones):
-    ``w ~ N(0, I)`` and ``v ~ N(0, diag(sd) corr diag(sd))``, independent."""
-    from bayesreg.sampling.kernels.target import Cache, Target
-
-    prec_v = jnp.asarray(np.linalg.inv(np.diag(sd) @ corr @ np.diag(sd)))
-    k = len(sd)
-
-    def lp(z, _eta=None, _cache=None, _interior=None):
-        w, v = z[:-k], z[-k:]
-        return -0.5 * jnp.sum(w ** 2) - 0.5 * v @ prec_v @ v
-
-    def u_evaluate(z, _eta, _cache, interior):
-        return lp(z), interior, jnp.asarray(0), jnp.asarray(True)
-
-    def evaluate(z, _eta, interior, _ln=None, _precond=None):
-        return lp(z), lp(z), interior, jnp.asarray(0), jnp.asarray(True)
-
-    return Target(lp, u_evaluate, evaluate, lambda _e: jnp.zeros(()),
-                  lambda _e, _ln: Cache(jnp.zeros((0,)), jnp.zeros(())), lambda z, _e: z,
-                  lambda theta: (theta, jnp.zeros((0,))), 0, log_jacobian=lambda z: jnp.zeros(()),
-                  n_joint=k)
-
-
-def test_a_joint_targets_correlated_elastic_block_is_adapted_and_sampled_exactly():
-    """With ``block_mass`` the warm-up learns the correlation matrix of a joint target's
-    elastic coordinates (within 0.15 of the truth, from the last window's few hundred
-    autocorrelated draws), the trajectories then take steps several
-    times longer than with the diagonal mass alone (whose step the narrow correlated
-    direction caps), and the draws hold the exact Gaussian's moments within 5 Monte Carlo
-    standard errors."""
-    n_w, sd = 30, np.array([3.0, 0.5, 1.0])
-    corr = np.array([[1.0, 0.97, -0.6], [0.97, 1.0, -0.5], [-0.6, -0.5, 1.0]])
-    tg = _correlated_joint_target(n_w, sd, corr)
-    x0 = np.random.default_rng(0).normal(size=(4, n_w + 3))
-    kw = dict(kind="nuts", step_size=0.3, eta_scale=np.zeros(0), warmup_steps=500, max_draws=1000,
-              min_draws=1000, chunk_draws=100, thinning=1, progress=False)
-    block = sample_gibbs(jax.random.key(3), tg, x0, jnp.zeros((1, 3)), **kw)
-    diagonal = sample_gibbs(jax.random.key(3), tg, x0, jnp.zeros((1, 3)), block_mass=False, **kw)
-    learned = block.sigma[4]  # (C, 3, 3)
-    assert learned.shape == (4, 3, 3) and diagonal.sigma[4].shape == (4, 0, 0)
-    np.testing.assert_allclose(learned, np.broadcast_to(corr, learned.shape), atol=0.15)
-    assert np.median(block.sigma[0]) > 2.5 * np.median(diagonal.sigma[0]), (block.sigma[0], diagonal.sigma[0])
-    assert block.grad_evals.mean() < 0.5 * diagonal.grad_evals.mean()
-    assert block.info.adapted["elastic_mass_correlation_per_chain"][0][0][1] == pytest.approx(0.97, abs=0.05)
-    var = np.r_[np.ones(n_w), sd ** 2]
-    for j in [0, n_w, n_w + 1, n_w + 2]:
-        assert_moments(block.positions[..., j], 0.0, var[j], 3 * var[j] ** 2, n_se=5.0, what=("block", j))

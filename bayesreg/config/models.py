@@ -530,11 +530,6 @@ class SamplerConfig(_Strict):
                                 "(at most 2^depth - 1 gradients per transition)")
     dense_mass: bool = Field(False, description="gradient kernels: adapt a dense inverse mass "
                              "matrix instead of a diagonal one")
-    block_mass: bool = Field(True, description="gradient kernels with joint trajectories and a "
-                             "diagonal adapted mass: adapt the correlations of the elastic "
-                             "parameters' logits too (a dense block of the mass matrix; their "
-                             "posterior is strongly correlated, and a diagonal mass leaves those "
-                             "directions narrow enough to cap the step size); false: diagonal only")
     adapt_mass: bool = Field(True, description="gradient kernels: adapt the inverse mass matrix in "
                              "the warm-up windows; false: identity in the Laplace-preconditioned "
                              "coordinates, step size alone adapted")

@@ -231,7 +231,7 @@ def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm
         return gibbs.as_algorithm(
             target, interior0, kind=s.kind, step_size=s.step_size,
             eta_scale=init.sigma[1] if target.n_free else np.zeros(0), dense_mass=s.dense_mass,
-            adapt_mass=s.adapt_mass, block_mass=s.block_mass, elastic_moves=s.elastic_moves,
+            adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
             collapsed_moves=s.collapsed_moves, num_integration_steps=s.hmc_steps,
             jitter_integration_steps=s.hmc_jitter, max_tree_depth=s.max_tree_depth,
             target_acceptance=s.target_acceptance)

@@ -120,9 +120,8 @@ class SamplerResult(NamedTuple):
     sigma : tuple
         the frozen tuned values: the proposal scale of each block (RW-MH), or
         ``(step_size (C,), inverse_mass (C, ...), eta_scale (C, n_free, n_free),
-        collapsed_scale (C, n_free, n_free), mass_correlation (C, k, k))`` (gradient
-        kernels; the collapsed moves' factor and the correlations of a joint target's
-        elastic coordinates, :class:`bayesreg.sampling.kernels.gibbs.GibbsParams`)
+        collapsed_scale (C, n_free, n_free))`` (gradient kernels; the last the collapsed
+        moves' factor, :class:`bayesreg.sampling.kernels.gibbs.GibbsParams`)
     warmup_acceptance : (B,) ndarray
         acceptance per block in the last warm-up chunk
     timings : dict

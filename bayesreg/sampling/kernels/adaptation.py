@@ -35,9 +35,7 @@ class WarmupState(NamedTuple):
     al.'s adaptive Metropolis; the posterior of the parameters is strongly correlated along
     the overall stiffness scale under the exact normaliser), and the Robbins-Monro
     log-multipliers of that factor for the random-walk and for the collapsed moves (each
-    toward acceptance 0.3); with a dense block (``mass_block``), a dense Welford state of the
-    last coordinates of ``u_b``'s kernel and their correlation matrix, set at each window's
-    end (:func:`bayesreg.sampling.kernels.gibbs.inverse_mass_metric`)."""
+    toward acceptance 0.3)."""
 
     da: tuple
     mm: tuple
@@ -48,8 +46,6 @@ class WarmupState(NamedTuple):
     log_eta_scale: jax.Array
     count: jax.Array
     log_collapsed_scale: jax.Array | float = 0.0
-    mm_block: tuple = ()
-    mass_correlation: jax.Array | None = None
 
 
 def schedule(num_steps: int) -> np.ndarray:
@@ -61,7 +57,7 @@ def schedule(num_steps: int) -> np.ndarray:
 
 
 def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptance: float,
-                      dense_mass: bool = False, adapt_mass: bool = True, mass_block: int = 0):
+                      dense_mass: bool = False, adapt_mass: bool = True):
     """``(init, step, final)`` of the windowed warm-up of :func:`bayesreg.sampling.kernels.gibbs.build_kernel`'s kernel.
 
     ``params_type(step_size, inverse_mass, eta_scale, collapsed_scale)`` makes the kernel's
@@ -70,11 +66,6 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
     ``adapt_mass=False`` keeps the identity inverse mass matrix (the preconditioned
     coordinates ``w`` already have about unit scale) and adapts the step size alone, by
     dual averaging over the whole warm-up (no restarts at the window ends).
-
-    ``mass_block = k > 0`` (with a diagonal, adapted mass) adapts, beside the diagonal, the
-    correlation matrix of the last ``k`` coordinates from the same slow windows (a dense
-    Welford estimate, regularised as Stan's): a joint target's elastic logits, whose
-    posterior correlations a diagonal mass cannot follow and which then set the step size.
 
     ``init(dim_u, initial_step_size, eta_scale) -> WarmupState`` (its floats strongly typed);
     ``step(key, state, ws, cache, stage) -> (state, ws, cache, info)`` with ``stage`` the
@@ -88,7 +79,6 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
     da_init, da_update, da_final = dual_averaging_adaptation(target_acceptance)
 
     mm_eta_init, mm_eta_update, mm_eta_final = mass_matrix_adaptation(False)
-    k_block = int(mass_block) if adapt_mass and not dense_mass else 0
 
     def init_ws(dim_u: int, initial_step_size, eta_scale) -> WarmupState:
         mm = mm_init(dim_u)
@@ -98,8 +88,7 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
             eta_scale = jnp.diag(eta_scale)
         ws = WarmupState(da, mm, jnp.asarray(initial_step_size, jnp.float64), mm.inverse_mass_matrix,
                          mm_eta_init(max(eta_scale.shape[0], 1)), eta_scale, jnp.zeros(()), jnp.asarray(0),
-                         jnp.zeros(()), mm_eta_init(k_block) if k_block else (),
-                         jnp.eye(k_block))
+                         jnp.zeros(()))
         # BlackJAX's initial states hold weakly typed floats (python 0.0) that the warm-up
         # step returns strongly typed: made strong here, so that a program carrying the state
         # (a scan, a chunk) compiles once, not twice; the integer counters stay weak in and out
@@ -108,7 +97,7 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
 
     def params_of(ws: WarmupState, step_size):
         return params_type(step_size, ws.inverse_mass, ws.eta_base * jnp.exp(ws.log_eta_scale),
-                           ws.eta_base * jnp.exp(ws.log_collapsed_scale), ws.mass_correlation)
+                           ws.eta_base * jnp.exp(ws.log_collapsed_scale))
 
     def step(key, state, ws: WarmupState, cache, stage):
         params = params_of(ws, ws.step_size)
@@ -117,34 +106,27 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
         acc_u = jnp.nan_to_num(info.acceptance_rate[0])
         da = da_update(ws.da, acc_u)
         eta_pad = state.eta if state.eta.shape[0] else jnp.zeros(1)
-        mm, mm_eta, mm_block = jax.lax.cond(
+        mm, mm_eta = jax.lax.cond(
             slow, lambda m: (mm_update(m[0], state.u.position) if adapt_mass else m[0],
-                             mm_eta_update(m[1], eta_pad),
-                             mm_eta_update(m[2], state.u.position[-k_block:]) if k_block else m[2]),
-            lambda m: m, (ws.mm, ws.mm_eta, ws.mm_block))
+                             mm_eta_update(m[1], eta_pad)),
+            lambda m: m, (ws.mm, ws.mm_eta))
         n_free = state.eta.shape[0]
 
         def end_window(args):
-            da_, mm_, mm_eta_, base, log_eta, log_col, mm_block_, corr = args
+            da_, mm_, mm_eta_, base, log_eta, log_col = args
             if adapt_mass:
                 mm_ = mm_final(mm_)
                 da_ = da_init(da_final(da_))
-            if k_block:  # the block's correlations from the window's (regularised) covariance
-                mm_block_ = mm_eta_final(mm_block_)
-                cov = mm_block_.inverse_mass_matrix
-                sd = jnp.sqrt(jnp.diag(cov))
-                corr = cov / (sd[:, None] * sd[None, :])
             mm_eta_ = mm_eta_final(mm_eta_)
             if n_free:  # factor from the window's (regularised) covariance, multiplier reset
                 base = 2.38 / jnp.sqrt(n_free) * jnp.linalg.cholesky(mm_eta_.inverse_mass_matrix)
                 log_eta, log_col = jnp.zeros(()), jnp.zeros(())
-            return da_, mm_, mm_eta_, base, log_eta, log_col, mm_block_, corr
+            return da_, mm_, mm_eta_, base, log_eta, log_col
 
         count = jnp.where(window_end, 0, ws.count + 1)
-        da, mm, mm_eta, base, log_eta, log_col, mm_block, corr = jax.lax.cond(
+        da, mm, mm_eta, base, log_eta, log_col = jax.lax.cond(
             window_end, end_window, lambda a: a,
-            (da, mm, mm_eta, ws.eta_base, ws.log_eta_scale, jnp.asarray(ws.log_collapsed_scale),
-             mm_block, ws.mass_correlation))
+            (da, mm, mm_eta, ws.eta_base, ws.log_eta_scale, jnp.asarray(ws.log_collapsed_scale)))
         gain = 1.0 / ((count + 1).astype(jnp.float64) ** 0.6)
         # (a joint target's second column is the normaliser's correction: nothing to adapt)
         if n_free and info.acceptance_rate.shape[0] > 1:
@@ -152,7 +134,7 @@ def build_warmup_step(kernel: Kernel, params_type: Callable, *, target_acceptanc
         if n_free and info.acceptance_rate.shape[0] > 2:  # collapsed moves
             log_col = log_col + gain * (jnp.nan_to_num(info.acceptance_rate[2]) - ELASTIC_TARGET_ACCEPTANCE)
         ws = WarmupState(da, mm, jnp.exp(da.log_step_size), mm.inverse_mass_matrix, mm_eta, base,
-                         log_eta, count, log_col, mm_block, corr)
+                         log_eta, count, log_col)
         return state, ws, cache, info
 
     def final(ws: WarmupState):

@@ -58,7 +58,7 @@ from bayesreg.sampling.kernels import adaptation
 from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup, marginal_sd
 from bayesreg.sampling.kernels.target import Cache, Target
 
-__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "inverse_mass_metric", "init", "build_kernel",
+__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
            "as_algorithm", "default_target_acceptance"]
 
 
@@ -133,36 +133,12 @@ class GibbsParams(NamedTuple):
     ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
     of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
     ``(n_free,)`` is accepted as independent scales; ``collapsed_scale``, the same for the
-    collapsed moves (``None``: ``eta_scale``); ``mass_correlation`` ``(k, k)``, the
-    correlation matrix of the last ``k`` coordinates of ``w`` (a joint target's elastic
-    logits) under a diagonal ``inverse_mass`` (``None`` or ``k = 0``: the diagonal alone; see
-    :func:`inverse_mass_metric`)."""
+    collapsed moves (``None``: ``eta_scale``)."""
 
     step_size: jax.Array
     inverse_mass: jax.Array
     eta_scale: jax.Array
     collapsed_scale: jax.Array | None = None
-    mass_correlation: jax.Array | None = None
-
-
-def inverse_mass_metric(inverse_mass, mass_correlation=None):
-    """The inverse mass matrix the trajectories use: ``inverse_mass`` ``(d,)`` or ``(d, d)``
-    as given, or, with a correlation matrix ``R`` ``(k, k)`` of the last ``k`` coordinates,
-    ``M^-1 = D blockdiag(I, R) D`` with ``D = diag(sqrt(inverse_mass))``: the diagonal mass
-    of ``u_b`` and a dense one over the elastic logits, whose posterior is strongly
-    correlated (the overall stiffness scale, the ratios).  It is passed to BlackJAX as its
-    low-rank metric (:class:`blackjax.mcmc.metrics.LowRankInverseMassMatrix`, ``U`` the
-    eigenvectors of ``R`` in the last ``k`` coordinates, ``Lambda`` its eigenvalues; Seyboldt
-    et al.'s form, every operation ``O(d k)``)."""
-    r = mass_correlation
-    if r is None or r.shape[-1] == 0 or inverse_mass.ndim != 1:
-        return inverse_mass
-    from blackjax.mcmc.metrics import LowRankInverseMassMatrix
-
-    d, k = inverse_mass.shape[0], r.shape[-1]
-    lam, q = jnp.linalg.eigh(0.5 * (r + r.T))
-    u = jnp.zeros((d, k), q.dtype).at[d - k:].set(q)
-    return LowRankInverseMassMatrix(jnp.sqrt(inverse_mass), u, lam)
 
 
 def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
@@ -253,8 +229,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
 
     def u_step(key, ustate, logdensity_fn, params):
         if kind == "nuts":
-            new, info = inner(key, ustate, logdensity_fn, params.step_size,
-                              inverse_mass_metric(params.inverse_mass, params.mass_correlation),
+            new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass,
                               max_num_doublings=max_num_doublings)
             moved = jnp.any(new.position != ustate.position)
             return new, (info.acceptance_rate, moved, info.num_integration_steps, info.is_divergent,
@@ -264,8 +239,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             n = jax.random.randint(k_n, (), 1, 2 * n_leap)  # 1 .. 2L - 1, mean L
         else:
             n = jnp.asarray(n_leap)
-        new, info = inner(key, ustate, logdensity_fn, params.step_size,
-                          inverse_mass_metric(params.inverse_mass, params.mass_correlation), n)
+        new, info = inner(key, ustate, logdensity_fn, params.step_size, params.inverse_mass, n)
         return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0),
                      info.energy)
 
@@ -404,7 +378,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
 
 def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: float = 0.2,
                  eta_scale=0.1, dense_mass: bool = False, adapt_mass: bool = True,
-                 block_mass: bool = True, num_integration_steps: int = 16, jitter_integration_steps: bool = True,
+                 num_integration_steps: int = 16, jitter_integration_steps: bool = True,
                  max_tree_depth: int = 10, elastic_moves: int = 1, collapsed_moves: int = 0,
                  target_acceptance: float | None = None) -> SamplingAlgorithm:
     """The gradient Gibbs kernel with its windowed warm-up, for
@@ -432,11 +406,6 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         adapt a dense inverse mass matrix instead of a diagonal one
     adapt_mass : bool
         adapt the inverse mass matrix at all (else identity in ``w``)
-    block_mass : bool
-        with a diagonal adapted mass and a joint target (:attr:`Target.n_joint`), adapt the
-        correlations of its elastic coordinates too (:func:`inverse_mass_metric`): a
-        diagonal mass leaves their correlated directions tens of times narrower than the
-        rest, which caps the step size
     num_integration_steps : int
         HMC's leapfrog steps (their mean if jittered)
     jitter_integration_steps : bool
@@ -478,7 +447,7 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
                           collapsed_moves=collapsed_moves)
     ws_init, ws_step, ws_final = adaptation.build_warmup_step(
         kernel, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
-        adapt_mass=adapt_mass, mass_block=target.n_joint if block_mass else 0)
+        adapt_mass=adapt_mass)
     n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
     # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
@@ -502,11 +471,9 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
             if frozen.collapsed_scale is not None and frozen.eta_scale.shape[-1]:
                 log_col = jnp.log(jnp.trace(frozen.collapsed_scale, axis1=-2, axis2=-1)
                                   / jnp.trace(frozen.eta_scale, axis1=-2, axis2=-1))
-            # a checkpoint from before the correlated block has none: the diagonal it froze
-            corr = ws.mass_correlation if frozen.mass_correlation is None else frozen.mass_correlation
             return ws._replace(step_size=frozen.step_size, inverse_mass=frozen.inverse_mass,
                                eta_base=frozen.eta_scale, log_eta_scale=jnp.zeros_like(ws.log_eta_scale),
-                               log_collapsed_scale=log_col, mass_correlation=corr)
+                               log_collapsed_scale=log_col)
 
         # the draws' keys as a chunk of :func:`bayesreg.sampling.chains.build_chunk` takes them
         samp_keys = jax.jit(jax.vmap(lambda k: jax.vmap(lambda kd: jax.random.split(kd, thinning))(
@@ -556,8 +523,6 @@ def _describe(sigma: tuple) -> dict:
     step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
     collapsed = {} if len(sigma) < 4 or sigma[3] is None else {
         "collapsed_proposal_sd_per_chain": marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
-    if len(sigma) > 4 and sigma[4] is not None and np.size(sigma[4]):
-        collapsed["elastic_mass_correlation_per_chain"] = np.round(np.asarray(sigma[4]), 4).tolist()
     return {**collapsed, "step_size_per_chain": step.tolist(),
             "inverse_mass_diag_quantiles_0_50_100": np.quantile(
                 inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),

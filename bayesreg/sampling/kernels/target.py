@@ -94,9 +94,6 @@ class Target(NamedTuple):
         (:func:`joint_target` ``surrogate``): ``w -> ()``, the exact normaliser less the
         surrogate at ``w``'s parameters (NaN where the exact one fails), what the kernel's
         Metropolis correction after each trajectory uses (:mod:`bayesreg.sampling.kernels.gibbs`).
-    n_joint : int
-        A joint target's number of elastic coordinates, the last ``n_joint`` of ``w`` (0 for a
-        target of ``u_b`` alone): the block whose correlations the warm-up adapts.
     """
 
     u_logdensity: Callable
@@ -113,7 +110,6 @@ class Target(NamedTuple):
     conditional: Callable | None = None
     log_jacobian: Callable | None = None
     correction: Callable | None = None
-    n_joint: int = 0
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
@@ -311,7 +307,7 @@ def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian, surrogate
         build_cache=lambda _eta, _ln: Cache(jnp.zeros((0,)), jnp.zeros(())),
         position=lambda z, _eta: base.position(*split(z)), coordinates=coordinates, n_free=0,
         build_precond=build_precond, condensed=False, preconditioner=base.preconditioner,
-        log_jacobian=lambda z: log_jacobian(split(z)[1]), correction=correction, n_joint=n)
+        log_jacobian=lambda z: log_jacobian(split(z)[1]), correction=correction)
 
 
 def laplace_likelihood(post: Posterior, theta0, a_lik):
