@@ -253,7 +253,7 @@ _ROW_GATHER = jax.lax.GatherDimensionNumbers(offset_dims=(1,), collapsed_slice_d
 
 def _cubic_block(coeffs, c):
     """Offsets ``t`` ``(..., 3)`` of the (clamped, padded-grid) coordinates ``c`` in their
-    cells and the 4x4x4 coefficients around them ``(..., 4, 4, 4)``, in ``coeffs``' dtype: sixteen gathers of four
+    cells and the 4x4x4 coefficients around them ``(..., 4, 4, 4)``: sixteen gathers of four
     neighbours along the contiguous axis from the flattened array (several times faster on
     XLA:CPU than one gather of 4x4x4 blocks), their first flat index materialised as in
     :func:`_cell_block`."""
@@ -265,9 +265,7 @@ def _cubic_block(coeffs, c):
     starts = (base[:, None] + offs).reshape(-1, 1)
     blk = jax.lax.gather(coeffs.reshape(-1), starts, _ROW_GATHER, (4,),
                          mode=jax.lax.GatherScatterMode.CLIP)
-    # in the coefficients' own precision: the products with the (float64) weights promote
-    # exactly, and a materialised block (the JVP's) is half the bytes from float32 storage
-    return c - c0, blk.reshape(c.shape[:-1] + (4, 4, 4))
+    return c - c0, blk.reshape(c.shape[:-1] + (4, 4, 4)).astype(c.dtype)
 
 
 def _contract(wx, wy, wz, blk):
