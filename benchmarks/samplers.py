@@ -16,6 +16,13 @@ Run from the repository root::
 
     python benchmarks/samplers.py                          # the four kernels, the quickstart's model
     python benchmarks/samplers.py --kinds nuts --set sampler.joint=false --set sampler.elastic_moves=24 --tag gibbs
+    python benchmarks/samplers.py --run RUN_DIR --kinds nuts --set model.interpolation=cubic --tag cubic
+
+``--run RUN_DIR`` takes the problem, config and starts from a run's checkpoint (a paper-size
+BrainWeb run, say) instead of the quickstart's: every variant then starts from that run's
+chains' starts and preconditioner (made for the run's own model), so that two variants
+differ in what ``--set`` changes alone.  The run's prior normaliser is kept unless
+``--normaliser`` is given.
 
 Writes ``samplers-<normaliser>[-tag].json`` and ``.md`` in ``--out`` (default
 ``benchmarks/results/``).  Several minutes per kernel on a 2-core CPU.
@@ -84,16 +91,33 @@ def measure(kind: str, args) -> dict:
     draws = args.draws if kind != "rwmh" else args.draws_rw
     warm = args.warmup if kind != "rwmh" else args.warmup_rw
     chunk = max(2, draws // args.prefixes)
-    overrides = extra + [f"model.prior_normaliser={args.normaliser}", f"sampler.thinning={thin}",
-                         f"sampler.warmup_steps={warm}", f"sampler.max_draws={draws}",
-                         f"sampler.min_draws={draws}", f"sampler.chunk_draws={chunk}",
-                         "output.progress=false", f"seed={args.seed}"] + list(args.set or [])
-    cfg = load_config(CONFIG, overrides=overrides)
-    data, _ = run.cached_data(cfg, args.cache, "quickstart")
-    problem = assemble(cfg, data)
-    t0 = time.perf_counter()
-    init = initialise(problem, cfg)
-    t_init = time.perf_counter() - t0
+    normaliser = args.normaliser or (None if args.run else "paper")
+    overrides = extra + ([f"model.prior_normaliser={normaliser}"] if normaliser else []) + [
+        f"sampler.thinning={thin}", f"sampler.warmup_steps={warm}", f"sampler.max_draws={draws}",
+        f"sampler.min_draws={draws}", f"sampler.chunk_draws={chunk}", "output.progress=false",
+        f"seed={args.seed}"] + list(args.set or [])
+    if args.run is not None:  # the run's problem and starts, the variant's settings
+        from bayesreg.checkpoint import Checkpoint
+        from bayesreg.config import override_config
+
+        ckpt = Checkpoint(args.run)
+        base = ckpt.load_config()
+        init = ckpt.load_init()
+        if init is None:
+            raise SystemExit(f"--run {args.run}: its checkpoint holds no starts")
+        if (kind == "rwmh") != (base.sampler.kind == "rwmh"):
+            raise SystemExit(f"--run {args.run} was started for {base.sampler.kind}: its starts and "
+                             f"preconditioner do not fit {kind}")
+        cfg = override_config(base, overrides)
+        problem = assemble(cfg, ckpt.load_problem())
+        t_init = 0.0  # (the run's own starts: no mode search here)
+    else:
+        cfg = load_config(CONFIG, overrides=overrides)
+        data, _ = run.cached_data(cfg, args.cache, "quickstart")
+        problem = assemble(cfg, data)
+        t0 = time.perf_counter()
+        init = initialise(problem, cfg)
+        t_init = time.perf_counter() - t0
     result, _ = sample_problem(problem, cfg, init)
     tm = result.timings
     t_warm, t_samp = tm.get("warmup_s", 0.0), tm["sampling_s"]
@@ -138,7 +162,9 @@ def markdown(rows, args) -> str:
     import jax
 
     base = next((r for r in rows if r["kind"] == "rwmh"), None)
-    lines = [f"Quickstart problem, elastic parameters sampled, prior normaliser `{args.normaliser}`, "
+    where = f"The problem and starts of `{args.run}`" if args.run else "Quickstart problem"
+    normaliser = args.normaliser or ("the run's" if args.run else "paper")
+    lines = [f"{where}, elastic parameters sampled, prior normaliser `{normaliser}`, "
              f"{platform.processor() or platform.machine()}, JAX {jax.__version__} ({jax.default_backend()}), "
              f"commit {run.git('rev-parse', '--short', 'HEAD')}.", "",
              "| kernel | steps/s/chain | grads/draw | acceptance u_b, elastic | divergences | min bulk ESS "
@@ -162,8 +188,12 @@ def markdown(rows, args) -> str:
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--kinds", default="rwmh,mala,hmc,nuts")
-    p.add_argument("--normaliser", choices=["exact", "paper"], default="paper",
-                   help="model.prior_normaliser (default paper, as the quickstart)")
+    p.add_argument("--normaliser", choices=["exact", "paper"], default=None,
+                   help="model.prior_normaliser (default: paper on the quickstart, the run's own "
+                   "with --run)")
+    p.add_argument("--run", type=Path, default=None, metavar="RUN_DIR",
+                   help="take the problem, config and starts from a run's checkpoint (e.g. a "
+                   "paper-size BrainWeb run) instead of the quickstart's")
     p.add_argument("--draws", type=int, default=400, help="stored draws per chain (gradient kernels)")
     p.add_argument("--warmup", type=int, default=500, help="warm-up steps (gradient kernels)")
     p.add_argument("--draws-rw", type=int, default=1000, help="stored draws per chain (RW-MH, thinning 10)")
@@ -184,7 +214,7 @@ def main(argv=None):
         rows.append(measure(kind, args))
         print(f"{kind}: {time.perf_counter() - t:.0f} s  " + json.dumps(
             {k: v for k, v in rows[-1].items() if k != "adapted"}, default=float), flush=True)
-        stem = args.out / f"samplers-{args.normaliser}{'-' + args.tag if args.tag else ''}"
+        stem = args.out / f"samplers-{args.normaliser or ('run' if args.run else 'paper')}{'-' + args.tag if args.tag else ''}"
         stem.with_suffix(".json").write_text(json.dumps(rows, indent=2, default=float))
         stem.with_suffix(".md").write_text(markdown(rows, args))
     print(markdown(rows, args))
