@@ -68,16 +68,10 @@ def main(argv=None) -> dict:
 
     run.bayesreg.configure_jax()
     if args.run is not None:
-        from bayesreg.checkpoint import Checkpoint
-
-        ckpt = Checkpoint(args.run)
-        cfg = ckpt.load_config()
-        if (args.kernel == "rwmh") != (cfg.sampler.kind == "rwmh"):
-            p.error(f"--run {args.run} was sampled by {cfg.sampler.kind}: give --kernel to match")
-        problem = run.assemble(cfg, ckpt.load_problem())
-        init = ckpt.load_init()
-        if init is None:
-            p.error(f"--run {args.run}: its checkpoint holds no starts")
+        try:
+            cfg, problem, init = run.run_problem(args.run, args.kernel)
+        except ValueError as exc:
+            p.error(f"{exc} (give --kernel to match)")
         if len(init.x0) != args.chains:
             p.error(f"--run {args.run} has {len(init.x0)} chains: give --chains {len(init.x0)}")
     else:

@@ -175,6 +175,29 @@ def kernel_config(kernel: str, edge: float, res: float, extra=()):
     return load_config(path, overrides=mesh_overrides(edge, res) + list(extra))
 
 
+def run_problem(run_dir: Path, kernel: str, overrides=()):
+    """``(cfg, problem, init)`` of a run's checkpoint (``--run RUN_DIR`` of
+    ``profile_step.py`` and ``samplers.py``): its config with ``overrides``, its problem
+    (images, mesh, truth) and its chains' starts, for ``kernel``.
+
+    Raises
+    ------
+    ValueError
+        The checkpoint holds no starts, or they were made for the other kernel family (the
+        random walk's scales and the gradient kernels' preconditioner do not fit each other).
+    """
+    ckpt = Checkpoint(run_dir)
+    base = ckpt.load_config()
+    init = ckpt.load_init()
+    if init is None:
+        raise ValueError(f"--run {run_dir}: its checkpoint holds no starts")
+    if (kernel == "rwmh") != (base.sampler.kind == "rwmh"):
+        raise ValueError(f"--run {run_dir} was started for {base.sampler.kind}: its starts and "
+                         f"preconditioner do not fit {kernel}")
+    cfg = override_config(base, list(overrides)) if overrides else base
+    return cfg, assemble(cfg, ckpt.load_problem()), init
+
+
 def with_chains(cfg, n: int):
     """``cfg`` with ``sampler.chains`` set to ``n`` (at least 2, the config's minimum: the
     dense preconditioner's budget, the one thing it decides here, is the same for one)."""

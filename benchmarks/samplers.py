@@ -97,19 +97,10 @@ def measure(kind: str, args) -> dict:
         f"sampler.min_draws={draws}", f"sampler.chunk_draws={chunk}", "output.progress=false",
         f"seed={args.seed}"] + list(args.set or [])
     if args.run is not None:  # the run's problem and starts, the variant's settings
-        from bayesreg.checkpoint import Checkpoint
-        from bayesreg.config import override_config
-
-        ckpt = Checkpoint(args.run)
-        base = ckpt.load_config()
-        init = ckpt.load_init()
-        if init is None:
-            raise SystemExit(f"--run {args.run}: its checkpoint holds no starts")
-        if (kind == "rwmh") != (base.sampler.kind == "rwmh"):
-            raise SystemExit(f"--run {args.run} was started for {base.sampler.kind}: its starts and "
-                             f"preconditioner do not fit {kind}")
-        cfg = override_config(base, overrides)
-        problem = assemble(cfg, ckpt.load_problem())
+        try:
+            cfg, problem, init = run.run_problem(args.run, kind, overrides)
+        except ValueError as exc:
+            raise SystemExit(str(exc)) from None
         t_init = 0.0  # (the run's own starts: no mode search here)
     else:
         cfg = load_config(CONFIG, overrides=overrides)
