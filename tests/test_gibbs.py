@@ -236,3 +236,57 @@ def test_collapsed_moves_keep_the_joint(shift, scale):
 def test_collapsed_moves_need_a_conditional():
     with pytest.raises(ValueError, match="collapsed"):
         gk.build_kernel(toy_target(), "nuts", collapsed_moves=1)
+
+
+def _shifted_gaussian(mean) -> "Target":
+    """``u ~ N(mean, I)``, no elastic parameters: a target that depends on data."""
+    from bayesreg.sampling.kernels.target import Cache, Target
+
+    def u_lp(w, eta, cache, interior):
+        return -0.5 * jnp.sum((w - mean) ** 2)
+
+    return Target(u_lp, lambda w, eta, c, i: (u_lp(w, eta, c, i), i, jnp.asarray(0), jnp.asarray(True)),
+                  lambda w, eta, i, ln: (u_lp(w, eta, None, i), u_lp(w, eta, None, i), i,
+                                         jnp.asarray(0), jnp.asarray(True)),
+                  lambda eta: jnp.zeros(()),
+                  lambda eta, ln: Cache(jnp.zeros((0,)), jnp.asarray(ln, jnp.float64)),
+                  lambda w, eta: w, lambda theta: (theta, jnp.zeros((0,))), 0)
+
+
+def test_chains_with_their_own_data_sample_their_own_targets_in_one_program():
+    """Per-chain data (``chain_data``, as the calibration's replicas use): chain ``c`` samples
+    ``N(m_c, I)`` (moments within 5 Monte Carlo standard errors), gives the draws a run on
+    ``m_c`` alone gives that chain (same key, same starts), and ``refresh`` rewrites the
+    chains' data once, after the warm-up's last chunk, and never while sampling."""
+    from bayesreg.sampling.driver import SamplerCheckpoint, sample
+
+    means = np.array([[-3.0, 1.0], [0.0, 0.0], [2.0, -1.0], [5.0, 4.0]])
+    data = {"mean": jnp.asarray(means), "marker": jnp.zeros((4, 2))}
+    x0 = np.random.default_rng(0).normal(size=(4, 2))
+
+    def refresh(state):
+        return state._replace(data={**state.data, "marker": state.position})
+
+    common = dict(interior0=jnp.zeros((1, 3)), kind="nuts", step_size=0.5, eta_scale=np.zeros(0))
+    run = dict(warmup_steps=200, max_draws=1000, min_draws=1000, chunk_draws=100, progress=False,
+               chain_method="sequential")
+    alg = gk.as_algorithm(lambda d: _shifted_gaussian(d["mean"]), chain_data=data,
+                          refresh=refresh, **common)
+    warm_end = []
+    res = sample(jax.random.key(3), alg, x0, on_chunk=lambda cp, out: warm_end.append(cp)
+                 if out is None else None, **run)
+    assert isinstance(warm_end[0], SamplerCheckpoint) and len(warm_end) == 1
+    after_warmup = warm_end[0].states
+    np.testing.assert_array_equal(after_warmup.data["marker"], after_warmup.position)
+    np.testing.assert_array_equal(res.final_states.data["marker"], after_warmup.position)
+    np.testing.assert_array_equal(res.final_states.data["mean"], means)
+    for c in range(4):
+        for j in range(2):
+            assert_moments(res.positions[c:c + 1, :, j], means[c, j], 1.0, 3.0, what=(c, j))
+    one = sample(jax.random.key(3), gk.as_algorithm(_shifted_gaussian(jnp.asarray(means[1])),
+                                                     **common), x0, **run)
+    np.testing.assert_allclose(one.positions[1], res.positions[1], rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="data for \\[4\\] chains, the starts are 3"):
+        sample(jax.random.key(3), alg, x0[:3], **run)
+    with pytest.raises(ValueError, match="chain_data goes with"):
+        gk.as_algorithm(_shifted_gaussian(0.0), chain_data=data, **common)

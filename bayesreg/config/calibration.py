@@ -67,6 +67,10 @@ class CalSamplerSpec(_Strict):
                                  "transition (as sampler.collapsed_moves of a run; the likelihood "
                                  "linearised at each chain's start, then at its state after the "
                                  "warm-up)")
+    chain_method: Literal["auto", "vectorized", "sequential", "threads"] = Field(
+        "auto", description="how the replicas' chains run (as sampler.chain_method of a run: "
+        "auto is threads on a CPU, vectorized on an accelerator); the draws do not depend on "
+        "it beyond round-off, which NUTS trajectories amplify")
     ranks: Int = Field(99, ge=9, description="L: draws (thinned evenly from all chains) among "
                        "which each truth is ranked (ranks 0..L)")
     bins: Int = Field(10, ge=2, description="bins of the rank histograms (must divide L + 1)")

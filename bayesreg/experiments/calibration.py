@@ -28,7 +28,9 @@ that many replicas fit in one program:
    linearised at each chain's start, again where its warm-up ended)
    (:mod:`bayesreg.sampling.kernels.gibbs`), Stan's windowed warm-up
    (:mod:`bayesreg.sampling.kernels.adaptation`), chains started from the prior, not from the truth;
-   every chain of every replica in one vmapped, jitted program (one compilation).
+   run by the driver of every run (:func:`bayesreg.sampling.driver.sample`), every chain of
+   every replica one of its chains with its replica's data as the chain's own (one
+   compiled program).
 4. **Ranks and coverage** (:func:`summarise`): the rank of each truth among ``L`` draws
    thinned evenly from all chains, their histogram and its chi-square test of uniformity
    (SciPy), and the coverage of the central 50/90/95% intervals; per free parameter, per
@@ -255,8 +257,15 @@ class Replicas(NamedTuple):
     seconds: float
 
 
-def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key) -> Replicas:
+def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key, *,
+                 progress: bool = False) -> Replicas:
     """Posterior draws of every replica (module docstring, step 3).
+
+    Every chain of every replica is one chain of the driver
+    (:func:`bayesreg.sampling.driver.sample`) running the Gibbs kernel with Stan's warm-up
+    (:func:`bayesreg.sampling.kernels.gibbs.as_algorithm`); each chain carries its replica's
+    data ``f_q`` (and, with collapsed moves, its linearised likelihood) as its own data, so
+    one compiled program serves them all.  ``sampler.draws`` draws per chain, no stop rule.
 
     Parameters
     ----------
@@ -267,27 +276,33 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
     starts : (R, C, dim) array
         Natural chain starts.
     key : PRNGKey
+    progress : bool
+        Show the driver's progress bars.
 
     Returns
     -------
     Replicas
     """
-    import time
+    import math
 
-    from bayesreg.sampling.kernels import adaptation as gw
-    from bayesreg.sampling.kernels import gibbs
-    from bayesreg.sampling.kernels.target import laplace_likelihood, make_target
     from bayesreg.model.posterior import condensation, full_displacement, similarity_weight
     from bayesreg.model.similarity import ssd_residuals
+    from bayesreg.sampling.driver import sample
+    from bayesreg.sampling.kernels import gibbs
+    from bayesreg.sampling.kernels.target import laplace_likelihood, make_target
 
     s = spec.sampler
     post = cp.posterior
     nb3 = 3 * post.n_boundary
     theta_ref = np.r_[np.zeros(nb3), np.asarray(post.phi_ref)]
-    prec = gauss_newton_precision(post, cp.mesh, cp.element_group, theta_ref)
-    factor = jnp.asarray(sla.solve_triangular(np.linalg.cholesky(prec).T, np.eye(nb3), lower=False))
-    stages = jnp.asarray(gw.schedule(s.warmup_steps))
+    chol = np.linalg.cholesky(gauss_newton_precision(post, cp.mesh, cp.element_group, theta_ref))
+    # u_b = F w with F = R^-T, R R^T the Gauss-Newton precision at rest: F^-1 = R^T
+    factor = jnp.asarray(sla.solve_triangular(chol.T, np.eye(nb3), lower=False))
+    factor_inv = jnp.asarray(chol.T)
     interior0 = jnp.zeros((post.op.n_interior, 3))
+
+    def posterior_of(f_q):
+        return post._replace(similarity=post.similarity._replace(f_q=f_q))
 
     def curvature(p, theta):
         # Gauss-Newton curvature 2 J^T J / T_s of the similarity in u_b (interior by the map at
@@ -303,59 +318,41 @@ def run_replicas(cp: CalibrationProblem, spec: CalibrationSpec, f_q, starts, key
         r = residuals(theta[:nb3])
         return 2.0 * similarity_weight(p, r @ r) * jac.T @ jac
 
-    def kernel_of(p, theta):
-        lik = (laplace_likelihood(p, theta, curvature(p, theta)) if s.collapsed_moves else None)
-        target = make_target(p, center_u=jnp.zeros(nb3), factor=factor, exact=cp.exact,
-                             condensed=True, likelihood=lik)
-        return target, gibbs.build_kernel(target, "nuts", max_num_doublings=s.max_tree_depth,
-                                          elastic_moves=s.elastic_moves,
-                                          collapsed_moves=s.collapsed_moves)
+    def linearised(f_q, theta):
+        p = posterior_of(f_q)
+        return laplace_likelihood(p, theta, curvature(p, theta))
 
-    def one_chain(key, f_q, theta0):
-        p = post._replace(similarity=post.similarity._replace(f_q=f_q))
-        target, kernel = kernel_of(p, theta0)
-        ws_init, ws_step, ws_final = gw.build_warmup_step(
-            kernel, gibbs.GibbsParams, target_acceptance=gibbs.default_target_acceptance("nuts"))
-        state, _ = gibbs.init(target, theta0, interior0)
-        cache = kernel.init_cache(state)
-        ws = ws_init(nb3, 0.2, jnp.full((post.n_free,), 0.1))
-        k_warm, k_draw = jax.random.split(key)
+    def target_of(data):
+        # data: the replica's f_q, and with collapsed moves the likelihood (A, b) linearised
+        # at the chain's start, then where its warm-up ended
+        return make_target(posterior_of(data[0]), center_u=jnp.zeros(nb3), factor=factor,
+                           factor_inv=factor_inv, exact=cp.exact, condensed=True,
+                           likelihood=tuple(data[1:]) if s.collapsed_moves else None)
 
-        def warm(carry, xs):
-            st, w_, c_ = carry
-            st, w_, c_, _ = ws_step(xs[0], st, w_, c_, xs[1])
-            return (st, w_, c_), None
+    def relinearise(state):
+        return state._replace(data=(state.data[0], *linearised(state.data[0], state.position)))
 
-        (state, ws, cache), _ = jax.lax.scan(
-            warm, (state, ws, cache), (jax.random.split(k_warm, s.warmup_steps), stages))
-        params = ws_final(ws)
-        if s.collapsed_moves:  # the likelihood linearised again where the warm-up ended
-            _, kernel = kernel_of(p, state.position)
-        cache = kernel.init_cache(state)
+    n, c, dim = np.shape(starts)
+    x0 = jnp.asarray(np.reshape(starts, (n * c, dim)))
+    data = (jnp.repeat(jnp.asarray(f_q), c, axis=0),)
+    if s.collapsed_moves:
+        data = data + tuple(jax.jit(jax.vmap(linearised))(data[0], x0))
+    algorithm = gibbs.as_algorithm(
+        target_of, interior0, kind="nuts", max_tree_depth=s.max_tree_depth,
+        elastic_moves=s.elastic_moves, collapsed_moves=s.collapsed_moves, chain_data=data,
+        refresh=relinearise if s.collapsed_moves else None)
+    # draws in chunks that also cut the warm-up exactly (its windows are the spec's)
+    chunk = math.gcd(s.draws, -(-s.warmup_steps // s.thinning))
+    res = sample(key, algorithm, x0, thinning=s.thinning, warmup_steps=s.warmup_steps,
+                 max_draws=s.draws, min_draws=s.draws, chunk_draws=chunk, stop="paper",
+                 progress=progress, chain_method=s.chain_method)
 
-        def draw(carry, key):
-            def step(carry, k):
-                st, c_ = carry
-                st, info, c_ = kernel.step(k, st, params, c_)
-                return (st, c_), info
+    def per_replica(a):
+        return np.asarray(a).reshape((n, c) + np.shape(a)[1:])
 
-            carry, info = jax.lax.scan(step, carry, jax.random.split(key, s.thinning))
-            return carry, (carry[0].position, jnp.mean(info.acceptance_rate, axis=0),
-                           jnp.sum(info.divergent.astype(jnp.int32)),
-                           jnp.mean(info.grad_evals.astype(jnp.float64)))
-
-        _, (pos, acc, div, grads) = jax.lax.scan(draw, (state, cache),
-                                                 jax.random.split(k_draw, s.draws))
-        return pos, jnp.mean(acc, axis=0), jnp.sum(div), jnp.mean(grads)
-
-    program = jax.jit(jax.vmap(jax.vmap(one_chain, in_axes=(0, None, 0)), in_axes=(0, 0, 0)))
-    n, c = np.shape(starts)[:2]
-    keys = jax.random.split(key, n * c).reshape(n, c)
-    t0 = time.perf_counter()
-    pos, acc, div, grads = program(keys, jnp.asarray(f_q), jnp.asarray(starts))
-    pos = np.asarray(pos)
-    return Replicas(pos, np.asarray(acc), np.asarray(div), np.asarray(grads),
-                    time.perf_counter() - t0)
+    return Replicas(per_replica(res.positions), per_replica(res.acceptance.mean(axis=1)),
+                    per_replica(res.divergences.sum(axis=1)), per_replica(res.grad_evals.mean(axis=1)),
+                    float(res.timings["warmup_s"] + res.timings["sampling_s"]))
 
 
 def ranks_of(truth, draws) -> np.ndarray:
@@ -558,7 +555,7 @@ def calibrate(spec: CalibrationSpec, out=None, *, progress: bool = True) -> dict
     s = spec.sampler
     say(f"sampling {spec.replicas} x {s.chains} chains of {s.warmup_steps} warm-up and "
         f"{s.draws} x {s.thinning} transitions in one program ...")
-    reps = run_replicas(cp, spec, truths.f_q, starts, jax.random.key(spec.seed))
+    reps = run_replicas(cp, spec, truths.f_q, starts, jax.random.key(spec.seed), progress=progress)
     say(f"sampled in {reps.seconds:.1f} s")
     summary = summarise(cp, spec, truths, reps)
     q_truth, names = _quantities(cp, truths.theta)

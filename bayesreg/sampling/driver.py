@@ -310,7 +310,8 @@ def sample(
     ValueError
         On bad arguments (among them: ``min_draws > max_draws`` or ``chunk_draws >
         max_draws``; an unknown ``chain_method``; what the algorithm refuses for this shape,
-        e.g. random-walk blocks that do not partition ``range(dim)``) or if any chain starts
+        e.g. random-walk blocks that do not partition ``range(dim)``; an algorithm whose
+        ``chain_data`` are not for ``C`` chains) or if any chain starts
         at a point of zero posterior density.
     RuntimeError
         JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
@@ -348,8 +349,17 @@ def sample(
     key_warm, key_samp = jax.random.split(rng_key)
     n_blocks = len(algorithm.blocks)
 
-    def init_states():
-        return jax.vmap(algorithm.init)(x0)
+    if algorithm.chain_data is None:
+        def init_states():
+            return jax.vmap(algorithm.init)(x0)
+    else:
+        sizes = {np.shape(a)[0] for a in jax.tree.leaves(algorithm.chain_data)}
+        if sizes != {n_chains}:
+            raise ValueError(f"the algorithm carries data for {sorted(sizes)} chains, the starts "
+                             f"are {n_chains}")
+
+        def init_states():
+            return jax.vmap(algorithm.init)(x0, algorithm.chain_data)
 
     def warm_up(resume_warmup=None):
         t0 = time.perf_counter()

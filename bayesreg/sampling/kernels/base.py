@@ -88,7 +88,8 @@ class SamplingAlgorithm(NamedTuple):
     blocks : tuple of str
         Names of the acceptance columns (coordinate blocks or moves), in order.
     init : callable
-        ``position (dim,) -> state``: one chain's state (pure; the driver maps it over chains).
+        ``position (dim,) -> state``: one chain's state (pure; the driver maps it over chains);
+        with ``chain_data``, ``(position, data) -> state``.
     build : callable
         ``(n_chains, dim, chunk_draws, thinning, n_warm, chain_method) -> Program`` with
         ``dim`` the position's size and ``n_warm`` the warm-up's chunks (raises
@@ -109,6 +110,10 @@ class SamplingAlgorithm(NamedTuple):
         CG figures: any of ``"n_steps"`` (gradient evaluations), ``"step_size"`` (from
         ``describe``'s ``step_size_per_chain``), ``"energy"``, ``"tree_depth"``; a gradient
         kernel names ``"n_steps"`` (its runs get Stan's per-chain checks).
+    chain_data : pytree or None
+        Each chain's own data (leaves ``(C, ...)``) where the chains sample different
+        targets in one program (:func:`bayesreg.sampling.kernels.gibbs.as_algorithm`); the
+        driver maps ``init`` over the starts and these together.  ``None``: one target.
     """
 
     kind: str
@@ -121,6 +126,7 @@ class SamplingAlgorithm(NamedTuple):
     preconditioner: str
     condensed: bool
     sample_stats: tuple = ()
+    chain_data: object = None
 
 
 def marginal_sd(scale: np.ndarray, factor: bool) -> np.ndarray:

@@ -85,6 +85,10 @@ class GibbsState(NamedTuple):
         ``w`` (``(3 n_b,)``), its conditional log-density and gradient
     eta : (n_free,)
         unconstrained elastic parameters
+    data : pytree or None
+        the chain's own data where chains differ by more than their starts (a kernel built
+        on a function ``data -> Target``: :func:`build_kernel`); carried unchanged by the
+        kernel.  ``None`` (no leaves) otherwise.
     """
 
     position: jax.Array
@@ -92,6 +96,7 @@ class GibbsState(NamedTuple):
     interior: jax.Array
     u: object
     eta: jax.Array
+    data: object = None
 
 
 class GibbsInfo(NamedTuple):
@@ -141,10 +146,16 @@ class GibbsParams(NamedTuple):
     collapsed_scale: jax.Array | None = None
 
 
-def init(target: Target, theta, interior0) -> tuple[GibbsState, Cache]:
-    """State and cache at the natural position ``theta`` ``(dim,)``."""
+def init(target: Target, theta, interior0, data=None) -> tuple[GibbsState, Cache]:
+    """State and cache at the natural position ``theta`` ``(dim,)``.
+
+    With ``data`` (a chain's own data, a pytree), ``target`` is a function ``data -> Target``
+    and the state carries ``data`` (:class:`GibbsState`)."""
     from blackjax.mcmc import hmc as bj_hmc
 
+    if data is not None:
+        state, cache = init(target(data), theta, interior0)
+        return state._replace(data=data), cache
     w, eta = target.coordinates(jnp.asarray(theta))
     cache = target.build_cache(eta, target.log_norm(eta))
     lp, interior, _, _ = target.u_evaluate(w, eta, cache, interior0)
@@ -165,7 +176,11 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
 
     Parameters
     ----------
-    target : Target
+    target : Target, or callable
+        The target, or a function ``data -> Target`` of the chain's own data, which the
+        state carries (:attr:`GibbsState.data`): chains of one program that sample different
+        posteriors (the replicas of :mod:`bayesreg.experiments.calibration`), each data set
+        a traced argument, not a compiled-in constant.
     kind : {"mala", "hmc", "nuts"}
     num_integration_steps : int
         HMC's leapfrog steps per transition (the mean number if jittered).
@@ -207,9 +222,16 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         For an unknown ``kind``, fewer than one leapfrog step, or collapsed moves on a
         target without ``conditional`` or without free parameters.
     """
-    if collapsed_moves and (target.conditional is None or not target.n_free):
-        raise ValueError("collapsed moves need free elastic parameters and a target with a "
-                         "Gaussian conditional of u_b (make_target(likelihood=...))")
+    per_chain = callable(target)  # a function data -> Target (a Target is a tuple)
+
+    def check(target):
+        if collapsed_moves and (target.conditional is None or not target.n_free):
+            raise ValueError("collapsed moves need free elastic parameters and a target with a "
+                             "Gaussian conditional of u_b (make_target(likelihood=...))")
+        return target
+
+    if not per_chain:
+        check(target)
     if kind not in KINDS:
         raise ValueError(f"unknown gradient kernel {kind!r}; expected one of {KINDS}")
     # BlackJAX is imported where a kernel is built, not with this module: importing it starts
@@ -243,7 +265,13 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         return new, (info.acceptance_rate, info.is_accepted, n, info.is_divergent, jnp.asarray(0),
                      info.energy)
 
+    def target_of(state):
+        return check(target(state.data)) if per_chain else target
+
     def step(rng_key, state: GibbsState, params: GibbsParams, cache: Cache):
+        return transition(target_of(state), rng_key, state, params, cache)
+
+    def transition(target, rng_key, state, params, cache):
         k_u, k_e = jax.random.split(rng_key)
         eta = state.eta
 
@@ -359,12 +387,13 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             lp_nat = ustate.logdensity + cache.log_norm
             if target.log_jacobian is not None:  # a joint target: its w holds the logits
                 lp_nat = lp_nat - target.log_jacobian(w)
-        state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta)
+        state = GibbsState(target.position(w, eta), lp_nat, interior, ustate, eta, state.data)
         info = GibbsInfo(jnp.stack(acc), jnp.stack(accepted), its, failed, grads, divergent, depth,
                          energy)
         return state, info, cache
 
     def init_cache(state: GibbsState) -> Cache:
+        target = target_of(state)
         cache = target.build_cache(state.eta, target.log_norm(state.eta))
         if target.correction is not None:
             cache = cache._replace(log_norm=jnp.asarray(target.correction(state.u.position),
@@ -380,7 +409,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
                  eta_scale=0.1, dense_mass: bool = False, adapt_mass: bool = True,
                  num_integration_steps: int = 16, jitter_integration_steps: bool = True,
                  max_tree_depth: int = 10, elastic_moves: int = 1, collapsed_moves: int = 0,
-                 target_acceptance: float | None = None) -> SamplingAlgorithm:
+                 target_acceptance: float | None = None, chain_data=None,
+                 refresh=None) -> SamplingAlgorithm:
     """The gradient Gibbs kernel with its windowed warm-up, for
     :func:`bayesreg.sampling.driver.sample`.
 
@@ -394,7 +424,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
 
     Parameters
     ----------
-    target : bayesreg.sampling.kernels.target.Target
+    target : bayesreg.sampling.kernels.target.Target, or callable
+        The target; with ``chain_data``, a function ``data -> Target`` (:func:`build_kernel`)
     interior0 : (n_i, 3) array
         warm start of the first solve
     kind : {"mala", "hmc", "nuts"}
@@ -420,6 +451,18 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         ``conditional``; :func:`build_kernel`)
     target_acceptance : float, optional
         Default :func:`default_target_acceptance` of ``kind``.
+    chain_data : pytree, optional
+        Each chain's own data, leaves with a leading chain axis ``(C, ...)``: chain ``c``
+        samples ``target(data_c)``, all chains in one compiled program (the driver must be
+        given ``C`` starts).  Static attributes (free parameters, blocks) come from the
+        first chain's target and are the same for all.
+    refresh : callable, optional
+        ``state -> state`` for one chain, applied to every chain after the warm-up's last
+        chunk, before the tuned values are frozen: per-chain data that depend on where the
+        chain is (the collapsed moves' linearisation of the likelihood, made again where
+        the warm-up ended).  It may change ``data`` only, and only what the log-density
+        does not depend on (the kernel's proposals), so the stored state stays exact.  Warm-up
+        draws are discarded, so the sampling kernel, fixed from then on, stays exact.
 
     Returns
     -------
@@ -441,6 +484,9 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
     eta0 = np.asarray(eta_scale, np.float64)
     if not np.all(np.isfinite(eta0)) or (eta0.ndim < 2 and not np.all(eta0 > 0)):
         raise ValueError(f"eta_scale must be finite and, as scales, > 0, got {eta_scale}")
+    if (chain_data is None) == callable(target):
+        raise ValueError("chain_data goes with a target that is a function data -> Target, "
+                         "and only with one")
     kernel = build_kernel(target, kind, num_integration_steps=num_integration_steps,
                           jitter_integration_steps=jitter_integration_steps,
                           max_num_doublings=max_tree_depth, elastic_moves=elastic_moves,
@@ -448,6 +494,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
     ws_init, ws_step, ws_final = adaptation.build_warmup_step(
         kernel, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
         adapt_mass=adapt_mass)
+    target_of, target = target, (target if chain_data is None else
+                                 target(jax.tree.map(lambda a: jnp.asarray(a)[0], chain_data)))
     n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
     # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
@@ -494,20 +542,32 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
             stage = stages[k * per_chunk:(k + 1) * per_chunk].reshape(chunk_draws, thinning, 2)
             (states, ws, (acc, div, grads)), _ = mapped.run(
                 warm_keys(keys), states, (ws, np.broadcast_to(stage, (n_chains,) + stage.shape), adapt))
+            if refresh is not None and k + 1 == n_warm:
+                states = refreshed(states)
             acc = np.asarray(acc).mean(axis=0)
+            step = np.asarray(ws.step_size)
             postfix = {"acc": np.array2string(acc, precision=2),
-                       "step": np.array2string(np.asarray(ws.step_size), precision=3),
+                       "step": (np.array2string(step, precision=3) if n_chains <= 8 else
+                                f"{step.min():.3f}-{step.max():.3f}"),
                        "grads": f"{float(np.mean(grads)):.0f}", "div": int(np.sum(div))}
             return states, ws, acc, postfix
 
+        refreshed = None if refresh is None else jax.jit(jax.vmap(refresh))
         warmup = Warmup(lambda states: ws_start(), warm_chunk, jax.jit(jax.vmap(ws_final)))
         return Program(chunk, warmup, mapped.method)
+
+    if chain_data is None:
+        def init_chain(x):
+            return init(target, x, interior0)[0]
+    else:
+        def init_chain(x, data):
+            return init(target_of, x, interior0, data)[0]
 
     return SamplingAlgorithm(
         kind=kind,
         blocks=(("joint", "normaliser")[:n_blocks] if target.log_jacobian is not None
                 else ("u_b", "elastic", "collapsed")[:n_blocks]),
-        init=lambda x: init(target, x, interior0)[0], build=build,
+        init=init_chain, build=build, chain_data=chain_data,
         params=lambda *a: GibbsParams(*a), describe=_describe,
         # the solves counted: with the cached map the trajectory needs none, and the elastic
         # block makes elastic_moves solves plus one evaluation before them; without it every

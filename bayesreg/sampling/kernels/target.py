@@ -113,7 +113,8 @@ class Target(NamedTuple):
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
-                maxiter=1000, precondition: bool = False, likelihood=None) -> Target:
+                maxiter=1000, precondition: bool = False, likelihood=None,
+                factor_inv=None) -> Target:
     """:class:`Target` of a :class:`bayesreg.model.posterior.Posterior`.
 
     Parameters
@@ -140,6 +141,10 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
         :func:`laplace_likelihood`): then the target has a :attr:`Target.conditional`, the
         Gaussian ``u_b | phi`` it makes with the elastic prior, precision ``A + Q(phi)``
         (:func:`bayesreg.model.posterior.prior_precision`), mean ``(A + Q(phi))^-1 b``.
+    factor_inv : (3 n_b, 3 n_b) array, optional
+        ``F^-1`` of a dense ``factor`` where the caller has it (a target built inside a
+        transition, as :func:`bayesreg.sampling.kernels.gibbs.build_kernel` does for
+        per-chain data, would otherwise invert ``F`` at every step); computed otherwise.
 
     Returns
     -------
@@ -151,7 +156,10 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
     f = jnp.asarray(factor)
     nb3 = c.shape[0]
     dense = f.ndim == 2
-    f_inv = jnp.linalg.inv(f) if dense else 1.0 / f
+    if factor_inv is not None:
+        f_inv = jnp.asarray(factor_inv)
+    else:
+        f_inv = jnp.linalg.inv(f) if dense else 1.0 / f
 
     def u_of(w):
         return c + (f @ w if dense else f * w)
