@@ -74,6 +74,25 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     return result, init
 
 
+def check_optional_packages(cfg: Config) -> None:
+    """The optional packages ``cfg`` needs are installed (checked before anything is written
+    or sampled, rather than found missing in the outputs stage).
+
+    Raises
+    ------
+    ConfigError
+        ``output.reference: syn`` without ANTsPy.
+    """
+    import importlib.util
+
+    from bayesreg.config import ConfigError
+
+    if cfg.output.reference == "syn" and importlib.util.find_spec("ants") is None:
+        raise ConfigError("output.reference: syn needs ANTsPy, which is not installed: pip "
+                          "install antspyx (wheels for Linux x86_64 and macOS), or choose "
+                          "output.reference: tvl1 | ilk | none")
+
+
 def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         resume=None) -> RunResult:
     """Run the whole job and write its run directory.
@@ -162,6 +181,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
                                     ("output__overwrite", overwrite)) if v is not None}
         # a copy (the caller's config is not changed), overrides applied to a Config object
         cfg = override_config(cfg, overrides if isinstance(config, Config) else None, **values)
+        check_optional_packages(cfg)
         inputs = {"data.fixed": cfg.data.fixed, "data.moving": cfg.data.moving,
                   "data.labels": cfg.data.labels, "mesh.file": cfg.mesh.file,
                   "synthetic.field": cfg.synthetic.field}

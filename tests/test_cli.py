@@ -66,7 +66,7 @@ def tiny_run(tmp_path_factory, tiny_mesh):
 
     args = ["run", "configs/quickstart.yaml", "--out", str(out)]
     for s in TINY + [f"mesh.file={tiny_mesh}", "sampler.max_draws=40", "sampler.min_draws=40",
-                     "output.reference=true"]:
+                     "output.reference=tvl1"]:
         args += ["--set", s]
     printed = io.StringIO()
     with (pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed),
@@ -123,6 +123,7 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     # over the brain's voxels: the posterior mean, the start and TV-L1 on the same images
     brain = errors["brain"]
     assert set(brain["mse_mm2"]) == {"posterior_mean", "start", "reference"} and brain["n_voxels"] > 1000
+    assert errors["reference_method"] == "tvl1" and "boundary, tvl1" in printed
     assert errors["truth_made_by_model"] and errors["coverage_moving"]["n_components"] > 0
     # the checkpoint keeps config, problem and starts; its draws are gone once outputs exist
     assert (out / "checkpoint" / "problem.npz").is_file()

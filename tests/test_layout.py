@@ -49,6 +49,7 @@ LAYERS = [
     ["mesh.warp"],
     ["mesh.meshing"],
     ["interop", "interop.transforms"],
+    ["interop.syn"],
     ["fem", "fem.element"],
     ["fem.stiffness"],
     ["fem.preconditioners"],

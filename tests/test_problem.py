@@ -89,6 +89,14 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     assert again.truth_info["truth"] == "field" and len(again.truth_info["sha256"]) == 64
     np.testing.assert_allclose(again.truth.u, truth.u, atol=1e-5)
     np.testing.assert_allclose(again.m.data, data.m.data, atol=1e-4)
+    # a smooth random field on the same mesh (2 mm: the 5 mm margin of these labels holds it)
+    from bayesreg.model.problem import _make_truth, _truth_line
+
+    rand_cfg = load_config("configs/mismatch_random.yaml", overrides=["synthetic.shift_mm=2"])
+    rand, info = _make_truth(rand_cfg, data.mesh, data.labels)
+    assert info["truth"] == "random" and info["length_mm"] == 30.0 and not rand.made_by_model
+    np.testing.assert_allclose(np.linalg.norm(rand.u, axis=1).max(), 2.0, rtol=0.02)
+    assert _truth_line(info, rand.u).startswith("random (not made by the model), smoothing sd 30 mm")
 
     ckpt = Checkpoint(tmp_path)
     ckpt.save_problem(data)

@@ -62,3 +62,28 @@ def test_bump_field_is_a_gaussian_toward_the_centre_and_field_truth_samples_it_a
     assert set(truth.pushed) == set(np.argsort(-at_nodes)[:8])
     with pytest.raises(ValueError, match="folds the image"):
         bump_field(grid, mesh, shift_mm=20.0, radius_mm=10.0)
+
+
+def test_random_field_is_a_smooth_gaussian_field_scaled_at_the_nodes():
+    """``random_field``: the largest displacement at the nodes is ``shift_mm`` (``field_truth``
+    samples the field there); each component's correlation between voxels ``d`` apart is
+    the Gaussian ``exp(-d^2 / (4 L^2))`` of white noise smoothed by a Gaussian of sd ``L``
+    (within 0.1); the seed fixes the field; a field that folds the image is refused."""
+    from bayesreg.truth.synthetic import field_truth, random_field
+    from helpers import smooth_image
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    grid = smooth_image(shape=(40, 40, 40), origin=-5.0)
+    field = random_field(grid, mesh, shift_mm=2.0, length_mm=3.0, seed=1)
+    truth = field_truth(mesh, field)
+    np.testing.assert_allclose(np.linalg.norm(truth.u, axis=1).max(), 2.0, rtol=0.02)
+    u = field.data
+    for lag in (1, 3, 6, 9):
+        got = np.mean([np.corrcoef(np.moveaxis(u[..., c], a, 0)[:-lag].ravel(),
+                                   np.moveaxis(u[..., c], a, 0)[lag:].ravel())[0, 1]
+                       for c in range(3) for a in range(3)])
+        assert abs(got - np.exp(-lag**2 / 36.0)) < 0.1, (lag, got)
+    np.testing.assert_array_equal(random_field(grid, mesh, shift_mm=2.0, length_mm=3.0, seed=1).data, u)
+    assert np.abs(random_field(grid, mesh, shift_mm=2.0, length_mm=3.0, seed=2).data - u).max() > 0.5
+    with pytest.raises(ValueError, match="folds the image"):
+        random_field(grid, mesh, shift_mm=15.0, length_mm=3.0)

@@ -198,7 +198,8 @@ class MeshConfig(_Strict):
 
 # keys of the FE truths that a dense truth does not use
 _DENSE_UNUSED = ("lam", "mu", "pushed_nodes", "clearance_mm", "tol_mm", "min_volume_ratio", "outside")
-_UNUSED_BY = {"bump": _DENSE_UNUSED, "field": _DENSE_UNUSED + ("shift_mm", "falloff_mm")}
+_UNUSED_BY = {"bump": _DENSE_UNUSED, "random": _DENSE_UNUSED,
+              "field": _DENSE_UNUSED + ("shift_mm", "falloff_mm")}
 
 
 class SyntheticConfig(_Strict):
@@ -206,27 +207,32 @@ class SyntheticConfig(_Strict):
 
     enabled: bool = Field(True, description="make m from f and a known deformation (the paper's "
                           "experiment); false: register data.moving")
-    truth: Literal["constrained", "smooth", "bump", "field"] = Field(
+    truth: Literal["constrained", "smooth", "bump", "random", "field"] = Field(
         "constrained", description="constrained: the pushed nodes fixed, every other boundary node "
         "at the minimum elastic energy subject to the skull constraint (paper Sec. 4.1); smooth: "
         "the push fades over the boundary with falloff_mm (no minimisation); both are FE fields "
         "of the lam, mu below.  Truths the model does not make (a dense voxel field, no lam, mu: "
         "the mismatch case): bump, a Gaussian bump of the whole image of peak shift_mm and sd "
         "falloff_mm at the top of the brain toward its centre of gravity "
-        "(bayesreg.truth.synthetic.bump_field); field, the displacement field of synthetic.field")
+        "(bayesreg.truth.synthetic.bump_field); random, a smooth random field of the whole "
+        "image, white noise smoothed by a Gaussian of sd falloff_mm, largest displacement "
+        "shift_mm at the nodes, seeded by the run's seed (bayesreg.truth.synthetic."
+        "random_field); field, the displacement field of synthetic.field")
     field: Path | None = Field(
         None, description="truth: field: a displacement-field NIfTI (ITK/ANTs/Slicer or "
         "bayesreg's displacement_*.nii.gz, fixed to moving: m(x + u(x)) = f(x)) in f's world "
         "frame, resampled onto f's grid (linear; zero beyond its grid); relative to the config "
         "file's folder")
     shift_mm: Float = Field(15.0, gt=0, description="displacement of the pushed nodes toward the "
-                            "brain's centre of gravity (bump: the peak displacement)")
+                            "brain's centre of gravity (bump: the peak displacement; random: the "
+                            "largest at the nodes)")
     n_pushed: Int = Field(20, ge=1, description="pushed nodes: the n_pushed boundary nodes with the "
                           "largest world z (top of the head)")
     pushed_nodes: list[Int] | None = Field(None, description="explicit mesh node indices instead")
     falloff_mm: Float = Field(30.0, gt=0, description="smooth truth: the push of the other "
                               "boundary nodes fades as exp(-d^2 / (2 falloff^2)) with their "
-                              "distance d to the nearest pushed node; bump: the Gaussian's sd")
+                              "distance d to the nearest pushed node; bump: the Gaussian's sd; "
+                              "random: the sd of the Gaussian that smooths the noise")
     clearance_mm: Float | None = Field(
         None, ge=0, description="constrained truth: distance (mm) kept in front of the skull's "
         "smooth surface (bayesreg.mesh.constraints; default half a voxel diagonal, so that a "
@@ -632,11 +638,15 @@ class OutputConfig(_Strict):
                             "bayesreg wrote (the CLI's --overwrite)")
     progress: bool = Field(True, description="show progress bars (tqdm); the one line per "
                            "finished stage (bayesreg: mesh done ...) is printed either way")
-    reference: bool = Field(
-        True, description="synthetic runs: also register f to m with scikit-image's optical "
-        "flow (init.registration, TV-L1 by default) and report it beside the posterior mean, "
-        "the point estimate to beat (displacement_reference.nii.gz; errors.json: brain, "
-        "boundary_reference_mm); seconds at 2 mm, about a minute at 1 mm")
+    reference: Annotated[Literal["tvl1", "ilk", "syn", "none"], BeforeValidator(
+            lambda v: ({True: "tvl1", False: "none"}[v] if isinstance(v, bool) else v))] = Field(
+        "tvl1", description="synthetic runs: also register f to m and report that field beside "
+        "the posterior mean, the point estimate to beat (displacement_reference.nii.gz; "
+        "errors.json: brain, boundary_reference_mm; the printed table): tvl1 or ilk, "
+        "scikit-image's optical flow (seconds at 2 mm, about a minute at 1 mm); syn, ANTs SyN "
+        "through ANTsPy (antspyx, an optional dependency; bayesreg.interop.syn: the deformable "
+        "stage of antsRegistrationSyNQuick.sh with its finest level); none.  true and "
+        "false (earlier versions) read as tvl1 and none")
     checkpoint: bool = Field(
         True, description="write the draws chunk by chunk and the sampler state after each chunk "
         "(checkpoint/ in the run directory), so that a killed run keeps its draws and "

@@ -1,10 +1,14 @@
-"""A fast dense registration (optical flow) to start the sampler from.
+"""Dense intensity registrations: a start for the sampler, and the references to beat.
 
 The paper starts its chains between the identity and the truth; with real data there is no
 truth, and a fast intensity registration of the pre-operative image ``f`` to the
-intra-operative image ``m`` gives a data-driven start instead.  The displacement follows
-the package's convention: ``m(x + u(x)) ~= f(x)`` (the intra-operative image is the
-pre-operative one moved by ``u``), with ``x`` and ``u`` in world mm.
+intra-operative image ``m`` gives a data-driven start instead (scikit-image optical flow,
+:func:`optical_flow_displacement`).  A synthetic run also reports such a registration beside
+its posterior mean, the point estimate to beat: optical flow, or ANTs SyN
+(:func:`bayesreg.interop.syn.syn_displacement`), the registration users already run.
+Every displacement follows the package's convention: ``m(x + u(x)) ~= f(x)`` (the
+intra-operative image is the pre-operative one moved by ``u``), with ``x`` and ``u`` in world
+mm.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ import numpy as np
 
 from bayesreg.data.images import Image, check_image, check_same_space, interpolate_numpy
 
-__all__ = ["optical_flow_displacement", "displacement_at"]
+__all__ = ["optical_flow_displacement", "displacement_at", "mask_box", "check_pair"]
 
 
 def _normalise(f: np.ndarray, m: np.ndarray):
@@ -27,6 +31,39 @@ def _normalise(f: np.ndarray, m: np.ndarray):
         lo, hi = float(f.min()), float(f.max())
     scale = 1.0 / (hi - lo) if hi > lo else 1.0
     return (f - lo) * scale, (m - lo) * scale
+
+
+def mask_box(mask, shape, margin: int | None) -> tuple:
+    """The bounding box of ``mask`` ``(I, J, K)`` grown by ``margin`` voxels and clipped to
+    the grid ``shape``, as three slices; the whole grid with no mask, an empty one, or
+    ``margin`` None."""
+    if mask is None or margin is None or not mask.any():
+        return tuple(slice(None) for _ in range(3))
+    idx = np.nonzero(mask)
+    return tuple(slice(max(int(i.min()) - margin, 0), min(int(i.max()) + margin + 1, n))
+                 for i, n in zip(idx, shape))
+
+
+def check_pair(f: Image, m: Image, mask=None, margin: int | None = None):
+    """``(f, m, mask)`` checked for a registration of ``f`` to ``m``: both images valid and on
+    one grid, ``mask`` (a bool array, or None) of that grid's shape, ``margin`` None or
+    ``>= 0``.
+
+    Raises
+    ------
+    ValueError
+        Naming what is wrong.
+    """
+    f = check_image(f, "f")
+    m = check_image(m, "m")
+    check_same_space(f, m, names=("f", "m"))
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != f.data.shape:
+            raise ValueError(f"mask shape {mask.shape} differs from the image grid {f.data.shape}")
+    if margin is not None and margin < 0:
+        raise ValueError(f"margin must be >= 0 voxels or None, got {margin}")
+    return f, m, mask
 
 
 def optical_flow_displacement(f: Image, m: Image, *, method: str = "tvl1", mask=None,
@@ -76,24 +113,12 @@ def optical_flow_displacement(f: Image, m: Image, *, method: str = "tvl1", mask=
     """
     from skimage.registration import optical_flow_ilk, optical_flow_tvl1
 
-    f = check_image(f, "f")
-    m = check_image(m, "m")
-    check_same_space(f, m, names=("f", "m"))
     solvers = {"tvl1": optical_flow_tvl1, "ilk": optical_flow_ilk}
     if method not in solvers:
         raise ValueError(f"unknown optical-flow method {method!r}: use one of {sorted(solvers)}")
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != f.data.shape:
-            raise ValueError(f"mask shape {mask.shape} differs from the image grid {f.data.shape}")
-    if margin is not None and margin < 0:
-        raise ValueError(f"margin must be >= 0 voxels or None, got {margin}")
+    f, m, mask = check_pair(f, m, mask, margin)
     fa, ma = _normalise(np.asarray(f.data, np.float64), np.asarray(m.data, np.float64))
-    box = tuple(slice(None) for _ in range(3))
-    if mask is not None and margin is not None and mask.any():
-        idx = np.nonzero(mask)
-        box = tuple(slice(max(int(i.min()) - margin, 0), min(int(i.max()) + margin + 1, n))
-                    for i, n in zip(idx, mask.shape))
+    box = mask_box(mask, f.data.shape, margin)
     kwargs.setdefault("dtype", np.float32)
     v = solvers[method](fa[box].astype(kwargs["dtype"]), ma[box].astype(kwargs["dtype"]), **kwargs)
     u = np.zeros(f.data.shape + (3,))

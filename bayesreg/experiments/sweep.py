@@ -220,7 +220,9 @@ def run_row(run_dir) -> dict:
     ``ess_bulk_min``, ``divergences``, ``draws_per_chain``; start: ``start_median_mm``
     (boundary nodes, chains' start to the truth); ``brain_mse_posterior_mean``,
     ``brain_mse_start``, ``brain_mse_reference`` (mm^2 over the brain's voxels; the
-    reference is TV-L1 on the same images) and ``coverage_moving_90`` (where the truth moves
+    reference is the run's ``output.reference`` on the same images, named in ``reference``:
+    ``tvl1``, ``ilk`` or ``syn``), ``boundary_reference_q95`` (mm, the reference's error at
+    the boundary nodes, 95th percentile) and ``coverage_moving_90`` (where the truth moves
     the tissue at least 1 mm), from ``errors.json``; Table 1: ``t1_median``, ``t1_q95``,
     ``t1_max`` (mm); Table 2: ``t2_brain``, ``t2_csf``, ``t2_gm``, ``t2_wm`` (mm^2);
     ``coverage_90`` (boundary components inside their 90% intervals); per elastic group
@@ -249,6 +251,9 @@ def run_row(run_dir) -> dict:
     brain = errors.get("brain") or {}
     for field, mse in (brain.get("mse_mm2") or {}).items():  # posterior_mean, start, reference
         row[f"brain_mse_{field}"] = mse
+    if "boundary_reference_mm" in errors:
+        row["reference"] = errors.get("reference_method") or errors.get("reference", "").rsplit("_", 1)[-1]
+        row["boundary_reference_q95"] = errors["boundary_reference_mm"]["q95"]
     if errors.get("coverage_moving"):
         row["coverage_moving_90"] = errors["coverage_moving"]["0.9"]
     if not (run_dir / "displacement_true.nii.gz").is_file():

@@ -109,9 +109,10 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
 
 
 def registration_field(problem: Problem, method: str = "tvl1") -> Image:
-    """A fast dense registration of ``f`` to ``m`` on the brain: scikit-image optical flow
-    (:func:`bayesreg.data.registration.optical_flow_displacement`), kept within 3 voxels of the
-    intracranial tissues and zero beyond.
+    """A dense registration of ``f`` to ``m`` on the brain, kept within 3 voxels of the
+    intracranial tissues and zero beyond: scikit-image optical flow (``method`` ``"tvl1"``
+    or ``"ilk"``, :func:`bayesreg.data.registration.optical_flow_displacement`) or ANTs SyN
+    (``"syn"``, :func:`bayesreg.interop.syn.syn_displacement`).
 
     For a synthetic truth of the FE map (whose ``m`` holds the warped brain) ``f`` is
     registered with its brain alone; otherwise (real data, a dense truth that moved the
@@ -121,13 +122,24 @@ def registration_field(problem: Problem, method: str = "tvl1") -> Image:
     -------
     Image
         ``(I, J, K, 3)`` displacement, world mm, ``m(x + u(x)) ~= f(x)``.
+
+    Raises
+    ------
+    ImportError
+        ``"syn"`` without ANTsPy installed.
+    RuntimeError
+        ANTs failed (``"syn"``).
     """
     brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
     f_reg = problem.f
     if problem.truth is not None and problem.truth.field is None:
         f_reg = Image(np.where(brain, problem.f.data, 0.0), problem.f.affine)
-    return optical_flow_displacement(f_reg, problem.m, method=method,
-                                     mask=ndi.binary_dilation(brain, iterations=3))
+    mask = ndi.binary_dilation(brain, iterations=3)
+    if method == "syn":
+        from bayesreg.interop.syn import syn_displacement
+
+        return syn_displacement(f_reg, problem.m, mask=mask)
+    return optical_flow_displacement(f_reg, problem.m, method=method, mask=mask)
 
 
 def start_check(problem: Problem, cfg: Config):

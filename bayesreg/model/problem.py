@@ -37,7 +37,7 @@ from bayesreg.model.posterior import Posterior, build_posterior
 from bayesreg.model.lncc import build_lncc
 from bayesreg.model.similarity import build_ssd
 from bayesreg.stages import Stages
-from bayesreg.truth.synthetic import Truth, brain_shift, bump_field, field_truth
+from bayesreg.truth.synthetic import Truth, brain_shift, bump_field, field_truth, random_field
 from bayesreg.interop.transforms import load_displacement
 from bayesreg.mesh.warp import warp_image, warp_image_field
 
@@ -228,10 +228,12 @@ def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
 def _truth_line(info: dict, u) -> str:
     """One line on a synthetic truth: its kind, push, largest displacement and, for the
     constrained truth, its active sets and energy."""
-    if info["truth"] in ("bump", "field"):
+    if info["truth"] in ("bump", "random", "field"):
         line = f"{info['truth']} (not made by the model)"
         if info["truth"] == "bump":
             line += f", peak {info['shift_mm']:g} mm, sd {info['radius_mm']:g} mm"
+        if info["truth"] == "random":
+            line += f", smoothing sd {info['length_mm']:g} mm, seed {info['seed']}"
         return line + f", max |u| at the nodes {float(np.linalg.norm(u, axis=1).max()):.1f} mm"
     line = (f"{info['truth']}, {len(info['pushed'])} nodes pushed {info['shift_mm']:g} mm, "
             f"max |u| {float(np.linalg.norm(u, axis=1).max()):.1f} mm")
@@ -244,7 +246,7 @@ def _truth_line(info: dict, u) -> str:
 def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
     """Synthetic truth per ``cfg.synthetic``; returns ``(Truth, info dict)``.
 
-    A dense truth (``bump``, ``field``) lies on ``labels``' grid (``f``'s).
+    A dense truth (``bump``, ``random``, ``field``) lies on ``labels``' grid (``f``'s).
 
     Raises
     ------
@@ -253,11 +255,16 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
         skull region or inverts an element (nothing is hidden: the figures are in the message).
     """
     s = cfg.synthetic
-    if s.truth in ("bump", "field"):
+    if s.truth in ("bump", "random", "field"):
         if s.truth == "bump":
             field = bump_field(labels, mesh, shift_mm=s.shift_mm, n_pushed=s.n_pushed,
                                radius_mm=s.falloff_mm)
             info = {"truth": "bump", "shift_mm": s.shift_mm, "radius_mm": s.falloff_mm}
+        elif s.truth == "random":
+            field = random_field(labels, mesh, shift_mm=s.shift_mm, length_mm=s.falloff_mm,
+                                 seed=cfg.seed)
+            info = {"truth": "random", "shift_mm": s.shift_mm, "length_mm": s.falloff_mm,
+                    "seed": cfg.seed}
         else:
             given = load_displacement(s.field)
             field = Image(np.stack([resample(Image(given.data[..., c], given.affine), labels.affine,

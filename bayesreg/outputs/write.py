@@ -43,6 +43,7 @@ Maps on the image grid are the FE interpolation of the nodal values (zero outsid
 from __future__ import annotations
 
 import platform
+import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
@@ -294,8 +295,8 @@ def format_report(errors: dict | None, info: dict) -> str:
                 ("boundary_posterior_mean_mm", "boundary, posterior mean"),
                 ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")]
         if "boundary_reference_mm" in errors:
-            rows.append(("boundary_reference_mm",
-                         f"boundary, {errors.get('reference', 'reference').rsplit('_', 1)[-1]}"))
+            name = errors.get("reference_method") or errors.get("reference", "reference").rsplit("_", 1)[-1]
+            rows.append(("boundary_reference_mm", f"boundary, {name}"))
         for key, label in rows:
             e = errors[key]
             lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
@@ -390,6 +391,12 @@ def verdict(s: dict) -> str:
             f"paper's rule ({paper}); {modern}; these summaries do not describe the posterior")
 
 
+#: What ``errors.json["reference"]`` names for each ``output.reference``.
+REFERENCE_NAMES = {"tvl1": "skimage.registration.optical_flow_tvl1",
+                   "ilk": "skimage.registration.optical_flow_ilk",
+                   "syn": "ants.registration (SyN, bayesreg.interop.syn.SYN_DEFAULTS)"}
+
+
 def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: SamplerResult,
                   init: Initialisation, timings: dict, init_info: dict | None = None, *,
                   resumed: bool = False, reference=None) -> RunResult:
@@ -414,8 +421,9 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         The run was resumed from a checkpoint.
     reference : Image, optional
         The :func:`~bayesreg.inference.initialisation.registration_field` of ``init.registration``
-        if already computed (a registration start's); made here otherwise (synthetic runs
-        with ``output.reference``).
+        if already computed (a registration start's): the reference when ``output.reference``
+        names the same method; made here otherwise (synthetic runs with ``output.reference``
+        other than ``none``).
 
     Returns
     -------
@@ -532,18 +540,21 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
 
-    if problem.truth is None or not cfg.output.reference:
+    method = cfg.output.reference
+    if problem.truth is None or method == "none":
         reference = None
     else:  # the point estimate to beat
-        if reference is None:
-            reference = registration_field(problem, cfg.init.registration)
+        if reference is None or method != cfg.init.registration:
+            t_ref = time.perf_counter()
+            reference = registration_field(problem, method)
+            timings = {**timings, "reference_s": time.perf_counter() - t_ref}
         save_displacement(reference.data, aff, run_dir.file("displacement_reference.nii.gz"),
-                          description=f"{cfg.init.registration} reference: {FIXED_TO_MOVING}")
+                          description=f"{method} reference: {FIXED_TO_MOVING}")
     errors = error_table(problem, result, u_init, u_mean, grid=(w, in_mesh), reference=reference,
                          draws=thinned)
     del thinned
     if errors is not None and reference is not None:
-        errors["reference"] = f"skimage.registration.optical_flow_{cfg.init.registration}"
+        errors["reference"], errors["reference_method"] = REFERENCE_NAMES[method], method
     identification = (contraction(layout, post.prior, pos[..., 3 * nb:], phi_true=problem.phi_true)
                       if post.n_free else {})
     for name, r in (errors or {}).get("ratio", {}).items():

@@ -172,6 +172,76 @@ def bump_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, n_pushed=20, radius_mm=
     return Image(u.reshape(*grid.data.shape[:3], 3), grid.affine)
 
 
+def random_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, length_mm=30.0, seed=0) -> Image:
+    """A smooth random displacement of the whole image: a mismatch no FE field makes.
+
+    Each component is white noise convolved with a Gaussian of sd ``length_mm`` (a
+    stationary Gaussian random field whose correlation is Gaussian of sd
+    ``length_mm * sqrt(2)``), drawn on a lattice of spacing ``length_mm / 3`` that covers
+    ``grid`` and read at its voxel centres by cubic B-splines (the field of the whole
+    resolution at a fraction of the cost), then scaled so that the largest displacement at
+    the mesh's nodes is ``shift_mm``.  Unlike :func:`bump_field` the brain is deformed
+    everywhere, in directions that vary over tens of millimetres.
+
+    Parameters
+    ----------
+    grid : Image
+        The grid (``f``'s), world mm.
+    mesh : Mesh
+        Its nodes set the scale.
+    shift_mm : float
+        Largest displacement at the nodes, mm (realistic brain shift: 5-15 mm).
+    length_mm : float
+        sd of the smoothing Gaussian, mm.
+    seed : int
+        Seed of NumPy's generator (the same seed, grid and mesh give the same field).
+
+    Returns
+    -------
+    Image
+        ``(I, J, K, 3)`` float64 displacement in world mm, ``grid``'s affine.
+
+    Raises
+    ------
+    ValueError
+        Non-positive ``shift_mm`` or ``length_mm``, or a field whose map ``x -> x + u(x)``
+        folds or nearly folds the image (the determinant of its Jacobian below 0.2 at a
+        voxel: lower ``shift_mm`` or raise ``length_mm``).
+    """
+    import scipy.ndimage as ndi
+
+    if shift_mm <= 0 or length_mm <= 0:
+        raise ValueError("shift_mm and length_mm must be > 0")
+    pts = grid_points(grid)
+    h = length_mm / 3.0
+    lo = pts.min(axis=0) - 4.0 * length_mm
+    n = np.ceil((pts.max(axis=0) + 4.0 * length_mm - lo) / h).astype(int) + 1
+    rng = np.random.default_rng(seed)
+    coarse = [ndi.gaussian_filter(rng.standard_normal(tuple(n)), 3.0, mode="wrap") for _ in range(3)]
+
+    def at(points):
+        c = ((points - lo) / h).T
+        return np.stack([ndi.map_coordinates(v, c, order=3, mode="nearest") for v in coarse], -1)
+
+    scale = shift_mm / np.linalg.norm(at(mesh.nodes), axis=1).max()
+    u = scale * at(pts).reshape(*grid.data.shape[:3], 3)
+    # the Jacobian of x + u(x) in world coordinates: I + (d u / d index) A^-1, slab by slab
+    # along the first axis (a 1 mm head grid would need gigabytes at once)
+    a_inv = np.linalg.inv(grid.affine[:3, :3])
+    det_min = np.inf
+    for i0 in range(0, u.shape[0], 32):
+        lo_i, hi_i = max(i0 - 1, 0), min(i0 + 33, u.shape[0])
+        if hi_i - lo_i < 2:
+            continue
+        du = np.stack(np.gradient(u[lo_i:hi_i], axis=(0, 1, 2)), axis=-1)
+        det_min = min(det_min, float(np.linalg.det(np.eye(3) + du @ a_inv).min()))
+    if det_min < 0.2:
+        raise ValueError(f"a random field of {shift_mm:g} mm at the nodes with length "
+                         f"{length_mm:g} mm (nearly) folds the image: Jacobian determinant "
+                         f"{det_min:.2f} at a voxel (lower shift_mm or raise length_mm)")
+    return Image(u, grid.affine)
+
+
 def field_truth(mesh: Mesh, field: Image, *, n_pushed=20) -> Truth:
     """A truth the model did not make: a dense displacement field sampled at the nodes.
 
