@@ -89,8 +89,8 @@ def check_optional_packages(cfg: Config) -> None:
 
     if cfg.output.reference == "syn" and importlib.util.find_spec("ants") is None:
         raise ConfigError("output.reference: syn needs ANTsPy, which is not installed: pip "
-                          "install antspyx (wheels for Linux x86_64 and macOS), or choose "
-                          "output.reference: tvl1 | ilk | none")
+                          "install 'bayesreg[ants]' (or antspyx; wheels for Linux x86_64 and "
+                          "macOS), or choose output.reference: tvl1 | ilk | none")
 
 
 def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,

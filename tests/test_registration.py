@@ -198,7 +198,7 @@ def test_syn_without_antspy_says_what_to_install(monkeypatch):
 
     monkeypatch.setitem(sys.modules, "ants", None)  # import ants raises ImportError
     f = Image(np.zeros((8, 8, 8)), np.eye(4))
-    with pytest.raises(ImportError, match="pip install antspyx"):
+    with pytest.raises(ImportError, match=r"pip install 'bayesreg\[ants\]'"):
         syn_displacement(f, f)
     cfg = load_config(None, overrides=["output.reference=syn"])
     monkeypatch.setattr("importlib.util.find_spec", lambda name, *a: None)

@@ -60,7 +60,8 @@ def syn_displacement(f: Image, m: Image, *, mask=None, margin: int | None = 16,
     Raises
     ------
     ImportError
-        ANTsPy is not installed (``pip install antspyx``; wheels for Linux x86_64 and macOS).
+        ANTsPy is not installed (``pip install 'bayesreg[ants]'``, or ``antspyx``; wheels for
+        Linux x86_64 and macOS).
     ValueError
         As :func:`bayesreg.data.registration.optical_flow_displacement` (grids, mask,
         margin).
@@ -84,8 +85,9 @@ def syn_displacement(f: Image, m: Image, *, mask=None, margin: int | None = 16,
     try:
         import ants
     except ImportError as exc:
-        raise ImportError("the SyN reference needs ANTsPy: pip install antspyx (wheels for "
-                          "Linux x86_64 and macOS), or output.reference: tvl1 | none") from exc
+        raise ImportError("the SyN reference needs ANTsPy: pip install 'bayesreg[ants]' (or "
+                          "antspyx; wheels for Linux x86_64 and macOS), or output.reference: "
+                          "tvl1 | none") from exc
     f, m, mask = check_pair(f, m, mask, margin)
     box = mask_box(mask, f.data.shape, margin)
     start = np.array([b.start or 0 for b in box], float)
