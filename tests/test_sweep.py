@@ -117,7 +117,12 @@ def test_a_sweep_on_a_local_cluster_isolates_a_failure_and_resumes(tmp_path, cap
         assert float(table[k]["brain_mse_posterior_mean"]) == pytest.approx(mse["posterior_mean"])
         assert table[k].get("brain_mse_reference", "") == ""
     md = (out / "sweep.md").read_text()
-    assert "1 failed" in md and "Table 1 median (mm)" in md and "| 0.160 |" in md
+    assert "1 failed" in md and (out / "sweep_table1.png").is_file()
+    if rows[good[0]]["status"] == "finished":  # a result: in the medians, beside the paper's
+        assert "Table 1 median (mm)" in md and "| 0.160 |" in md
+    else:  # listed with its status, not averaged in
+        assert "Left out (below, run by run): 1 unconverged, 1 failed." in md
+        assert f"| {good[0]} | unconverged |" in md
     err = capsys.readouterr().err
     assert "[2/2 done, 1 failed" in err
 
@@ -133,3 +138,49 @@ def test_a_sweep_on_a_local_cluster_isolates_a_failure_and_resumes(tmp_path, cap
     (out / "sweep.csv").unlink()
     assert main(["report", str(out)]) == 0
     assert set(_rows(out)) == set(rows)
+
+
+def test_the_tables_average_only_runs_that_met_their_rule(tmp_path):
+    """``sweep.md``'s medians are over the runs that met their stop rule from a good start; an
+    unconverged run, a bad start, a failure and a run not yet made are listed run by run and
+    counted as left out, never averaged in (an unconverged run's wild Table 1 would move
+    the median); the configs' run-by-run comparison counts only pairs that both met their
+    rule; ``sweep_table1.png`` draws every run with figures."""
+    from bayesreg.experiments.sweep import SweepRun, write_tables
+
+    def run(stem, subject):
+        return SweepRun(f"{stem}--subject={subject}", Path(f"{stem}.yaml"), (), {"data.subject": subject},
+                        tmp_path / f"{stem}-{subject}")
+
+    def figures(t1, brain):
+        return {"t1_median": t1, "t1_q95": 4 * t1, "t1_max": 10 * t1, "t2_brain": brain,
+                "converged": True}
+
+    tissue = [run("three", s) for s in (4, 5, 6, 18, 20, 38)]
+    uniform = [run("uniform", s) for s in (4, 5, 6, 18, 20, 38)]
+    rows = {
+        tissue[0].id: {"status": "finished", "elastic": "tissue", **figures(0.10, 0.030)},
+        tissue[1].id: {"status": "finished", "elastic": "tissue", **figures(0.20, 0.040)},
+        tissue[2].id: {"status": "finished", "elastic": "tissue", **figures(0.30, 0.050)},
+        tissue[3].id: {"status": "unconverged", "elastic": "tissue", **figures(9.0, 9.0), "converged": False},
+        tissue[4].id: {"status": "bad start", "elastic": "tissue", **figures(5.0, 5.0)},
+        tissue[5].id: {"status": "failed", "error": "ValueError: truth: no"},
+        uniform[0].id: {"status": "finished", "elastic": "uniform", **figures(0.15, 0.060)},
+        uniform[1].id: {"status": "finished", "elastic": "uniform", **figures(0.25, 0.020)},
+        uniform[3].id: {"status": "finished", "elastic": "uniform", **figures(0.25, 0.070)},
+    }
+    write_tables("ten", tissue + uniform, rows, tmp_path)
+    md = (tmp_path / "sweep.md").read_text()
+    three = md.split("## three")[1].split("## uniform")[0]
+    assert "3 of 6 runs met their stop rule from a good start" in three
+    assert "Left out (below, run by run): 1 unconverged, 1 bad start, 1 failed." in three
+    assert "| Table 1 median (mm) | 0.200 | 0.150-0.250 | 0.160 |" in three
+    assert "| Table 2 brain MSE (mm^2) | 0.040 | 0.035-0.045 | 0.040 |" in three
+    for r in tissue[3:]:
+        assert f"| {r.id} | {rows[r.id]['status']}" in three  # each listed with its status
+    uni = md.split("## uniform")[1].split("## Configs")[0]
+    assert "3 of 6 runs met" in uni and "3 not run" in uni
+    # subjects 4 and 5 met the rule in both: three is lower on 4, uniform on 5 (18: three's
+    # run did not meet its rule, no pair)
+    assert "| three | uniform | 1 of 2 |" in md and "| uniform | three | 1 of 2 |" in md
+    assert (tmp_path / "sweep_table1.png").stat().st_size > 10_000

@@ -16,8 +16,10 @@ made, so running a sweep again finishes what is left.  The runs are tasks of a
 by default, or the scheduler at an address (a cluster started by ``dask-jobqueue`` on
 SLURM/PBS, one worker per GPU with ``dask-cuda``).  A run's failure is its row's ``error``;
 it never stops the others.  After each run the sweep rewrites ``sweep.csv`` (one row per
-run), ``sweep.md`` (per config: median and interquartile range over the runs next to the
-paper's values) and ``sweep.json`` (the runs, their keys, status and errors).
+run), ``sweep.md`` (per config: median and interquartile range over the runs that met
+their stop rule from a good start, next to the paper's values; the other runs listed, never
+averaged in), ``sweep_table1.png`` (each run's Table 1 as points, the paper's as lines) and
+``sweep.json`` (the runs, their keys, status and errors).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from bayesreg.config.loading import load_model_file
 from bayesreg.outputs.result import RunResult
 from bayesreg.pipeline import run
 from bayesreg.report.data import PAPER, load_run
+from bayesreg.report.figures import plot_sweep_table1
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
 
 __all__ = ["SweepSpec", "SweepRun", "load_sweep", "expand", "run_or_resume", "check_same_config",
@@ -318,6 +321,7 @@ _SUMMARY = [
     ("Table 2 GM (mm^2)", "t2_gm", ("table2_mm2", "gm")),
     ("Table 2 WM (mm^2)", "t2_wm", ("table2_mm2", "wm")),
     ("boundary coverage of 90% intervals", "coverage_90", None),
+    ("coverage of 90% intervals where the tissue moves", "coverage_moving_90", None),
     ("lam/mu GM, posterior median", "ratio_gm_median", None),
     ("lam/mu WM, posterior median", "ratio_wm_median", None),
     ("R-hat (rank-normalised), max", "rhat_rank_max", None),
@@ -349,12 +353,19 @@ def _markdown(name: str, runs: list[SweepRun], rows: dict) -> str:
     counts = {s: status.count(s) for s in dict.fromkeys(status)}
     lines += ["Runs: " + ", ".join(f"{n} {s}" for s, n in counts.items()) + f" (of {len(runs)}).", ""]
     for stem, rs in by_config.items():
-        done = [rows[r.id] for r in rs if rows.get(r.id, {}).get("status") in ("finished", "unconverged", "bad start")]
+        # only runs that met their stop rule from a good start are results: an unconverged
+        # run, a bad start or a failure is listed below, never averaged in
+        done = [rows[r.id] for r in rs if rows.get(r.id, {}).get("status") == "finished"]
+        left = [rows.get(r.id, {}).get("status", "not run") for r in rs]
+        left = {st: left.count(st) for st in dict.fromkeys(left) if st != "finished"}
         elastic = next((rows[r.id].get("elastic") for r in rs if rows.get(r.id, {}).get("elastic")), None)
         paper_key = {"tissue": "tissue", "uniform": "uniform"}.get(elastic)
+        excluded = ("" if not left else " Left out (below, run by run): "
+                    + ", ".join(f"{n} {st}" for st, n in left.items()) + ".")
         lines += [f"## {stem}", "",
-                  f"{len(done)} of {len(rs)} runs with results; median and interquartile range "
-                  "over them, the paper's value where it reports one.", "",
+                  f"{len(done)} of {len(rs)} runs met their stop rule from a good start; median "
+                  f"and interquartile range over them, the paper's value where it reports one."
+                  + excluded, "",
                   "| figure | median | IQR | paper |", "|---|---|---|---|"]
         for label, col, paper in _SUMMARY:
             x = _numbers(done, col)
@@ -370,8 +381,7 @@ def _markdown(name: str, runs: list[SweepRun], rows: dict) -> str:
             if inside:
                 lines.append(f"| lam/mu {g.upper()} truth inside the 90% interval | {sum(inside)} of "
                              f"{len(inside)} | | |")
-        conv = [r.get("converged") for r in done]
-        lines += [f"| stop rule met | {sum(bool(c) for c in conv)} of {len(conv)} | | |", ""]
+        lines.append("")
         lines += ["| run | status | Table 1 median / q95 / max | brain MSE | GM ratio 90% | WM ratio 90% "
                   "| R-hat | wall s |", "|---|---|---|---|---|---|---|---|"]
         for r in rs:
@@ -390,7 +400,8 @@ def _markdown(name: str, runs: list[SweepRun], rows: dict) -> str:
 
 
 def _pairs(by_config: dict, rows: dict) -> list[str]:
-    """Brain MSE of each config against each other one, over the runs with the same keys."""
+    """Brain MSE of each config against each other one, over the runs with the same keys
+    where both met their stop rule."""
     stems = list(by_config)
     if len(stems) < 2:
         return []
@@ -401,7 +412,10 @@ def _pairs(by_config: dict, rows: dict) -> list[str]:
             rb = next((r for r in by_config[b] if r.keys == ra.keys), None)
             if rb is None:
                 continue
-            xa, xb = rows.get(ra.id, {}).get("t2_brain"), rows.get(rb.id, {}).get("t2_brain")
+            row_a, row_b = rows.get(ra.id, {}), rows.get(rb.id, {})
+            if "finished" != row_a.get("status") or "finished" != row_b.get("status"):
+                continue  # a pair is a result only where both met their rule
+            xa, xb = row_a.get("t2_brain"), row_b.get("t2_brain")
             if isinstance(xa, float) and isinstance(xb, float):
                 pairs.append(xa < xb)
         if pairs:
@@ -411,7 +425,9 @@ def _pairs(by_config: dict, rows: dict) -> list[str]:
 
 def write_tables(name: str, runs: list[SweepRun], rows: dict, out) -> None:
     """Write ``sweep.csv``, ``sweep.md`` and ``sweep.json`` of ``rows`` (``{run id: row}``)
-    into ``out`` (atomically, so an interrupted sweep leaves the last complete tables)."""
+    into ``out`` (atomically, so an interrupted sweep leaves the last complete tables), and
+    ``sweep_table1.png`` (:func:`bayesreg.report.figures.plot_sweep_table1`) once a run has
+    Table 1's figures."""
     import pandas as pd
 
     out = Path(out)
@@ -424,6 +440,22 @@ def write_tables(name: str, runs: list[SweepRun], rows: dict, out) -> None:
     df = pd.DataFrame.from_records(records)
     write_text_atomic(out / "sweep.csv", df.to_csv(index=False))
     write_text_atomic(out / "sweep.md", _markdown(name, runs, rows))
+    by_config: dict[str, list] = {}
+    for r in runs:
+        row = rows.get(r.id, {})
+        by_config.setdefault(r.config.stem, []).append(
+            {"id": r.id, "label": "-".join(_value(v) for v in r.keys.values()) or r.id, **row})
+    if any(isinstance(row.get("t1_median"), (int, float)) for rs in by_config.values() for row in rs):
+        paper = {}
+        for stem, rs in by_config.items():
+            key = {"tissue": "tissue", "uniform": "uniform"}.get(
+                next((row.get("elastic") for row in rs if row.get("elastic")), None))
+            if key:
+                paper[stem] = PAPER["table1_mm"][key]
+        fig = plot_sweep_table1(by_config, paper)
+        tmp = out / ".sweep_table1.png"
+        fig.savefig(tmp, dpi=110)
+        tmp.replace(out / "sweep_table1.png")
     state = {"name": name, "runs": [{"id": r.id, "config": str(r.config), "overrides": list(r.overrides),
                                      "keys": r.keys, "dir": str(r.dir), **rows.get(r.id, {})} for r in runs]}
     write_text_atomic(out / "sweep.json", dumps_json(state, indent=1))

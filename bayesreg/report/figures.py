@@ -491,3 +491,56 @@ def plot_uncertainty(runs, k: int | None = None):
             fig.colorbar(im, ax=ax[0, i], shrink=0.8, label="mm")
     fig.suptitle("posterior uncertainty of the displacement")
     return fig
+
+
+#: Table 1's statistics (boundary-node error of the posterior mean, mm) and their colours.
+_TABLE1_STATS = (("t1_median", "median", "C0"), ("t1_q95", "95th percentile", "C1"),
+                 ("t1_max", "max", "C3"))
+
+
+def plot_sweep_table1(configs: dict, paper: dict | None = None):
+    """Table 1 of every run of a sweep as points: one panel per config, one column of points
+    per run (the boundary-node error of the posterior mean, median, 95th percentile and max,
+    mm), the paper's values as dashed lines.
+
+    Parameters
+    ----------
+    configs : dict
+        ``{config name: [row, ...]}``, each row a dict with ``id``, ``status`` and, where the
+        run has results, ``t1_median``, ``t1_q95``, ``t1_max`` (mm;
+        :func:`bayesreg.experiments.sweep.run_row`).  Runs whose status is not
+        ``finished`` (unconverged, a bad start) are drawn hollow and grey: shown, not
+        results; runs without figures are left out.
+    paper : dict, optional
+        ``{config name: {"median": ..., "q95": ..., "max": ...}}``, the paper's Table 1 row
+        each config reproduces (:data:`bayesreg.report.data.PAPER`).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    paper = paper or {}
+    names = list(configs)
+    fig, axes = _figure(1, max(1, len(names)), size=(4.2, 3.2))
+    for ax, name in zip(axes[0], names):
+        rows = [r for r in configs[name] if isinstance(r.get("t1_median"), (int, float))]
+        for j, r in enumerate(rows):
+            ok = r.get("status") == "finished"
+            for col, label, colour in _TABLE1_STATS:
+                ax.plot([j], [r[col]], "o", color=colour if ok else "0.6",
+                        mfc=colour if ok else "none", ms=5)
+        for col, label, colour in _TABLE1_STATS:
+            ax.plot([], [], "o", color=colour, ms=5, label=label)  # the legend's, in colour
+            ref = paper.get(name, {}).get(label if label != "95th percentile" else "q95")
+            if ref is not None:
+                ax.axhline(ref, ls="--", lw=1, color=colour)
+        ax.set_xticks(range(len(rows)))
+        ax.set_xticklabels([str(r.get("label", r["id"])) for r in rows], rotation=60, fontsize=7,
+                           ha="right")
+        ax.set_yscale("log")
+        ax.set_ylabel("boundary-node error of E[u] (mm)")
+        ax.set_title(f"{name}: filled, rule met; hollow, not", fontsize=9)
+        if rows:
+            ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle("Table 1 per run (dashed: the paper)", fontsize=10)
+    return fig
