@@ -184,3 +184,19 @@ def test_the_tables_average_only_runs_that_met_their_rule(tmp_path):
     # run did not meet its rule, no pair)
     assert "| three | uniform | 1 of 2 |" in md and "| uniform | three | 1 of 2 |" in md
     assert (tmp_path / "sweep_table1.png").stat().st_size > 10_000
+
+
+def test_the_shipped_sweeps_validate_every_run():
+    """``configs/sweeps/*.yaml``: every run's config validates (as the sweep checks before
+    its first run), e.g. the mismatch benchmarks: two truths the model did not make, each on
+    MNI152 and three BrainWeb brains, with ANTs SyN as the reference."""
+    from bayesreg.config import load_config
+
+    for path in sorted((CONFIGS / "sweeps").glob("*.yaml")):
+        runs = expand(load_sweep(path))
+        assert runs, path
+        for r in runs:
+            load_config(r.config, overrides=list(r.overrides))
+    mismatch = expand(load_sweep(CONFIGS / "sweeps" / "mismatch.yaml"))
+    assert len(mismatch) == 8
+    assert {load_config(r.config, overrides=list(r.overrides)).synthetic.truth for r in mismatch} == {"bump", "random"}
