@@ -238,7 +238,7 @@ def test_collapsed_moves_need_a_conditional():
         gk.build_kernel(toy_target(), "nuts", collapsed_moves=1)
 
 
-def _shifted_gaussian(mean) -> "Target":
+def _shifted_gaussian(mean):
     """``u ~ N(mean, I)``, no elastic parameters: a target that depends on data."""
     from bayesreg.sampling.kernels.target import Cache, Target
 
