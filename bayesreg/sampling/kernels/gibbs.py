@@ -41,7 +41,10 @@ Metropolis step after the trajectory (4.) makes the chain exact.
    (block ``normaliser``); the cache holds the correction at the chain's position.
 
 :func:`as_algorithm` adds the windowed warm-up (:mod:`bayesreg.sampling.kernels.adaptation`)
-and hands the kernel to the driver, :func:`bayesreg.sampling.driver.sample`.
+and hands the kernel to the driver, :func:`bayesreg.sampling.driver.sample`.  Chains of one
+program may sample different posteriors: the target is then a function of each chain's own
+data, which its state carries (``chain_data``; the replicas of
+:mod:`bayesreg.experiments.calibration`).
 """
 
 from __future__ import annotations
