@@ -17,7 +17,7 @@ import numpy as np
 
 from bayesreg.data.images import Image, check_image, check_same_space, interpolate_numpy
 
-__all__ = ["optical_flow_displacement", "displacement_at", "mask_box", "check_pair"]
+__all__ = ["optical_flow_displacement", "displacement_at", "prepare_pair", "field_on_grid"]
 
 
 def _normalise(f: np.ndarray, m: np.ndarray):
@@ -33,7 +33,7 @@ def _normalise(f: np.ndarray, m: np.ndarray):
     return (f - lo) * scale, (m - lo) * scale
 
 
-def mask_box(mask, shape, margin: int | None) -> tuple:
+def _mask_box(mask, shape, margin: int | None) -> tuple:
     """The bounding box of ``mask`` ``(I, J, K)`` grown by ``margin`` voxels and clipped to
     the grid ``shape``, as three slices; the whole grid with no mask, an empty one, or
     ``margin`` None."""
@@ -44,15 +44,17 @@ def mask_box(mask, shape, margin: int | None) -> tuple:
                  for i, n in zip(idx, shape))
 
 
-def check_pair(f: Image, m: Image, mask=None, margin: int | None = None):
-    """``(f, m, mask)`` checked for a registration of ``f`` to ``m``: both images valid and on
-    one grid, ``mask`` (a bool array, or None) of that grid's shape, ``margin`` None or
-    ``>= 0``.
+def prepare_pair(f: Image, m: Image, mask=None, margin: int | None = None):
+    """What every registration of ``f`` to ``m`` here starts from: ``(f, m, mask, box)``, the
+    images checked (valid, one grid), ``mask`` as a bool array of that grid's shape (or
+    None), and ``box`` the three slices of the grid to register: the mask's bounding box
+    grown by ``margin`` voxels and clipped to the grid, or the whole grid (no mask, an
+    empty one, or ``margin`` None).  :func:`field_on_grid` puts the box's field back.
 
     Raises
     ------
     ValueError
-        Naming what is wrong.
+        Naming what is wrong: the grids, the mask's shape, a negative ``margin``.
     """
     f = check_image(f, "f")
     m = check_image(m, "m")
@@ -63,7 +65,18 @@ def check_pair(f: Image, m: Image, mask=None, margin: int | None = None):
             raise ValueError(f"mask shape {mask.shape} differs from the image grid {f.data.shape}")
     if margin is not None and margin < 0:
         raise ValueError(f"margin must be >= 0 voxels or None, got {margin}")
-    return f, m, mask
+    return f, m, mask, _mask_box(mask, f.data.shape, margin)
+
+
+def field_on_grid(u_box, f: Image, box: tuple, mask=None) -> Image:
+    """The displacement ``u_box`` ``(*box shape, 3)`` (world mm) registered on ``box`` of
+    :func:`prepare_pair`, as a field on ``f``'s whole grid: 0 outside the box and, with a
+    ``mask``, outside the mask."""
+    u = np.zeros(f.data.shape + (3,))
+    u[box] = u_box
+    if mask is not None:
+        u[~mask] = 0.0
+    return Image(u, f.affine)
 
 
 def optical_flow_displacement(f: Image, m: Image, *, method: str = "tvl1", mask=None,
@@ -116,16 +129,12 @@ def optical_flow_displacement(f: Image, m: Image, *, method: str = "tvl1", mask=
     solvers = {"tvl1": optical_flow_tvl1, "ilk": optical_flow_ilk}
     if method not in solvers:
         raise ValueError(f"unknown optical-flow method {method!r}: use one of {sorted(solvers)}")
-    f, m, mask = check_pair(f, m, mask, margin)
+    f, m, mask, box = prepare_pair(f, m, mask, margin)
     fa, ma = _normalise(np.asarray(f.data, np.float64), np.asarray(m.data, np.float64))
-    box = mask_box(mask, f.data.shape, margin)
     kwargs.setdefault("dtype", np.float32)
     v = solvers[method](fa[box].astype(kwargs["dtype"]), ma[box].astype(kwargs["dtype"]), **kwargs)
-    u = np.zeros(f.data.shape + (3,))
-    u[box] = np.einsum("dc,c...->...d", f.affine[:3, :3], np.asarray(v, dtype=np.float64))
-    if mask is not None:
-        u[~mask] = 0.0
-    return Image(u, f.affine)
+    return field_on_grid(np.einsum("dc,c...->...d", f.affine[:3, :3], np.asarray(v, dtype=np.float64)),
+                         f, box, mask)
 
 
 def displacement_at(field: Image, points) -> np.ndarray:

@@ -43,6 +43,7 @@ from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, ConfigError, load_config
 from bayesreg.config.loading import load_model_file
 from bayesreg.outputs.result import RunResult
+from bayesreg.outputs.write import reference_method
 from bayesreg.pipeline import run
 from bayesreg.report.data import PAPER, load_run
 from bayesreg.report.figures import plot_sweep_table1
@@ -255,7 +256,7 @@ def run_row(run_dir) -> dict:
     for field, mse in (brain.get("mse_mm2") or {}).items():  # posterior_mean, start, reference
         row[f"brain_mse_{field}"] = mse
     if "boundary_reference_mm" in errors:
-        row["reference"] = errors.get("reference_method") or errors.get("reference", "").rsplit("_", 1)[-1]
+        row["reference"] = reference_method(errors)
         row["boundary_reference_q95"] = errors["boundary_reference_mm"]["q95"]
     if errors.get("coverage_moving"):
         row["coverage_moving_90"] = errors["coverage_moving"]["0.9"]
@@ -347,6 +348,13 @@ def _numbers(rows, col) -> np.ndarray:
                      and math.isfinite(v)], np.float64)
 
 
+def _paper_key(rows: list) -> str | None:
+    """The paper's model (``"tissue"`` or ``"uniform"``) a config's runs reproduce, from the
+    first of their ``rows`` that says (``elastic``); None for any other model."""
+    elastic = next((row.get("elastic") for row in rows if row.get("elastic")), None)
+    return elastic if elastic in ("tissue", "uniform") else None
+
+
 def _markdown(name: str, runs: list[SweepRun], rows: dict) -> str:
     lines = [f"# Sweep {name}", ""]
     by_config: dict[str, list] = {}
@@ -361,8 +369,7 @@ def _markdown(name: str, runs: list[SweepRun], rows: dict) -> str:
         done = [rows[r.id] for r in rs if rows.get(r.id, {}).get("status") == "finished"]
         left = [rows.get(r.id, {}).get("status", "not run") for r in rs]
         left = {st: left.count(st) for st in dict.fromkeys(left) if st != "finished"}
-        elastic = next((rows[r.id].get("elastic") for r in rs if rows.get(r.id, {}).get("elastic")), None)
-        paper_key = {"tissue": "tissue", "uniform": "uniform"}.get(elastic)
+        paper_key = _paper_key([rows.get(r.id, {}) for r in rs])
         excluded = ("" if not left else " Left out (below, run by run): "
                     + ", ".join(f"{n} {st}" for st, n in left.items()) + ".")
         lines += [f"## {stem}", "",
@@ -449,12 +456,8 @@ def write_tables(name: str, runs: list[SweepRun], rows: dict, out) -> None:
         by_config.setdefault(r.config.stem, []).append(
             {"id": r.id, "label": "-".join(_value(v) for v in r.keys.values()) or r.id, **row})
     if any(isinstance(row.get("t1_median"), (int, float)) for rs in by_config.values() for row in rs):
-        paper = {}
-        for stem, rs in by_config.items():
-            key = {"tissue": "tissue", "uniform": "uniform"}.get(
-                next((row.get("elastic") for row in rs if row.get("elastic")), None))
-            if key:
-                paper[stem] = PAPER["table1_mm"][key]
+        paper = {stem: PAPER["table1_mm"][key] for stem, rs in by_config.items()
+                 if (key := _paper_key(rs))}
         fig = plot_sweep_table1(by_config, paper)
         tmp = out / ".sweep_table1.png"
         fig.savefig(tmp, dpi=110)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from bayesreg.data.images import Image
-from bayesreg.data.registration import check_pair, mask_box
+from bayesreg.data.registration import field_on_grid, prepare_pair
 from bayesreg.interop.transforms import load_displacement
 
 __all__ = ["SYN_DEFAULTS", "syn_displacement"]
@@ -74,8 +74,9 @@ def syn_displacement(f: Image, m: Image, *, mask=None, margin: int | None = 16,
     ``f``'s space to ``m``'s, ``T(x) = x + u(x)``, which is the package's ``u``; ANTs writes it
     in LPS, :func:`bayesreg.interop.transforms.load_displacement` reads it back in RAS.  ANTs
     runs its own threads on every core; a stage with a sampled metric (ANTsPy's affine
-    stages) varies between calls.  Reference: Avants, Epstein, Grossman, Gee 2008, *Symmetric diffeomorphic image
-    registration with cross-correlation*, Med. Image Anal. 12(1).
+    stages) varies between calls.  Reference: Avants, Epstein, Grossman, Gee 2008,
+    *Symmetric diffeomorphic image registration with cross-correlation*, Med. Image Anal.
+    12(1).
     """
     import tempfile
     from pathlib import Path
@@ -88,8 +89,7 @@ def syn_displacement(f: Image, m: Image, *, mask=None, margin: int | None = 16,
         raise ImportError("the SyN reference needs ANTsPy: pip install 'bayesreg[ants]' (or "
                           "antspyx; wheels for Linux x86_64 and macOS), or output.reference: "
                           "tvl1 | none") from exc
-    f, m, mask = check_pair(f, m, mask, margin)
-    box = mask_box(mask, f.data.shape, margin)
+    f, m, mask, box = prepare_pair(f, m, mask, margin)
     start = np.array([b.start or 0 for b in box], float)
     affine = f.affine.copy()
     affine[:3, 3] = f.affine[:3, :3] @ start + f.affine[:3, 3]
@@ -112,8 +112,4 @@ def syn_displacement(f: Image, m: Image, *, mask=None, margin: int | None = 16,
     if v.data.shape[:3] != f.data[box].shape or not np.allclose(v.affine, affine, atol=1e-4):
         raise RuntimeError(f"ANTs SyN failed: its field's grid {v.data.shape[:3]} is not the "
                            f"registered box's {f.data[box].shape}")
-    u = np.zeros(f.data.shape + (3,))
-    u[box] = v.data
-    if mask is not None:
-        u[~mask] = 0.0
-    return Image(u, f.affine)
+    return field_on_grid(v.data, f, box, mask)

@@ -295,8 +295,7 @@ def format_report(errors: dict | None, info: dict) -> str:
                 ("boundary_posterior_mean_mm", "boundary, posterior mean"),
                 ("all_nodes_posterior_mean_mm", "all nodes, posterior mean")]
         if "boundary_reference_mm" in errors:
-            name = errors.get("reference_method") or errors.get("reference", "reference").rsplit("_", 1)[-1]
-            rows.append(("boundary_reference_mm", f"boundary, {name}"))
+            rows.append(("boundary_reference_mm", f"boundary, {reference_method(errors)}"))
         for key, label in rows:
             e = errors[key]
             lines.append(f"  {label:<27} {_f(e['median'], '7.3f')} {_f(e['q95'], '7.3f')} {_f(e['max'], '7.3f')}")
@@ -389,6 +388,13 @@ def verdict(s: dict) -> str:
                 f"stopped the run ({paper}); means and intervals are not yet reliable")
     return (f"verdict: NOT converged: {s.get('draws_per_chain')} draws per chain without meeting the "
             f"paper's rule ({paper}); {modern}; these summaries do not describe the posterior")
+
+
+def reference_method(errors: dict) -> str:
+    """The ``output.reference`` method an ``errors.json`` names (``"tvl1"``, ``"ilk"``,
+    ``"syn"``), also of runs written before ``reference_method`` was recorded (the last
+    word of scikit-image's function name); ``"reference"`` where it names none."""
+    return errors.get("reference_method") or errors.get("reference", "reference").rsplit("_", 1)[-1]
 
 
 #: What ``errors.json["reference"]`` names for each ``output.reference``.
