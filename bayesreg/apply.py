@@ -66,6 +66,9 @@ class RunPosterior(NamedTuple):
         wrote them in ``mesh.vtu``.
     u_true : (N, 3) ndarray or None
         The synthetic truth (synthetic runs).
+    d : (S, n_i, 3) ndarray or None
+        The model discrepancy per draw, mm, in ``mesh.interior`` order (runs with
+        ``model.discrepancy: interior``), added to the interior's FE solve.
     """
 
     path: Path
@@ -80,6 +83,7 @@ class RunPosterior(NamedTuple):
     u_mean: np.ndarray
     u_sd: np.ndarray
     u_true: np.ndarray | None
+    d: np.ndarray | None = None
 
     @property
     def n_draws(self) -> int:
@@ -128,6 +132,8 @@ def load_posterior(run_dir) -> RunPosterior:
         u_b = np.asarray(post["u_b"].transpose("chain", "draw", "node", "axis").values, np.float64)
         lam, mu = group_draws(tree, "lam"), group_draws(tree, "mu")
         nodes = np.asarray(post["node"].values)
+        disc = (np.asarray(post["d"].transpose("chain", "draw", "interior_node", "axis").values,
+                           np.float64) if "d" in post else None)
     finally:
         tree.close()
     if not np.array_equal(nodes, data.mesh.boundary):
@@ -135,12 +141,14 @@ def load_posterior(run_dir) -> RunPosterior:
                          "mesh (files of two different runs?)")
     c, d = u_b.shape[:2]
     u_b, lam, mu = (a.reshape(c * d, *a.shape[2:]) for a in (u_b, lam, mu))
+    if disc is not None:
+        disc = disc.reshape(c * d, *disc.shape[2:])
     # the run's own nodal moments (over every draw's stored interior): no solve of all draws
     point_data = meshio.read(path / "mesh.vtu").point_data
     return RunPosterior(path, data.mesh, data.f, data.m, data.labels, u_b, lam, mu,
                         np.asarray(group), np.asarray(point_data["u_mean"], np.float64),
                         np.asarray(point_data["u_sd"], np.float64),
-                        None if data.truth is None else np.asarray(data.truth.u))
+                        None if data.truth is None else np.asarray(data.truth.u), disc)
 
 
 def draw_indices(n_draws: int, k: int | None) -> np.ndarray:
@@ -155,7 +163,8 @@ def draw_indices(n_draws: int, k: int | None) -> np.ndarray:
 
 def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
     """Full nodal displacements ``(K, N, 3)`` mm of the draws ``indices``: the sampled
-    boundary and the interior's FE solve at each draw's ``lam``, ``mu`` (SciPy sparse LU).
+    boundary and the interior's FE solve at each draw's ``lam``, ``mu`` (SciPy sparse LU),
+    plus the draw's model discrepancy where the run has one.
     Draws sharing their parameters (a fixed-parameter model) share one factorisation."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
@@ -183,6 +192,8 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
                 cache[key] = (spla.splu(sp.csc_matrix(kk[di][:, di])), kk[di][:, db])
             lu, k_ib = cache[key]
             full[di] = lu.solve(-(k_ib @ full[db]))
+            if rp.d is not None:
+                full[di] += rp.d[s].ravel()
         out[k] = full.reshape(n, 3)
     return out
 

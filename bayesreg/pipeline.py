@@ -53,10 +53,10 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     """
     init = init or initialise(problem, cfg)
     post = problem.posterior
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled
 
     def estimands(draws):
-        # boundary coordinates, free parameters and the lam/mu ratios per group
+        # boundary coordinates (and a discrepancy's), free parameters and the lam/mu ratios
         phi = draws[..., nb3:]
         lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, phi))
         return np.concatenate([draws, lam_g / mu_g], axis=-1)

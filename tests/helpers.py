@@ -96,7 +96,7 @@ def fake_run(seed=0, c=3, d=23):
     n_par = 2
     positions = np.concatenate([draws[:, :, boundary].reshape(c, d, 3 * nb),
                                 rng.uniform(1, 2, (c, d, n_par))], axis=-1)
-    problem = SimpleNamespace(mesh=mesh, posterior=SimpleNamespace(n_boundary=nb, perm=perm))
+    problem = SimpleNamespace(mesh=mesh, posterior=SimpleNamespace(n_boundary=nb, perm=perm, discrepancy=None))
     result = SimpleNamespace(positions=positions, interior=draws[:, :, interior])
     return mesh, problem, result, draws.reshape(c * d, n, 3)
 

@@ -359,3 +359,15 @@ def test_sampling_the_interior_needs_the_exact_normaliser():
     cfg = load_config("configs/quickstart.yaml", overrides=[
         "model.interior=sample", "model.prior_normaliser=exact", "model.fixed=null"])
     assert cfg.model.interior == "sample"
+
+
+def test_a_model_discrepancy_needs_the_solved_interior_and_a_gradient_sampler():
+    cfg = load_config("configs/quickstart.yaml", overrides=["model.discrepancy=interior"])
+    assert cfg.model.discrepancy == "interior" and cfg.model.discrepancy_prior.floor_mm == 0.05
+    assert load_config("configs/quickstart.yaml").model.discrepancy == "none"
+    assert "needs model.interior: solve" in _error(
+        ["model.discrepancy=interior", "model.interior=sample", "model.fixed=null"])
+    assert "needs a gradient sampler" in _error(["model.discrepancy=interior", "sampler.kind=rwmh"])
+    assert "sampler.collapsed_moves" in _error(
+        ["model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false"])
+    assert "floor_mm" in _error(["model.discrepancy=interior", "model.discrepancy_prior.floor_mm=0"])

@@ -302,6 +302,17 @@ class GammaPrior(_Strict):
     rate: Float = Field(gt=0, description="rate b, in the units of the temperature")
 
 
+class DiscrepancyPrior(_Strict):
+    """The prior of the model discrepancy's amplitude (``model.discrepancy: interior``)."""
+
+    shape: Float = Field(1.0, gt=0, description="shape a of the Gamma prior of 1 / T_d (a = 1: "
+                         "weakly informative, the images set the amplitude)")
+    floor_mm: Float = Field(0.05, gt=0, description="rms per interior node (mm) of the "
+                            "discrepancy at the floor of T_d, where the images ask for none: "
+                            "sets the Gamma prior's rate b (bayesreg.model.posterior."
+                            "discrepancy_rate); well below a voxel")
+
+
 class TissuePriors(_Strict):
     """A separate scaled Beta prior per tissue (paper Sec. 3.1: priors per compartment)."""
 
@@ -423,6 +434,18 @@ class ModelConfig(_Strict):
         "real brain shift) are reachable, but the images then no longer identify the ratios "
         "(the interior's obeying the FE solve is what carries them); needs prior_normaliser: "
         "exact (the normaliser of the whole K)")
+    discrepancy: Literal["none", "interior"] = Field(
+        "none", description="none: the paper's model, the interior at the FE solve; interior: "
+        "a model discrepancy (Kennedy and O'Hagan 2001), u_i = -K_ii^-1 K_ib u_b + d with d "
+        "sampled under N(0, T_d K0_ii^-1) (K0 at the start's parameters, model.initial_*, "
+        "fixed: d says nothing of lam, mu) and its amplitude T_d learned (a Gamma prior on "
+        "1 / T_d, integrated out: a Student t), so that what the FE model cannot make (a "
+        "bump, real brain shift) goes into d while the elastic parameters keep what it can; "
+        "the report maps |d| (bayesreg.model.posterior.Discrepancy).  Needs interior: solve "
+        "and a gradient sampler (nuts, hmc, mala) without collapsed moves")
+    discrepancy_prior: DiscrepancyPrior = Field(
+        DiscrepancyPrior(), description="prior of the discrepancy's amplitude (discrepancy: "
+        "interior)")
     initial_lam: TissueValues = Field(TissueValues(csf=1.0, gm=5.0, wm=5.0),
                                       description="the chains' central start of lambda per tissue "
                                       "(uniform: their volume-weighted mean)")
@@ -713,6 +736,17 @@ class Config(_Strict):
             raise ValueError("model.interior: sample needs model.prior_normaliser: exact (with "
                              "every node sampled, the paper's unnormalised prior drives the "
                              "free parameters to zero)")
+        if self.model.discrepancy != "none":
+            if self.model.interior != "solve":
+                raise ValueError("model.discrepancy: interior needs model.interior: solve (the "
+                                 "discrepancy is the interior's deviation from the FE solve)")
+            if not self.sampler.gradient:
+                raise ValueError("model.discrepancy: interior needs a gradient sampler "
+                                 "(sampler.kind: nuts, hmc or mala): it samples every interior "
+                                 "node too")
+            if self.sampler.collapsed_moves:
+                raise ValueError("model.discrepancy: interior does not work with "
+                                 "sampler.collapsed_moves (their Gaussian is of u_b alone)")
         self._initial_in_support()
         if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:
             raise ValueError("init.start 'between' needs a synthetic truth (synthetic.enabled); "

@@ -57,7 +57,7 @@ import scipy.sparse as sps
 
 __all__ = ["NormaliserData", "SparsePattern", "Surrogate", "normaliser_data", "dense_stiffness",
            "log_pdet_schur", "log_pdet_sparse", "build_surrogate", "surrogate_log_pdet",
-           "add_normaliser", "SAFE_RATIO"]
+           "add_normaliser", "trace_inverse_interior", "SAFE_RATIO"]
 
 #: Parameters below this fraction of the largest are not factorised (NaN; module docstring):
 #: such a stiffness is singular to round-off, and CHOLMOD would stop the program.
@@ -265,6 +265,39 @@ def log_pdet_sparse(data: NormaliserData, klam, kmu, lam_g, mu_g, group):
     if data.interior.n:
         value = value - 0.5 * logdet(data.interior)
     return jnp.where(safe, value, jnp.nan)
+
+
+def trace_inverse_interior(data: NormaliserData, klam, kmu, lam_g, mu_g, group) -> float:
+    """``tr(K_ii^-1)`` (mm / [lam]): the sum of the interior DOFs' variances under
+    ``N(0, T K_ii^-1)`` per unit temperature ``T``, at the group parameters ``lam_g``,
+    ``mu_g`` ``(G,)``.
+
+    Exact: the diagonal of ``K_ii^-1`` is the gradient of ``log det K_ii`` with respect to
+    its diagonal entries, which CHOLMOD's selected inversion gives (``sparsax.logdet``'s
+    reverse mode) from one sparse factorisation; no dense inverse.  Host code.
+
+    Raises
+    ------
+    ValueError
+        No interior nodes, or the factorisation fails (non-finite result).
+    """
+    import sparsax
+
+    p = data.interior
+    if p.n == 0:
+        raise ValueError("tr(K_ii^-1) needs interior nodes")
+    kl, km = _flat(klam), _flat(kmu)
+    lam_g, mu_g = jnp.asarray(lam_g, jnp.float64), jnp.asarray(mu_g, jnp.float64)
+
+    def logdet(values):
+        return sparsax.logdet(p.rows, p.cols, values, n=p.n)
+
+    grad = jax.grad(logdet)(_values(p, kl, km, lam_g, mu_g, group))
+    trace = float(jnp.sum(grad[p.diag]))
+    if not np.isfinite(trace) or trace <= 0:
+        raise ValueError(f"tr(K_ii^-1) failed (got {trace}): K_ii not positive definite at "
+                         "these parameters")
+    return trace
 
 
 class Surrogate(NamedTuple):

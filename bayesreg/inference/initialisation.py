@@ -30,14 +30,16 @@ from bayesreg.fem.element import stiffness_matrix
 from bayesreg.data.images import Image
 from bayesreg.inference.mode import find_mode
 from bayesreg.mesh.tetmesh import Mesh
-from bayesreg.model.posterior import Posterior, elastic_groups, energies, similarity_weight
+from bayesreg.model.posterior import (
+    Posterior, discrepancy_log_prior, elastic_groups, energies, similarity_weight)
 from bayesreg.model.problem import Problem
 from bayesreg.data.registration import displacement_at, optical_flow_displacement
 from bayesreg.inference.targets import make_logdensity
 
 __all__ = ["Initialisation", "initialise", "start_center", "start_check", "registration_field",
            "initial_positions",
-           "laplace_precision", "gauss_newton_precision", "schur_complement", "proposal_scale"]
+           "laplace_precision", "gauss_newton_precision", "schur_complement",
+           "reference_stiffness", "proposal_scale"]
 
 
 def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tuple[np.ndarray, dict]:
@@ -64,6 +66,7 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     Returns
     -------
     theta : (dim,) ndarray
+        (a model discrepancy, if any, at zero)
     info : dict
         ``{"start", "shrink"}`` (and the time of a registration made here)
 
@@ -84,7 +87,8 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
         base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
     elif problem.truth is not None:
         base_u = cfg.init.fraction * problem.truth.u[mesh.boundary]
-    theta = np.concatenate([base_u.ravel(), problem.phi_init])
+    # a model discrepancy (if any) starts at zero: the interior at the FE solve
+    theta = np.concatenate([base_u.ravel(), np.zeros(3 * post.n_discrepancy), problem.phi_init])
     check = start_check(problem, cfg) if check is None else check
     shrink = 1.0
     # a node nearer the skull than half the barrier's width counts as offending: its barrier
@@ -163,7 +167,7 @@ def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None, *,
                       check=None) -> np.ndarray:
     """Dispersed starts ``(chains, dim)`` around ``center``.
 
-    ``u_b``: Gaussian jitter of ``init.perturb_mm`` (method ``between``), or
+    ``u_b`` (and a model discrepancy, if any): Gaussian jitter of ``init.perturb_mm`` (method ``between``), or
     ``init.overdispersion`` times a draw from the Laplace approximation ``N(0, prec^-1)``
     (method ``mode``).  Parameters: log-normal jitter ``init.param_jitter``, clipped into
     the prior support.  Starts that violate a hard constraint are redrawn closer to the
@@ -175,7 +179,7 @@ def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None, *,
         If some chain has no valid start after 20 halvings.
     """
     post = problem.posterior
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled
     c = cfg.sampler.chains
     lo = np.asarray(post.prior.r1)
     hi = np.asarray(post.prior.r2)
@@ -209,8 +213,8 @@ def _dofs(nodes):
 
 
 def laplace_precision(problem: Problem, theta) -> np.ndarray:
-    """Gauss-Newton precision of ``u_b`` at ``theta`` with the parameters held fixed
-    (:func:`gauss_newton_precision` of the problem's posterior)."""
+    """Gauss-Newton precision of ``u_b`` (and a model discrepancy, if any) at ``theta`` with the
+    parameters held fixed (:func:`gauss_newton_precision` of the problem's posterior)."""
     return gauss_newton_precision(problem.posterior, problem.mesh, problem.element_group, theta)
 
 
@@ -243,6 +247,10 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     similarity term's residuals with respect to ``u_b`` through the interior map ``u_i = -K_ii^{-1} K_ib
     u_b``, ``S`` the Schur complement of ``K`` on the boundary DOFs (so ``E_r = u_b^T S u_b
     / 2``), the last term the posterior's prior along the rigid-body modes (0 if flat).
+    With a model discrepancy ``d`` (:class:`~bayesreg.model.posterior.Discrepancy`,
+    ``u_i = H u_b + d``) the precision is of ``[u_b, d]``: ``J`` over both, and the block of
+    ``d`` adds ``tau K0_ii`` with ``tau = (a + 3 n_i / 2) / (b + q)`` the posterior mean of
+    ``1 / T_d`` given ``theta``'s ``d`` (the positive part of the Student prior's curvature).
 
     Parameters
     ----------
@@ -252,34 +260,60 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     element_group : (M,) int array
         Parameter group of each element.
     theta : (dim,) array
-        ``[u_b.ravel() (mm), phi]``.
+        ``[u_b.ravel() (mm), phi]`` (``[u_b.ravel(), d.ravel(), phi]`` with a discrepancy).
 
     Returns
     -------
-    (3 n_b, 3 n_b) array
-        Dense, symmetric, with a ridge of ``1e-6`` times its mean diagonal.
+    (3 n_s, 3 n_s) array
+        ``n_s`` = :attr:`~bayesreg.model.posterior.Posterior.n_sampled` (``n_b``, or
+        ``n_b + n_i`` with a discrepancy); dense, symmetric, with a ridge of ``1e-6``
+        times its mean diagonal.
     """
     nb = len(mesh.boundary)
-    phi = np.asarray(theta)[3 * nb:]
+    theta = np.asarray(theta)
+    phi = theta[3 * post.n_sampled:]
     h, schur = schur_complement(post, mesh, element_group, phi)
     bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
     # residual Jacobian w.r.t. nodal displacements, through the interior map
-    u_b = np.asarray(theta)[: 3 * nb]
+    u_b = theta[: 3 * nb]
+    d = theta[3 * nb:3 * post.n_sampled]
     u = np.zeros(3 * len(mesh.nodes))
     u[bd] = u_b
-    u[idf] = h @ u_b
+    u[idf] = h @ u_b + (d if d.size else 0.0)
     u = u.reshape(-1, 3)
     gram = post.similarity.gram(u, mesh.tets, len(mesh.nodes))
-    g_ib = gram[idf][:, bd]
-    jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ (gram[idf][:, idf] @ h)
+    g_ib, g_ii = gram[idf][:, bd], gram[idf][:, idf]
+    g_ii_h = g_ii @ h
+    jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ g_ii_h
+    if d.size:  # J over [u_b, d]: d moves the interior nodes directly
+        cross = g_ib.T.toarray() + g_ii_h.T  # (3 n_b, 3 n_i)
+        jtj = np.block([[jtj, cross], [cross.T, g_ii.toarray()]])
     # E_s matters only where the temperature is integrated out (similarity_weight)
     e_s = energies(post, jnp.asarray(u), jnp.asarray(phi))[0] if float(post.t_s_shape) > 0 else 0.0
-    prec = 2.0 * float(similarity_weight(post, e_s)) * jtj + float(post.inv_t_r) * schur
+    prec = 2.0 * float(similarity_weight(post, e_s)) * jtj
+    prior = float(post.inv_t_r) * schur
     rigid = np.asarray(post.normaliser.rigid_b)
-    prec = prec + float(post.inv_rigid_var) * rigid @ rigid.T
+    prior = prior + float(post.inv_rigid_var) * rigid @ rigid.T
+    prec[: 3 * nb, : 3 * nb] += prior
+    if d.size:
+        disc = post.discrepancy
+        _, q = discrepancy_log_prior(post, jnp.asarray(d.reshape(-1, 3)))
+        tau = float(disc.shape) / (float(disc.rate) + float(q))
+        prec[3 * nb:, 3 * nb:] += tau * reference_stiffness(post, mesh, element_group)
     prec = 0.5 * (prec + prec.T)
     ridge = 1e-6 * np.trace(prec) / len(prec)
     return prec + ridge * np.eye(len(prec))
+
+
+def reference_stiffness(post: Posterior, mesh: Mesh, element_group) -> np.ndarray:
+    """``K0_ii`` dense ``(3 n_i, 3 n_i)``: the interior block of ``K`` at the posterior's
+    reference parameters :attr:`~bayesreg.model.posterior.Posterior.phi_ref` (the model
+    discrepancy's prior precision per unit ``1 / T_d``), by SciPy."""
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, post.phi_ref))
+    g = np.asarray(element_group)
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
+    idf = _dofs(mesh.interior)
+    return k[idf][:, idf].toarray()
 
 
 def proposal_scale(problem: Problem, cfg: Config, prec=None):
@@ -294,7 +328,7 @@ def proposal_scale(problem: Problem, cfg: Config, prec=None):
     post = problem.posterior
     s = cfg.sampler
     sig_p = np.array([s.sigma_lam if p == "lam" else s.sigma_mu for p, _ in problem.layout.free])
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled
     if s.proposal == "isotropic":
         return np.full(nb3, s.sigma_u), sig_p
     chol = sla.cholesky(prec, lower=True)
@@ -348,7 +382,7 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
         prec = laplace_precision(problem, center)
     x0 = initial_positions(problem, cfg, center, rng, prec, check=check)
     post = problem.posterior
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled
     if cfg.sampler.gradient:
         # u_b = c + F w: F = R^-T with prec = R R^T (laplace), or 1 mm (isotropic)
         if cfg.sampler.proposal == "laplace":

@@ -18,7 +18,7 @@ import optax
 from bayesreg.mesh.constraints import element_volumes, inversion_barrier
 from bayesreg.fem.normaliser import add_normaliser
 from bayesreg.model.posterior import (
-    Posterior, full_displacement, log_normaliser, normaliser_surrogate, split_position,
+    Posterior, log_normaliser, nodal_displacement, normaliser_surrogate, split_position,
     surrogate_normaliser, with_skull_barrier)
 from bayesreg.inference.targets import logdensity_fn
 
@@ -142,7 +142,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     # the barrier's own wall off: its huge finite values make the line search step back,
     # where -inf would stop the search (the sampled posterior keeps the wall)
     post = post._replace(skull=post.skull._replace(barrier_wall=jnp.asarray(False)))
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled  # the displacements (u_b, and a discrepancy d if any), then phi
     theta0 = np.asarray(theta0, dtype=np.float64)
     zeros = jnp.zeros((post.op.n_interior, 3))
     # the exact normaliser depends on lam, mu only: u_b (and the parameters) are first
@@ -155,7 +155,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
 
     def plain(theta, guess):  # the model plus the search's barrier against inverted elements
         lp, aux = model(theta, guess)
-        u = full_displacement(post, split_position(post, theta)[0], aux.interior)
+        u = nodal_displacement(post, theta, aux.interior)
         return lp + inversion_barrier(post.nodes + u, post.tets, volumes0, MODE_VOLUME_RATIO), aux
     grouped = post.normaliser.grounded.unit is not None
 

@@ -150,10 +150,10 @@ def rw_condensation(problem: Problem, cfg: Config) -> Condensation:
 def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     """The gradient kernels' target of ``problem`` in the coordinates ``u_b = center + factor w``
     (:func:`bayesreg.sampling.kernels.target.make_target`; ``center`` ``(dim,)``, of which the first
-    ``3 n_b`` entries are used), wrapped by :func:`bayesreg.sampling.kernels.target.joint_target`
+    ``3 n_b`` entries are used, ``3 (n_b + n_i)`` with a model discrepancy: ``[u_b, d]``), wrapped by :func:`bayesreg.sampling.kernels.target.joint_target`
     (the parameters' logits centred on ``center``'s) where :func:`use_joint` says so."""
     post = problem.posterior
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled  # u_b (and a model discrepancy, if any)
     joint = use_joint(problem, cfg)
     base = make_target(post, center_u=center[:nb3], factor=factor,
                        exact=cfg.model.prior_normaliser == "exact",
@@ -224,7 +224,7 @@ def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm
     """
     s = cfg.sampler
     post = problem.posterior
-    nb3 = 3 * post.n_boundary
+    nb3 = 3 * post.n_sampled
     interior0 = jnp.zeros((post.op.n_interior, 3))
     if s.gradient:
         target = gradient_target(problem, cfg, init.center, init.sigma[0])

@@ -17,7 +17,9 @@ the skull for gradient kernels; the hard constraint stays, and a node at the bar
 singularity (:func:`bayesreg.mesh.constraints.skull_barrier`) is forbidden too.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
-node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters.  The exact
+node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters; with a model
+discrepancy (:class:`Discrepancy`) ``theta = [u_b.ravel(), d.ravel(), phi]``, ``d`` ``(n_i, 3)``
+mm the interior nodes' deviation from the FE solve, so that ``u_i = -K_ii^-1 K_ib u_b + d``.  The exact
 normaliser of the elastic prior, ``(1/2) log pdet S(lam, mu)``, is :func:`log_normaliser`
 (:mod:`bayesreg.fem.normaliser`).
 """
@@ -42,7 +44,7 @@ from bayesreg.jaxconfig import require_x64
 from bayesreg.mesh.tetmesh import Mesh
 from bayesreg.fem.normaliser import (
     NormaliserData, Surrogate, build_surrogate, dense_stiffness, log_pdet_schur, log_pdet_sparse,
-    normaliser_data, surrogate_log_pdet)
+    normaliser_data, surrogate_log_pdet, trace_inverse_interior)
 from bayesreg.model.parameters import BetaPriors, ParamLayout, beta_priors
 from bayesreg.model.parameters import log_prior as prior_log_density
 from bayesreg.fem.preconditioners import (
@@ -51,11 +53,17 @@ from bayesreg.fem.preconditioners import (
 from bayesreg.model.lncc import LNCCTerm
 from bayesreg.model.similarity import SSDTerm
 from bayesreg.fem.solver import SolveInfo, interior_map_blocks, solve_interior_blocks
-from bayesreg.fem.stiffness import ElasticOperator, GroupBlocks, build_operator, group_blocks
+from bayesreg.fem.stiffness import (
+    ElasticOperator, GroupBlocks, build_operator, ell_matvec, group_blocks)
 
 __all__ = [
     "Posterior",
     "Aux",
+    "Discrepancy",
+    "discrepancy_of",
+    "discrepancy_log_prior",
+    "discrepancy_rate",
+    "nodal_displacement",
     "build_posterior",
     "with_skull_barrier",
     "log_density",
@@ -96,6 +104,40 @@ SCOPES = {
     "strain_energy": "bayesreg_strain_energy",  # E_r (Eqs. 2-7)
     "constraints": "bayesreg_constraints",  # prior support, inverted elements, skull, barrier
 }
+
+
+class Discrepancy(NamedTuple):
+    """A model discrepancy on the interior nodes (Kennedy and O'Hagan 2001).
+
+    The interior displacement is the FE solve plus a deviation ``d`` ``(n_i, 3)`` mm that the
+    chains sample with the displacement:  ``u_i = -K_ii^-1 K_ib u_b + d``.  Its prior is
+    ``N(0, T_d K0_ii^-1)``, ``K0_ii`` the interior block of ``K`` at fixed reference
+    parameters (the chains' central start, ``model.initial_*``; it does not move with
+    ``lam, mu``, so ``d`` carries no information about them), with the precision
+    ``tau = 1 / T_d`` under a Gamma(a, b) prior integrated out: a multivariate Student t,
+
+    ``log p(d) = -(a + 3 n_i / 2) log(1 + q / b) + const``,  ``q = d^T K0_ii d / 2``
+
+    (``df = 2a``, shape ``(b / a) K0_ii^-1``).  Its amplitude is learned from the images:
+    ``tau | d ~ Gamma(a + 3 n_i / 2, b + q)``.  The elastic parameters keep what the FE model
+    explains (``u_b`` through the Schur complement, ``u_i`` through the solve); what it
+    cannot make (a bump, real brain shift) goes into ``d``.
+
+    Attributes
+    ----------
+    k_ii : tuple of (R_k, S_k, 3, 3) arrays
+        Sliced ELL blocks of ``K0_ii`` (the layout of :attr:`Posterior.op`).
+    shape : ()
+        ``a + 3 n_i / 2``.
+    rate : ()
+        ``b`` ([lam] mm^3, the unit of the strain energy): the floor of ``T_d``, which
+        is about ``2 b / (3 n_i)`` where the images ask for no discrepancy
+        (:func:`discrepancy_rate`).
+    """
+
+    k_ii: tuple
+    shape: jax.Array
+    rate: jax.Array
 
 
 class Posterior(NamedTuple):
@@ -155,6 +197,9 @@ class Posterior(NamedTuple):
         The exact CG preconditioner of a one-group model at every ``lam, mu``
         (``build_posterior(spectral=True)``), shared by all chains; :func:`log_density`
         uses it when no other preconditioner is given.
+    discrepancy : Discrepancy or None
+        The model discrepancy on the interior nodes (``build_posterior(discrepancy=...)``),
+        or ``None``: the paper's model, the interior at the FE solve.
     """
 
     op: ElasticOperator
@@ -179,10 +224,21 @@ class Posterior(NamedTuple):
     inv_rigid_var: jax.Array | float = 0.0
     t_s_shape: jax.Array | float = 0.0
     t_s_rate: jax.Array | float = 1.0
+    discrepancy: Discrepancy | None = None
 
     @property
     def n_boundary(self) -> int:
         return self.boundary.shape[0]
+
+    @property
+    def n_discrepancy(self) -> int:
+        """Rows of the sampled discrepancy ``d``: ``n_i`` with :attr:`discrepancy`, else 0."""
+        return 0 if self.discrepancy is None else self.op.n_interior
+
+    @property
+    def n_sampled(self) -> int:
+        """Rows of ``theta``'s displacement block: ``n_b`` (+ ``n_i`` with a discrepancy)."""
+        return self.n_boundary + self.n_discrepancy
 
     @property
     def n_free(self) -> int:
@@ -190,7 +246,7 @@ class Posterior(NamedTuple):
 
     @property
     def dim(self) -> int:
-        return 3 * self.n_boundary + self.n_free
+        return 3 * self.n_sampled + self.n_free
 
     @property
     def barrier_width(self) -> float:
@@ -204,7 +260,8 @@ class Aux(NamedTuple):
     Attributes
     ----------
     interior : (n_i, 3)
-        Interior displacements (the next warm start), mm.
+        Interior displacements of the FE solve (the next warm start), mm; a model
+        discrepancy, where there is one, is not in them (:func:`nodal_displacement`).
     solve : SolveInfo
     e_s, e_r : ()
         Similarity and strain energies.
@@ -231,6 +288,7 @@ def build_posterior(
     spectral: bool = False,
     rigid_sd: float | None = None,
     t_s_prior: tuple[float, float] | None = None,
+    discrepancy: tuple[float, float] | None = None,
 ) -> Posterior:
     """Assemble :class:`Posterior` from a mesh, the similarity term and the parameter layout.
 
@@ -259,6 +317,16 @@ def build_posterior(
     spectral : bool
         Build :attr:`Posterior.spectral` (one parameter group and ``3 n_i <=
         DENSE_MAX_DOFS`` only; ignored otherwise).
+    rigid_sd : float, optional
+        rms boundary displacement (mm) of the proper prior along the rigid-body modes
+        (:attr:`Posterior.inv_rigid_var`); ``None``: flat along them.
+    t_s_prior : (shape, rate), optional
+        Gamma prior of ``1 / T_s``, integrated out (:attr:`Posterior.t_s_shape`).
+    discrepancy : (a, floor_mm), optional
+        Sample a model discrepancy on the interior nodes (:class:`Discrepancy`): the Gamma
+        prior's shape ``a`` of ``1 / T_d`` and the rms per node (mm) of ``d`` at the floor
+        of ``T_d`` (:func:`discrepancy_rate`), with ``K0_ii`` at ``phi_ref``.  ``None``: the
+        paper's model.
 
     Returns
     -------
@@ -273,7 +341,8 @@ def build_posterior(
         ``phi_ref`` not of shape ``(n_free,)`` or not strictly inside its support (NaN
         included); ``forbidden`` not a 3D :class:`~bayesreg.data.images.Image` with a finite
         invertible affine; a negative barrier width; ``rigid_sd`` not finite and > 0;
-        ``t_s_prior`` not two finite numbers > 0.
+        ``t_s_prior`` or ``discrepancy`` not two finite numbers > 0; ``discrepancy`` on a
+        mesh without interior nodes.
     RuntimeError
         JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
 
@@ -368,7 +437,40 @@ def build_posterior(
     if spectral and n_groups == 1 and 3 * n_i <= DENSE_MAX_DOFS:
         ub = post.unit_blocks
         post = post._replace(spectral=spectral_preconditioner(op, *ub.group(0)))
+    if discrepancy is not None:
+        if not (len(discrepancy) == 2 and all(np.isfinite(v) and v > 0 for v in discrepancy)):
+            raise ValueError(f"discrepancy must be (shape, floor_mm), both finite and > 0, got "
+                             f"{discrepancy}")
+        if n_i == 0:
+            raise ValueError("a model discrepancy on the interior nodes needs interior nodes "
+                             "(model.interior: solve, a mesh with interior nodes)")
+        lam0, mu0 = elastic_groups(post, post.phi_ref)
+        a, floor_mm = (float(v) for v in discrepancy)
+        post = post._replace(discrepancy=Discrepancy(
+            stiffness_blocks(post, lam0, mu0)[0], jnp.asarray(a + 1.5 * n_i),
+            jnp.asarray(discrepancy_rate(post, a, floor_mm))))
     return post
+
+
+def discrepancy_rate(post: Posterior, shape: float, floor_mm: float) -> float:
+    """The Gamma prior's rate ``b`` of ``1 / T_d`` (:class:`Discrepancy`) that puts the floor of
+    ``T_d`` at ``floor_mm`` rms per interior node.
+
+    Where the images ask for no discrepancy (``q -> 0``), ``1 / T_d`` has posterior mean
+    ``(a + 3 n_i / 2) / b``; under ``N(0, T K0_ii^-1)`` the mean squared norm of ``d`` per
+    node is ``T tr(K0_ii^-1) / n_i`` (:func:`bayesreg.fem.normaliser.trace_inverse_interior`,
+    exact), so ``b = (a + 3 n_i / 2) floor_mm^2 n_i / tr(K0_ii^-1)``, ``K0_ii`` at
+    :attr:`Posterior.phi_ref`.
+
+    Returns
+    -------
+    float
+        ``b`` in [lam] mm^3.
+    """
+    n_i = post.op.n_interior
+    lam0, mu0 = elastic_groups(post, post.phi_ref)
+    trace = trace_inverse_interior(post.normaliser, post.op.klam, post.op.kmu, lam0, mu0, post.group)
+    return (shape + 1.5 * n_i) * floor_mm**2 * n_i / trace
 
 
 def with_skull_barrier(post: Posterior, barrier_mm: float) -> Posterior:
@@ -384,13 +486,16 @@ def with_skull_barrier(post: Posterior, barrier_mm: float) -> Posterior:
 
 
 def _check_theta(post: Posterior, theta):
+    disc = (f" + 3 * {post.n_discrepancy} discrepancy DOFs" if post.discrepancy is not None
+            else "")
     check_shape("theta", theta, (post.dim,),
-                 f"[u_b.ravel(), phi]: 3 * {post.n_boundary} boundary DOFs + {post.n_free} free "
-                 "parameters")
+                 f"[u_b.ravel(), {'d.ravel(), ' if disc else ''}phi]: 3 * {post.n_boundary} "
+                 f"boundary DOFs{disc} + {post.n_free} free parameters")
 
 
 def split_position(post: Posterior, theta):
-    """``theta`` ``(dim,)`` -> ``u_b`` ``(n_b, 3)`` mm and ``phi`` ``(n_free,)``.
+    """``theta`` ``(dim,)`` -> ``u_b`` ``(n_b, 3)`` mm and ``phi`` ``(n_free,)``
+    (the discrepancy, if any: :func:`discrepancy_of`).
 
     Raises
     ------
@@ -399,7 +504,42 @@ def split_position(post: Posterior, theta):
     """
     _check_theta(post, theta)
     nb3 = 3 * post.n_boundary
-    return theta[:nb3].reshape(-1, 3), theta[nb3:]
+    return theta[:nb3].reshape(-1, 3), theta[3 * post.n_sampled:]
+
+
+def discrepancy_of(post: Posterior, theta):
+    """The model discrepancy ``d`` ``(n_i, 3)`` mm of a position ``theta`` ``(..., dim)``
+    (batches allowed), or ``None`` without one (:class:`Discrepancy`)."""
+    if post.discrepancy is None:
+        return None
+    nb3 = 3 * post.n_boundary
+    d = theta[..., nb3:3 * post.n_sampled]
+    return d.reshape(d.shape[:-1] + (-1, 3))
+
+
+def discrepancy_log_prior(post: Posterior, d):
+    """``-(a + 3 n_i / 2) log(1 + q / b)``, ``q = d^T K0_ii d / 2``: the log prior of the
+    discrepancy ``d`` ``(n_i, 3)`` mm up to a constant (:class:`Discrepancy`; 0 without one).
+
+    Returns
+    -------
+    logp, q : () arrays
+    """
+    if post.discrepancy is None:
+        zero = jnp.zeros(())
+        return zero, zero
+    disc = post.discrepancy
+    q = 0.5 * jnp.sum(d * ell_matvec(disc.k_ii, post.op.cols_ii, post.op.row_ii, d))
+    return -disc.shape * jnp.log1p(q / disc.rate), q
+
+
+def nodal_displacement(post: Posterior, theta, interior):
+    """Every node's displacement ``(N, 3)`` mm of a position ``theta`` ``(dim,)``: ``u_b`` and
+    the interior ``interior`` ``(n_i, 3)`` (the FE solve's, as :class:`Aux` returns it) plus
+    the discrepancy where the model has one."""
+    u_b = split_position(post, theta)[0]
+    d = discrepancy_of(post, theta)
+    return full_displacement(post, u_b, interior if d is None else interior + d)
 
 
 @jax.jit
@@ -494,7 +634,8 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
     ----------
     post : Posterior
     theta : (dim,) array
-        ``[u_b.ravel() (mm), phi]``.
+        ``[u_b.ravel() (mm), phi]`` (``[u_b.ravel(), d.ravel(), phi]`` with a model
+        discrepancy: :class:`Discrepancy`, whose prior is then added).
     u_i0 : (n_i, 3) array
         Warm start of the interior solve (mm).
     rtol, maxiter
@@ -564,7 +705,7 @@ def log_density(post: Posterior, theta, u_i0, *, rtol=1e-8, maxiter=1000,
                 post.op, *blocks, u_b, u_i0, rtol=rtol, maxiter=jnp.where(allowed, maxiter, 0),
                 precond=_precond_at(post, precond, lam_g, mu_g))
         info = SolveInfo(info.iterations, info.residual, info.converged | ~allowed)
-        return _finish(post, u_b, u_i, info, phi_solve, allowed, log_prior)
+        return _finish(post, theta, u_i, info, phi_solve, allowed, log_prior)
 
     def reject(_):
         zero = jnp.zeros((), u_b.dtype)
@@ -583,10 +724,20 @@ def _precond_at(post: Posterior, precond, lam_g, mu_g):
     return precond
 
 
-def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
-    """Energies, hard constraints and ``log p`` from the boundary and interior displacements."""
-    u = full_displacement(post, u_b, u_i)
-    e_s, e_r = energies(post, u, phi_solve)
+def _finish(post: Posterior, theta, u_i, info, phi_solve, in_support, log_prior):
+    """Energies, hard constraints and ``log p`` from a position and its interior FE solve
+    ``u_i``: ``E_r`` of the FE field, ``E_s`` and the constraints of the displacement with
+    the discrepancy (if any), whose prior is added."""
+    u_b = split_position(post, theta)[0]
+    u_fe = full_displacement(post, u_b, u_i)
+    d = discrepancy_of(post, theta)
+    log_disc, _ = discrepancy_log_prior(post, d)
+    if d is None:
+        e_s, e_r = energies(post, u_fe, phi_solve)
+        u = u_fe
+    else:  # (the unused halves of each call are compiled away)
+        u = full_displacement(post, u_b, u_i + d)
+        e_s, e_r = energies(post, u, phi_solve)[0], energies(post, u_fe, phi_solve)[1]
     with jax.named_scope(SCOPES["constraints"]):
         barrier, clear = skull_barrier(post.skull, post.nodes + u)  # clear: of its own wall
         ok = (
@@ -599,7 +750,7 @@ def _finish(post: Posterior, u_b, u_i, info, phi_solve, in_support, log_prior):
             & jnp.isfinite(e_r)
         )
     logp = (similarity_log_likelihood(post, e_s) - e_r * post.inv_t_r + log_prior + barrier
-            + rigid_log_prior(post, u_b))
+            + rigid_log_prior(post, u_b) + log_disc)
     return jnp.where(ok, logp, -jnp.inf), Aux(u_i, info, e_s, e_r)
 
 
@@ -681,11 +832,12 @@ def log_density_condensed(post: Posterior, theta, h):
     u_i = (h @ u_b.reshape(-1)).reshape(-1, 3)
     finite = jnp.all(jnp.isfinite(u_i))
     info = SolveInfo(jnp.asarray(0), jnp.where(finite, 0.0, jnp.inf), finite)
-    return _finish(post, u_b, u_i, info, phi_solve, in_support, log_prior)
+    return _finish(post, theta, u_i, info, phi_solve, in_support, log_prior)
 
 
 def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000):
-    """Full nodal displacement ``(N, 3)`` mm for a position ``(dim,)``, and the solve's
+    """Full nodal displacement ``(N, 3)`` mm for a position ``(dim,)`` (the discrepancy
+    included, if any: :func:`nodal_displacement`), and the solve's
     :class:`~bayesreg.fem.solver.SolveInfo` (host convenience: one jitted program per mesh
     size and tolerance, where running it op by op compiled about 60 small programs)."""
     if u_i0 is None:
@@ -701,7 +853,7 @@ def _solve_position(post: Posterior, theta, u_i0, *, rtol, maxiter):
     u_i, info = solve_interior_blocks(
         post.op, *stiffness_blocks(post, lam_g, mu_g), u_b, u_i0, rtol=rtol, maxiter=maxiter,
         precond=_precond_at(post, None, lam_g, mu_g))
-    return full_displacement(post, u_b, u_i), info
+    return nodal_displacement(post, theta, u_i), info
 
 
 def log_normaliser(post: Posterior, phi):

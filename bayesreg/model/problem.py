@@ -500,6 +500,8 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
                    else (cfg.model.t_s_prior.shape, cfg.model.t_s_prior.rate)),
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,
         spectral=choice in ("auto", "spectral"),
+        discrepancy=(None if cfg.model.discrepancy == "none" else
+                     (cfg.model.discrepancy_prior.shape, cfg.model.discrepancy_prior.floor_mm)),
     )
     return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init,
                    data.intensity_scale, data.n_skull_carved, dict(data.timings),

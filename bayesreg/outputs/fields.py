@@ -1,6 +1,8 @@
 """Posterior displacement fields: nodal moments and draws, and their spread on image grids.
 
-The stored draws hold ``u_b`` (sampled) and ``u_i`` (solved) per draw; the functions here
+The stored draws hold ``u_b`` (sampled) and ``u_i`` (solved) per draw, and with a model
+discrepancy ``d`` (sampled, :class:`bayesreg.model.posterior.Discrepancy`) the interior is
+``u_i + d``; the functions here
 put them in mesh node order and reduce them chunk by chunk, never holding all ``(S, N, 3)``
 nodal draws at once.  Units: mm (displacements), mm^2 (covariances).
 """
@@ -44,7 +46,20 @@ def nodal_draws(problem, result, rows):
     out = np.empty((len(pos), len(b) + len(i), 3))
     out[:, b] = pos[:, : 3 * len(b)].reshape(len(pos), len(b), 3)
     out[:, i] = ui
+    d = _discrepancy(problem, pos)
+    if d is not None:
+        out[:, i] += d
     return out
+
+
+def _discrepancy(problem, positions):
+    """The model discrepancy ``(..., n_i, 3)`` mm of stored positions ``(..., dim)``, or
+    ``None`` (a model without one)."""
+    post = problem.posterior
+    if post.discrepancy is None:
+        return None
+    d = positions[..., 3 * post.n_boundary:3 * post.n_sampled]
+    return d.reshape(d.shape[:-1] + (-1, 3))
 
 
 def _draw_chunks(result):
@@ -59,6 +74,9 @@ def nodal_mean(problem, result) -> np.ndarray:
     mean = np.empty((len(b) + len(i), 3))
     mean[b] = result.positions[..., : 3 * len(b)].mean(axis=(0, 1)).reshape(len(b), 3)
     mean[i] = result.interior.mean(axis=(0, 1))
+    d = _discrepancy(problem, result.positions)
+    if d is not None:
+        mean[i] += d.mean(axis=(0, 1))
     return mean
 
 

@@ -11,8 +11,8 @@ import numpy as np
 from bayesreg.data.images import Image
 from bayesreg.rundir import RunDirectory
 
-__all__ = ["plot_parameters", "parameter_figures", "plot_uncertainty", "most_uncertain_voxel",
-           "rank_histograms"]
+__all__ = ["plot_parameters", "parameter_figures", "plot_uncertainty", "plot_brain_map",
+           "most_uncertain_voxel", "rank_histograms"]
 
 
 def plot_parameters(run_dir: RunDirectory, tree, names, truth_ratio, *, nodes=None, u_true_b=None):
@@ -153,28 +153,38 @@ def plot_uncertainty(run_dir: RunDirectory, f: Image, iqr, labels: Image):
     labels : Image
         Tissue labels on ``f``'s grid (the brain: 1, 2, 3).
     """
+    plot_brain_map(run_dir, "uncertainty.png", f, iqr, labels, colorbar="IQR of |u| (mm)",
+                   title="posterior uncertainty of the displacement magnitude over f, through "
+                   "the most uncertain region")
+
+
+def plot_brain_map(run_dir: RunDirectory, name: str, f: Image, values, labels: Image, *,
+                   colorbar: str, title: str):
+    """``name``: a map ``values`` ``(I, J, K)`` over ``f`` (brain voxels only) on three
+    orthogonal slices through its largest brain value (:func:`most_uncertain_voxel`), marked
+    by a cross; ``title`` is followed by that voxel's index."""
     from matplotlib.figure import Figure
 
     brain = np.isin(labels.data, (1, 2, 3))
-    c = most_uncertain_voxel(iqr, brain)
-    vmax = float(np.quantile(iqr[brain], 0.99)) if brain.any() and iqr[brain].max() > 0 else None
+    c = most_uncertain_voxel(values, brain)
+    vmax = (float(np.quantile(values[brain], 0.99)) if brain.any() and values[brain].max() > 0
+            else None)
     fig = Figure(figsize=(12, 4))
     axes = fig.subplots(1, 3)
-    for ax, axis, name in zip(axes, range(3), ("sagittal", "coronal", "axial")):
+    for ax, axis, view in zip(axes, range(3), ("sagittal", "coronal", "axial")):
         sl = [slice(None)] * 3
         sl[axis] = c[axis]
         img = np.asarray(f.data)[tuple(sl)].T
-        unc = np.ma.masked_where(~brain[tuple(sl)].T, iqr[tuple(sl)].T)
+        shown = np.ma.masked_where(~brain[tuple(sl)].T, values[tuple(sl)].T)
         ax.imshow(img, cmap="gray", origin="lower")
-        im = ax.imshow(unc, cmap="magma", alpha=0.7, origin="lower", vmin=0, vmax=vmax)
+        im = ax.imshow(shown, cmap="magma", alpha=0.7, origin="lower", vmin=0, vmax=vmax)
         rest = [c[i] for i in range(3) if i != axis]
         ax.plot(*rest, "+", color="cyan", ms=12, mew=1.5)
-        ax.set_title(f"{name} slice {c[axis]}")
+        ax.set_title(f"{view} slice {c[axis]}")
         ax.axis("off")
-    fig.colorbar(im, ax=axes, shrink=0.8, label="IQR of |u| (mm)")
-    fig.suptitle(f"posterior uncertainty of the displacement magnitude over f, through the most "
-                 f"uncertain region (voxel {tuple(int(v) for v in c)})")
-    fig.savefig(run_dir.file("uncertainty.png"), dpi=90)
+    fig.colorbar(im, ax=axes, shrink=0.8, label=colorbar)
+    fig.suptitle(f"{title} (voxel {tuple(int(v) for v in c)})")
+    fig.savefig(run_dir.file(name), dpi=90)
 
 
 def rank_histograms(summary: dict, bins: int):

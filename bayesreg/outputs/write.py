@@ -21,8 +21,12 @@ run in progress keeps its draws in ``checkpoint/``, see :mod:`bayesreg.checkpoin
 ``displacement_reference.nii.gz``   the point estimate to beat: scikit-image optical flow
                                     of ``f`` to ``m`` (synthetic runs; ITK/ANTs field)
 ``mesh_mask.nii.gz``                voxels inside the undeformed mesh (where the maps are defined)
+``discrepancy_amplitude.nii.gz``    ``model.discrepancy: interior``: ``|E[d]|`` of the model
+                                    discrepancy, (I, J, K) mm, and ``discrepancy.png`` over ``f``
+                                    (``posterior.nc`` then holds ``d`` and ``discrepancy_rms``)
 ``mesh.vtu``                        mesh with point data ``u_mean``, ``u_sd``, ``u_norm_sd``,
-                                    ``u_norm_iqr``, ``u_init``, ``u_true``, ``u_error``; cell
+                                    ``u_norm_iqr``, ``u_init``, ``u_true``, ``u_error``
+                                    (``d_mean`` with a model discrepancy); cell
                                     data ``label``: the element's tissue in the label map's
                                     coding (1 CSF, 2 GM, 3 WM); world RAS mm (``bayesreg export --format slicer``
                                     writes it in LPS for 3D Slicer)
@@ -61,7 +65,7 @@ from bayesreg.data.images import Image, save_nifti
 from bayesreg.inference.initialisation import Initialisation, registration_field
 from bayesreg.data.labels import TISSUE_LABELS, tissue_label
 from bayesreg.mesh.tetmesh import boundary_nodes, mesh_quality
-from bayesreg.outputs.plots import plot_parameters, plot_uncertainty
+from bayesreg.outputs.plots import plot_brain_map, plot_parameters, plot_uncertainty
 from bayesreg.outputs.result import RunResult
 from bayesreg.model.posterior import elastic_groups, solve_position
 from bayesreg.model.problem import Problem
@@ -134,8 +138,7 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
     """
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
-    nb3 = 3 * post.n_boundary
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, result.positions[..., nb3:]))
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, result.positions[..., 3 * post.n_sampled:]))
     ratio = lam_g / mu_g
     ratios = {}
     for k, name in enumerate(problem.layout.group_names[:16]):
@@ -252,6 +255,29 @@ def _f(x, spec: str) -> str:
     return format(x, spec)
 
 
+def discrepancy_draws(problem, positions):
+    """The model discrepancy's draws ``(C, D, n_i, 3)`` mm from stored positions ``(C, D,
+    dim)``, or ``None`` (a model without one; :class:`bayesreg.model.posterior.Discrepancy`)."""
+    post = problem.posterior
+    if post.discrepancy is None:
+        return None
+    c, d = positions.shape[:2]
+    return positions[..., 3 * post.n_boundary:3 * post.n_sampled].reshape(c, d, -1, 3)
+
+
+def discrepancy_summary(problem, rms, d_mean, floor_mm: float) -> dict:
+    """``run.json["discrepancy"]``: the posterior of the discrepancy's rms per interior node
+    (``rms`` ``(C, D)`` mm: median, 5%, 95%), the largest ``|E[d]|`` over the nodes (``d_mean``
+    ``(N, 3)`` mm, zero on the boundary) and where (world mm), and the prior's floor (mm)."""
+    norm = np.linalg.norm(d_mean, axis=1)
+    k = int(np.argmax(norm))
+    return {"rms_mm": {"median": float(np.median(rms)), "q05": float(np.quantile(rms, 0.05)),
+                       "q95": float(np.quantile(rms, 0.95))},
+            "mean_norm_max_mm": float(norm[k]), "mean_norm_max_node": k,
+            "mean_norm_max_world_mm": [float(v) for v in problem.mesh.nodes[k]],
+            "floor_mm": float(floor_mm)}
+
+
 def format_report(errors: dict | None, info: dict) -> str:
     """The short table the run prints (error vs truth, ratio posteriors as medians with 90%
     intervals, sampler figures), ending with the verdict line (:func:`verdict`).  Missing or
@@ -320,6 +346,12 @@ def format_report(errors: dict | None, info: dict) -> str:
             flag = "" if c is None or r.get("identified") else "  not identified by the images"
             lines.append(f"  {name:<14} {_f(mid, '9.4g')} {_f(r['q05'], '9.4g')} {_f(r['q95'], '9.4g')} "
                          f"{tr} {_f(c, '12.2f') if c is not None else '           -'}{flag}")
+    disc = info.get("discrepancy")
+    if disc:
+        r = disc["rms_mm"]
+        lines.append(f"model discrepancy: rms |d| per interior node {_f(r['median'], '.3f')} mm "
+                     f"(90%: {_f(r['q05'], '.3f')}-{_f(r['q95'], '.3f')}), largest |E[d]| "
+                     f"{_f(disc['mean_norm_max_mm'], '.2f')} mm (discrepancy_amplitude.nii.gz)")
     ident = info.get("identification") or {}
     edge = [k for k, v in ident.items() if v.get("at_prior_edge") and not v.get("truth_at_prior_edge")]
     if edge:
@@ -441,13 +473,20 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     pos = result.positions
     c, d = pos.shape[:2]
     ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, pos[..., 3 * nb:]))
+    phi = pos[..., 3 * post.n_sampled:]
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, phi))
     names = list(layout.group_names)
     block_names = list(s_info.blocks)
     posterior = {"u_b": ub, "ratio": lam_g / mu_g}
     dims = {"u_b": ["node", "axis"], "ratio": ["group"], "block_acceptance_rate": ["block"]}
     coords = {"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names,
               "block": block_names}
+    disc = discrepancy_draws(problem, pos)
+    if disc is not None:  # the model discrepancy: d per interior node, and its rms per draw
+        posterior["d"], dims["d"] = disc, ["interior_node", "axis"]
+        coords["interior_node"] = mesh.interior.astype(int)
+        posterior["discrepancy_rms"] = np.sqrt(np.mean(np.sum(disc**2, axis=-1), axis=-1))
+        dims["discrepancy_rms"] = []
     constant = {}
     fixed = {(p, g): v for p, g, v in layout.fixed}
     for p, arr in (("lam", lam_g), ("mu", mu_g)):
@@ -490,7 +529,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     )
     tree.to_netcdf(run_dir.file("posterior.nc"))
 
-    var_names = [v for v in ("lam", "mu", "ratio", "u_b") if v in posterior]
+    var_names = [v for v in ("lam", "mu", "ratio", "discrepancy_rms", "u_b") if v in posterior]
     with warnings.catch_warnings():  # fixed parameters have zero variance: NaN R-hat
         warnings.simplefilter("ignore", RuntimeWarning)
         with arviz_fast_ess():  # ArviZ's numbers, without its Python loop over lags
@@ -512,6 +551,10 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
                                        maxiter=cfg.solver.maxiter)[0])
     point_data = {"u_mean": u_mean, "u_sd": u_sd, "u_norm_sd": norm_sd_n,
                   "u_norm_iqr": norm_iqr_n, "u_init": u_init}
+    if disc is not None:
+        d_mean = np.zeros_like(u_mean)
+        d_mean[mesh.interior] = disc.mean(axis=(0, 1))
+        point_data["d_mean"] = d_mean
     if problem.truth is not None:
         point_data["u_true"] = problem.truth.u
         point_data["u_error"] = u_mean - problem.truth.u
@@ -542,6 +585,15 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
                               description=f"{name}: {FIXED_TO_MOVING}")
     save_nifti(Image(in_mesh.astype(np.uint8), aff), run_dir.file("mesh_mask.nii.gz"))
     plot_uncertainty(run_dir, problem.f, norm_iqr.reshape(grid), problem.labels)
+    discrepancy = None
+    if disc is not None:  # where the FE model did not explain the shift
+        amplitude = (w @ np.linalg.norm(d_mean, axis=1)).reshape(grid)
+        save_nifti(Image(amplitude.astype(np.float32), aff), run_dir.file("discrepancy_amplitude.nii.gz"))
+        plot_brain_map(run_dir, "discrepancy.png", problem.f, amplitude, problem.labels,
+                       colorbar="|E[d]| (mm)", title="model discrepancy: where the FE model "
+                       "did not explain the shift, through its largest region")
+        discrepancy = discrepancy_summary(problem, posterior["discrepancy_rms"], d_mean,
+                                          cfg.model.discrepancy_prior.floor_mm)
     save_nifti(Image(problem.f.data.astype(np.float32), aff), run_dir.file("f.nii.gz"))
     save_nifti(Image(np.asarray(problem.m.data, np.float32), problem.m.affine), run_dir.file("m.nii.gz"))
     save_nifti(problem.labels, run_dir.file("labels.nii.gz"))
@@ -561,7 +613,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     del thinned
     if errors is not None and reference is not None:
         errors["reference"], errors["reference_method"] = REFERENCE_NAMES[method], method
-    identification = (contraction(layout, post.prior, pos[..., 3 * nb:], phi_true=problem.phi_true)
+    identification = (contraction(layout, post.prior, phi, phi_true=problem.phi_true)
                       if post.n_free else {})
     for name, r in (errors or {}).get("ratio", {}).items():
         if f"ratio_{name}" in identification:
@@ -629,6 +681,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
         "resumed": bool(resumed),
         "n_skull_voxels_carved": problem.n_skull_carved,
         "errors": errors,
+        "discrepancy": discrepancy,
         # 1 - posterior / prior variance per free parameter (logit scale) and ratio (log)
         "identification": identification,
     }

@@ -325,6 +325,9 @@ def laplace_likelihood(post: Posterior, theta0, a_lik):
     gradient in ``u_b`` of ``log p`` plus the elastic prior's part at ``theta0`` (everything
     in ``log p`` but the elastic prior: the similarity, the skull barrier), by JAX.
     """
+    if post.discrepancy is not None:
+        raise ValueError("the collapsed moves' Gaussian likelihood is of u_b alone: not with a "
+                         "model discrepancy")
     theta0 = jnp.asarray(theta0)
     nb3 = 3 * post.n_boundary
     h = condensation(post, theta0)

@@ -1,0 +1,231 @@
+"""The model discrepancy on the interior nodes (``model.discrepancy: interior``).
+
+References: the solve model's log-density (the discrepancy at zero), SciPy's multivariate
+Student t (its prior), finite differences (its gradient), JAX's Hessian at a zero residual
+(the Gauss-Newton precision) and a dense inverse (the trace behind its rate)."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import multivariate_t
+
+from bayesreg import configure_jax
+from bayesreg.data.images import Image
+from bayesreg.fem.normaliser import trace_inverse_interior
+from bayesreg.inference.initialisation import gauss_newton_precision, reference_stiffness
+from bayesreg.model.parameters import ParamLayout
+from bayesreg.model.posterior import (
+    _dense_k, build_posterior, discrepancy_log_prior, discrepancy_of, elastic_groups, log_density,
+    nodal_displacement, split_position)
+from bayesreg.model.similarity import build_ssd
+from conftest import box_mesh
+from helpers import box_skull, log_p
+
+configure_jax()
+
+PRIOR = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
+PHI = np.array([1.0, 10.0, 30.0, 0.5, 1.0])
+LAYOUT = ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2), ("mu", 0), ("mu", 2)),
+                     fixed=(("mu", 1, 1.0),))
+
+
+def _posteriors(shift=1, discrepancy=(1.0, 0.05)):
+    """The box posterior of ``tests/helpers.box_posterior`` (``m`` = ``f`` rolled by ``shift``
+    voxels) without and with the discrepancy."""
+    import scipy.ndimage as ndi
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    rng = np.random.default_rng(0)
+    affine = np.eye(4)
+    affine[:3, 3] = -9.0
+    f = Image(ndi.gaussian_filter(rng.random((48, 48, 48)), 2.0) * 4, affine)
+    m = Image(np.roll(f.data, shift, axis=0), affine)
+    kw = dict(t_s=0.5, t_r=3.0, layout=LAYOUT, element_group=mesh.tissue, prior=PRIOR, phi_ref=PHI)
+    term = build_ssd(mesh.nodes, mesh.tets, f, m)
+    return (mesh, build_posterior(mesh, term, box_skull(), **kw),
+            build_posterior(mesh, term, box_skull(), discrepancy=discrepancy, **kw))
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return _posteriors()
+
+
+def test_the_position_holds_the_discrepancy_between_u_b_and_the_parameters(pair):
+    mesh, post, post_d = pair
+    n_b, n_i = len(mesh.boundary), len(mesh.interior)
+    assert post_d.n_discrepancy == n_i and post_d.n_sampled == n_b + n_i
+    assert post_d.dim == post.dim + 3 * n_i
+    theta = np.arange(post_d.dim, dtype=float)
+    u_b, phi = split_position(post_d, jnp.asarray(theta))
+    np.testing.assert_array_equal(u_b, theta[:3 * n_b].reshape(-1, 3))
+    np.testing.assert_array_equal(phi, theta[3 * (n_b + n_i):])
+    np.testing.assert_array_equal(discrepancy_of(post_d, theta), theta[3 * n_b:3 * (n_b + n_i)].reshape(-1, 3))
+    assert discrepancy_of(post, theta[:post.dim]) is None
+    with pytest.raises(ValueError, match="discrepancy DOFs"):
+        log_p(post_d, theta[:post.dim])
+
+
+def test_at_zero_discrepancy_the_log_density_is_the_paper_models(pair):
+    """``d = 0``: the same ``log p``, energies and interior as the model without it (the
+    Student prior is 0 at ``q = 0``)."""
+    mesh, post, post_d = pair
+    rng = np.random.default_rng(3)
+    n_b3, n_i3 = 3 * len(mesh.boundary), 3 * len(mesh.interior)
+    theta = np.r_[0.3 * rng.normal(size=n_b3), PHI]
+    theta_d = np.r_[theta[:n_b3], np.zeros(n_i3), PHI]
+    (lp, aux), (lp_d, aux_d) = log_p(post, theta), log_p(post_d, theta_d)
+    assert np.isfinite(lp)
+    np.testing.assert_allclose(float(lp_d), float(lp), rtol=1e-12)
+    np.testing.assert_allclose(aux_d.interior, aux.interior, atol=1e-12)
+    np.testing.assert_allclose([aux_d.e_s, aux_d.e_r], [aux.e_s, aux.e_r], rtol=1e-12)
+
+
+def test_the_discrepancy_moves_the_images_not_the_strain_energy(pair):
+    """With ``d != 0``: ``E_r`` is the FE field's (unchanged), ``E_s`` and the nodal
+    displacement are those of the FE interior plus ``d``, and ``log p`` changes by the
+    similarity and the Student prior alone."""
+    mesh, post, post_d = pair
+    rng = np.random.default_rng(4)
+    n_b3, n_i = 3 * len(mesh.boundary), len(mesh.interior)
+    d = 0.2 * rng.normal(size=(n_i, 3))
+    theta = np.r_[0.3 * rng.normal(size=n_b3), PHI]
+    lp0, aux0 = log_p(post, theta)
+    theta_d = np.r_[theta[:n_b3], d.ravel(), PHI]
+    lp, aux = log_p(post_d, theta_d)
+    np.testing.assert_allclose(aux.interior, aux0.interior, atol=1e-12)  # the FE solve's
+    np.testing.assert_allclose(float(aux.e_r), float(aux0.e_r), rtol=1e-12)
+    u = np.asarray(nodal_displacement(post_d, jnp.asarray(theta_d), aux.interior))
+    np.testing.assert_allclose(u[mesh.interior], np.asarray(aux0.interior) + d, atol=1e-12)
+    np.testing.assert_allclose(u[mesh.boundary], theta[:n_b3].reshape(-1, 3), atol=1e-12)
+    e_s = float(post.similarity.energy(jnp.asarray(u)[post.tets]))
+    np.testing.assert_allclose(float(aux.e_s), e_s, rtol=1e-12)
+    log_d = float(discrepancy_log_prior(post_d, jnp.asarray(d))[0])
+    expected = float(lp0) + (float(aux0.e_s) - e_s) / 0.5 + log_d
+    np.testing.assert_allclose(float(lp), expected, rtol=1e-10)
+
+
+def test_the_discrepancy_prior_is_a_multivariate_student_t(pair):
+    """``-(a + 3 n_i / 2) log(1 + d^T K0 d / (2 b))`` is the log-density of SciPy's
+    multivariate t with ``df = 2a`` and shape ``(b / a) K0^-1``, up to a constant: their
+    differences between positions agree."""
+    mesh, _, post_d = pair
+    n_i = len(mesh.interior)
+    a, b = float(post_d.discrepancy.shape) - 1.5 * n_i, float(post_d.discrepancy.rate)
+    k0 = reference_stiffness(post_d, mesh, mesh.tissue)
+    ref = multivariate_t(loc=np.zeros(3 * n_i), shape=(b / a) * np.linalg.inv(k0), df=2 * a)
+    rng = np.random.default_rng(5)
+    ds = [s * rng.normal(size=(n_i, 3)) for s in (0.01, 0.1, 0.5, 2.0)]
+    ours = np.array([float(discrepancy_log_prior(post_d, jnp.asarray(d))[0]) for d in ds])
+    theirs = np.array([ref.logpdf(d.ravel()) for d in ds])
+    np.testing.assert_allclose(ours - ours[0], theirs - theirs[0], rtol=1e-10, atol=1e-9)
+    q = float(discrepancy_log_prior(post_d, jnp.asarray(ds[1]))[1])
+    np.testing.assert_allclose(q, 0.5 * ds[1].ravel() @ k0 @ ds[1].ravel(), rtol=1e-12)
+
+
+def test_the_rate_puts_the_floor_of_the_amplitude_where_it_is_asked(pair):
+    """``b = (a + 3 n_i / 2) floor^2 n_i / tr(K0^-1)``: at ``T_d = b / (a + 3 n_i / 2)`` the
+    rms per node of ``N(0, T_d K0^-1)`` is ``floor_mm``; the trace (CHOLMOD's selected
+    inversion) against a dense inverse."""
+    mesh, post, post_d = pair
+    lam, mu = elastic_groups(post, post.phi_ref)
+    trace = trace_inverse_interior(post.normaliser, post.op.klam, post.op.kmu, lam, mu, post.group)
+    n_i3 = 3 * len(mesh.interior)
+    k = np.asarray(_dense_k(post, post.phi_ref))[:n_i3, :n_i3]
+    np.testing.assert_allclose(trace, np.trace(np.linalg.inv(k)), rtol=1e-10)
+    disc = post_d.discrepancy
+    t_floor = float(disc.rate) / float(disc.shape)
+    np.testing.assert_allclose(np.sqrt(t_floor * trace / len(mesh.interior)), 0.05, rtol=1e-12)
+
+
+def test_the_gradient_in_u_b_d_and_the_parameters_matches_finite_differences(pair):
+    mesh, _, post_d = pair
+    rng = np.random.default_rng(6)
+    n_b3, n_i3 = 3 * len(mesh.boundary), 3 * len(mesh.interior)
+    theta = np.r_[0.3 * rng.normal(size=n_b3), 0.1 * rng.normal(size=n_i3), PHI]
+    zeros = jnp.zeros((len(mesh.interior), 3))
+    grad = np.asarray(jax.grad(lambda t: log_density(post_d, t, zeros, rtol=1e-12)[0])(jnp.asarray(theta)))
+    for k in (1, n_b3 + 2, n_b3 + n_i3 - 1, post_d.dim - 1):
+        e = np.zeros_like(theta)
+        e[k] = 1e-5
+        fd = (float(log_p(post_d, theta + e)[0]) - float(log_p(post_d, theta - e)[0])) / 2e-5
+        np.testing.assert_allclose(grad[k], fd, rtol=1e-5, atol=1e-6)
+
+
+def test_the_gauss_newton_precision_over_u_b_and_d_is_the_hessian_at_a_zero_residual():
+    """Identical images and ``u = 0``: the SSD's residuals vanish, so its Hessian is exactly
+    ``2 J^T J``; the Student prior's at ``d = 0`` is ``tau K0`` with ``tau = (a + 3 n_i / 2) /
+    b``.  The Gauss-Newton precision over ``[u_b, d]`` is then ``-`` the Hessian of ``log p``
+    (JAX, through the CG solve), to its ridge."""
+    mesh, _, post_d = _posteriors(shift=0)
+    n_s3 = 3 * post_d.n_sampled
+    theta = np.r_[np.zeros(n_s3), PHI]
+    zeros = jnp.zeros((len(mesh.interior), 3))
+
+    def logp_x(x):
+        return log_density(post_d, jnp.concatenate([x, jnp.asarray(PHI)]), zeros, rtol=1e-13)[0]
+
+    # column by column (forward over reverse; the solve's cond does not batch under vmap)
+    column = jax.jit(lambda e: jax.jvp(jax.grad(logp_x), (jnp.zeros(n_s3),), (e,))[1])
+    hess = -np.stack([np.asarray(column(jnp.asarray(e))) for e in np.eye(n_s3)], axis=1)
+    prec = gauss_newton_precision(post_d, mesh, mesh.tissue, theta)
+    assert prec.shape == (n_s3, n_s3)
+    ridge = 1e-6 * np.trace(hess) / n_s3
+    np.testing.assert_allclose(prec - ridge * np.eye(n_s3), hess, rtol=1e-6,
+                               atol=1e-7 * np.abs(hess).max())
+
+
+def test_a_model_discrepancy_needs_interior_nodes_and_a_valid_prior(pair):
+    mesh, post, _ = pair
+    kw = dict(t_s=0.5, t_r=3.0, layout=LAYOUT, element_group=mesh.tissue, prior=PRIOR, phi_ref=PHI)
+    with pytest.raises(ValueError, match="discrepancy must be"):
+        build_posterior(mesh, post.similarity, box_skull(), discrepancy=(1.0, -0.1), **kw)
+    every = mesh._replace(boundary=np.arange(len(mesh.nodes)))
+    with pytest.raises(ValueError, match="needs interior nodes"):
+        build_posterior(every, build_ssd(every.nodes, every.tets, *_images()), box_skull(),
+                        discrepancy=(1.0, 0.05), **kw)
+
+
+def _images():
+    rng = np.random.default_rng(0)
+    affine = np.eye(4)
+    affine[:3, 3] = -9.0
+    f = Image(rng.random((48, 48, 48)), affine)
+    return f, f
+
+
+@pytest.mark.slow
+def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, capsys, tiny_mesh):
+    """``model.discrepancy: interior`` end to end on the tiny quickstart: ``d`` and its rms in
+    ``posterior.nc``, the amplitude map and figure, ``run.json["discrepancy"]``, the printed
+    line, and the nodal mean of ``mesh.vtu`` is the FE interior plus ``E[d]``."""
+    import arviz as az
+    import meshio
+
+    from bayesreg.cli import main
+    from test_cli import TINY
+
+    out = tmp_path / "run"
+    sets = TINY + [f"mesh.file={tiny_mesh}", "model.discrepancy=interior", "sampler.max_draws=10",
+                   "sampler.min_draws=10", "sampler.warmup_steps=20"]
+    assert main(["run", "configs/quickstart.yaml", "--out", str(out)]
+                + sum((["--set", s] for s in sets), [])) == 0
+    printed = capsys.readouterr().out
+    assert "model discrepancy: rms |d| per interior node" in printed
+    info = json.loads((out / "run.json").read_text())
+    disc = info["discrepancy"]
+    assert disc["floor_mm"] == 0.05 and 0 < disc["rms_mm"]["q05"] <= disc["rms_mm"]["q95"]
+    for name in ("discrepancy_amplitude.nii.gz", "discrepancy.png"):
+        assert (out / name).is_file()
+    tree = az.from_netcdf(out / "posterior.nc")
+    d = tree.posterior["d"].transpose("chain", "draw", "interior_node", "axis").values
+    mesh = meshio.read(out / "mesh.vtu")
+    interior = tree.posterior["interior_node"].values
+    assert d.shape[:2] == (3, 10) and d.shape[2] == len(interior)
+    np.testing.assert_allclose(mesh.point_data["d_mean"][interior], d.mean(axis=(0, 1)), atol=1e-10)
+    rms = np.sqrt(np.mean(np.sum(d**2, axis=-1), axis=-1))
+    np.testing.assert_allclose(tree.posterior["discrepancy_rms"].values, rms, rtol=1e-10)
+    assert np.abs(mesh.point_data["d_mean"][np.setdiff1d(np.arange(len(mesh.points)), interior)]).max() == 0
