@@ -201,7 +201,8 @@ def _images():
 def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, capsys, tiny_mesh):
     """``model.discrepancy: interior`` end to end on the tiny quickstart: ``d`` and its rms in
     ``posterior.nc``, the amplitude map and figure, ``run.json["discrepancy"]``, the printed
-    line, and the nodal mean of ``mesh.vtu`` is the FE interior plus ``E[d]``."""
+    line; the draws that ``export`` and ``apply`` rebuild (the FE solve by SciPy, plus each
+    draw's ``d``) average to ``mesh.vtu``'s nodal mean."""
     import arviz as az
     import meshio
 
@@ -229,3 +230,11 @@ def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, c
     rms = np.sqrt(np.mean(np.sum(d**2, axis=-1), axis=-1))
     np.testing.assert_allclose(tree.posterior["discrepancy_rms"].values, rms, rtol=1e-10)
     assert np.abs(mesh.point_data["d_mean"][np.setdiff1d(np.arange(len(mesh.points)), interior)]).max() == 0
+    from bayesreg.apply import load_posterior, nodal_field_draws
+
+    rp = load_posterior(out)
+    assert rp.d.shape == (30, len(interior), 3)
+    u = nodal_field_draws(rp, np.arange(rp.n_draws))
+    np.testing.assert_allclose(u.mean(axis=0), mesh.point_data["u_mean"], atol=1e-5)
+    np.testing.assert_allclose(u[:, interior] - nodal_field_draws(rp._replace(d=None), np.arange(30))[:, interior],
+                               rp.d, atol=1e-12)

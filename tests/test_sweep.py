@@ -200,3 +200,6 @@ def test_the_shipped_sweeps_validate_every_run():
     mismatch = expand(load_sweep(CONFIGS / "sweeps" / "mismatch.yaml"))
     assert len(mismatch) == 8
     assert {load_config(r.config, overrides=list(r.overrides)).synthetic.truth for r in mismatch} == {"bump", "random"}
+    paper = [load_config(r.config, overrides=list(r.overrides))
+             for r in expand(load_sweep(CONFIGS / "sweeps" / "paper_brainweb.yaml"))]
+    assert len(paper) == 20 and {c.model.interpolation for c in paper} == {"cubic"}
