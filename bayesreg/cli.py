@@ -41,7 +41,7 @@ import numpy as np
 from bayesreg import __version__
 from bayesreg.config import ConfigError
 from bayesreg.jaxconfig import configure_jax
-from bayesreg.outputs.write import format_report
+from bayesreg.outputs.printed import format_report
 from bayesreg.pipeline import RunInterrupted, run
 from bayesreg.report import write_report
 from bayesreg.stages import StageError

@@ -75,7 +75,7 @@ LAYERS = [
     ["inference.mode"],
     ["inference.initialisation"],
     ["outputs", "outputs.fields"],
-    ["outputs.plots"],
+    ["outputs.plots", "outputs.printed"],
     ["outputs.result"],
     ["outputs.write"],
     ["report.data"],

@@ -1,4 +1,5 @@
-"""The run's outputs (bayesreg.outputs.write): the summary table in threads equals ArviZ's own."""
+"""The run's outputs (bayesreg.outputs.write, .printed): the threaded summary table equals
+ArviZ's own; the printed table and its verdict."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import arviz as az
 import numpy as np
 import pytest
 
+from bayesreg.outputs import printed
 from bayesreg.outputs import write as outputs
 from bayesreg.sampling.diagnostics import arviz_fast_ess, to_datatree
 
@@ -71,7 +73,7 @@ def _sampler(**kw):
      "verdict: converged", ["need >= 100"]),
 ])
 def test_the_verdict_names_the_criterion_and_the_figures_that_fail(case, sampler, start, names):
-    line = outputs.verdict(sampler)
+    line = printed.verdict(sampler)
     assert line.startswith(start), (case, line)
     assert "\n" not in line
     for name in names:
@@ -89,14 +91,14 @@ def test_the_printed_summary_gives_medians_and_intervals_and_ends_with_the_verdi
     info = {"sampler": {**_sampler(converged=False), "blocks": ["u_b"], "acceptance": [0.3],
                         "thinning": 1, "chains": 4, "cg_iterations_per_step_mean": 2.0,
                         "solve_failures": 0, "steps_per_s_per_chain": 10.0}}
-    text = outputs.format_report({"ratio": ratio}, info)
+    text = printed.format_report({"ratio": ratio}, info)
     row = next(line for line in text.splitlines() if line.strip().startswith("csf"))
     assert f"{np.median(csf):.4g}" in row and f"{np.quantile(csf, 0.95):.4g}" in row
     assert f"{csf.mean():.4g}" not in row and "sd" not in text.splitlines()[-3]
     assert "median" in text and text.splitlines()[-1].startswith("verdict: NOT converged")
     # a gradient kernel's failed per-chain checks print just above the verdict
     info["sampler"]["health"] = {"warnings": ["12 divergent transitions (chain 1; up to 3.0% in chain 1)"]}
-    lines = outputs.format_report({"ratio": ratio}, info).splitlines()
+    lines = printed.format_report({"ratio": ratio}, info).splitlines()
     assert lines[-2] == "sampler check: 12 divergent transitions (chain 1; up to 3.0% in chain 1)"
     assert lines[-1].startswith("verdict: NOT converged")
     # a posterior on its prior's edge: a question where the truth is not there, a plain
@@ -107,11 +109,11 @@ def test_the_printed_summary_gives_medians_and_intervals_and_ends_with_the_verdi
         "lam_gm": {"at_prior_edge": True, "truth_at_prior_edge": False},
         "lam_wm": {"at_prior_edge": False, "truth_at_prior_edge": False},
         "ratio_csf": {"contraction": 0.0}}
-    lines = outputs.format_report({"ratio": ratio}, info).splitlines()
+    lines = printed.format_report({"ratio": ratio}, info).splitlines()
     assert lines[-4].startswith("on the prior's edge: lam_gm (") and lines[-4].endswith("parameters?)")
     assert lines[-3] == ("on the prior's edge with their truths: lam_csf, mu_csf (posterior median "
                          "and truth in the outer 1% of the prior's support)")
     del info["identification"]["lam_gm"]  # real data: no truths, the question for each
     info["identification"]["lam_csf"].pop("truth_at_prior_edge")
-    lines = outputs.format_report({"ratio": ratio}, info).splitlines()
+    lines = printed.format_report({"ratio": ratio}, info).splitlines()
     assert lines[-4].startswith("on the prior's edge: lam_csf (")

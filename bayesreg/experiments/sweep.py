@@ -43,7 +43,7 @@ from bayesreg.checkpoint import Checkpoint
 from bayesreg.config import Config, ConfigError, load_config
 from bayesreg.config.loading import load_model_file
 from bayesreg.outputs.result import RunResult
-from bayesreg.outputs.write import reference_method
+from bayesreg.outputs.printed import reference_method
 from bayesreg.pipeline import run
 from bayesreg.report.data import PAPER, load_run
 from bayesreg.report.figures import plot_sweep_table1

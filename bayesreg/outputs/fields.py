@@ -16,7 +16,7 @@ import numpy as np
 from bayesreg.sampling.chains import available_cores
 
 __all__ = ["node_slots", "nodal_draws", "nodal_mean", "nodal_spread", "voxel_norm_spread",
-           "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
+           "discrepancy_draws", "discrepancy_summary", "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
 
 
 CHUNK_DRAWS = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
@@ -46,20 +46,10 @@ def nodal_draws(problem, result, rows):
     out = np.empty((len(pos), len(b) + len(i), 3))
     out[:, b] = pos[:, : 3 * len(b)].reshape(len(pos), len(b), 3)
     out[:, i] = ui
-    d = _discrepancy(problem, pos)
+    d = discrepancy_draws(problem, pos)
     if d is not None:
         out[:, i] += d
     return out
-
-
-def _discrepancy(problem, positions):
-    """The model discrepancy ``(..., n_i, 3)`` mm of stored positions ``(..., dim)``, or
-    ``None`` (a model without one)."""
-    post = problem.posterior
-    if post.discrepancy is None:
-        return None
-    d = positions[..., 3 * post.n_boundary:3 * post.n_sampled]
-    return d.reshape(d.shape[:-1] + (-1, 3))
 
 
 def _draw_chunks(result):
@@ -74,7 +64,7 @@ def nodal_mean(problem, result) -> np.ndarray:
     mean = np.empty((len(b) + len(i), 3))
     mean[b] = result.positions[..., : 3 * len(b)].mean(axis=(0, 1)).reshape(len(b), 3)
     mean[i] = result.interior.mean(axis=(0, 1))
-    d = _discrepancy(problem, result.positions)
+    d = discrepancy_draws(problem, result.positions)
     if d is not None:
         mean[i] += d.mean(axis=(0, 1))
     return mean
@@ -145,3 +135,27 @@ def voxel_norm_spread(w, draws, max_draws=VOXEL_DRAWS, block=8192):
         q75, q25 = np.quantile(norm, [0.75, 0.25], axis=1)
         iqr[r] = q75 - q25
     return sd, iqr
+
+
+def discrepancy_draws(problem, positions):
+    """The model discrepancy's draws ``(..., n_i, 3)`` mm (``mesh.interior`` order) of stored
+    positions ``(..., dim)``, or ``None`` (a model without one;
+    :class:`bayesreg.model.posterior.Discrepancy`)."""
+    post = problem.posterior
+    if post.discrepancy is None:
+        return None
+    d = positions[..., 3 * post.n_boundary:3 * post.n_sampled]
+    return d.reshape(d.shape[:-1] + (-1, 3))
+
+
+def discrepancy_summary(problem, rms, d_mean, floor_mm: float) -> dict:
+    """``run.json["discrepancy"]``: the posterior of the discrepancy's rms per interior node
+    (``rms`` ``(C, D)`` mm: median, 5%, 95%), the largest ``|E[d]|`` over the nodes (``d_mean``
+    ``(N, 3)`` mm, zero on the boundary) and where (world mm), and the prior's floor (mm)."""
+    norm = np.linalg.norm(d_mean, axis=1)
+    k = int(np.argmax(norm))
+    return {"rms_mm": {"median": float(np.median(rms)), "q05": float(np.quantile(rms, 0.05)),
+                       "q95": float(np.quantile(rms, 0.95))},
+            "mean_norm_max_mm": float(norm[k]), "mean_norm_max_node": k,
+            "mean_norm_max_world_mm": [float(v) for v in problem.mesh.nodes[k]],
+            "floor_mm": float(floor_mm)}

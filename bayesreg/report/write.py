@@ -15,7 +15,7 @@ from bayesreg.report.figures import (
 from bayesreg.report.tables import coverage_table, ratio_table, table1, table2
 from bayesreg._files import dumps_json, write_text_atomic
 from bayesreg.sampling.diagnostics import normaliser_note
-from bayesreg.outputs.write import verdict
+from bayesreg.outputs.printed import verdict
 from bayesreg.rundir import RunDirectory
 
 __all__ = ["write_report"]
