@@ -149,9 +149,10 @@ def rw_condensation(problem: Problem, cfg: Config) -> Condensation:
 
 def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     """The gradient kernels' target of ``problem`` in the coordinates ``u_b = center + factor w``
-    (:func:`bayesreg.sampling.kernels.target.make_target`; ``center`` ``(dim,)``, of which the first
-    ``3 n_b`` entries are used, ``3 (n_b + n_i)`` with a model discrepancy: ``[u_b, d]``), wrapped by :func:`bayesreg.sampling.kernels.target.joint_target`
-    (the parameters' logits centred on ``center``'s) where :func:`use_joint` says so."""
+    (:func:`bayesreg.sampling.kernels.target.make_target`; ``center`` ``(dim,)``, of which the
+    first ``3 n_b`` entries are used, ``3 (n_b + n_i)`` with a model discrepancy: ``[u_b, d]``),
+    wrapped by :func:`bayesreg.sampling.kernels.target.joint_target` (the parameters' logits
+    centred on ``center``'s) where :func:`use_joint` says so."""
     post = problem.posterior
     nb3 = 3 * post.n_sampled  # u_b (and a model discrepancy, if any)
     joint = use_joint(problem, cfg)

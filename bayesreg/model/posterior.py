@@ -18,10 +18,10 @@ singularity (:func:`bayesreg.mesh.constraints.skull_barrier`) is forbidden too.
 
 Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u_b``
 node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters; with a model
-discrepancy (:class:`Discrepancy`) ``theta = [u_b.ravel(), d.ravel(), phi]``, ``d`` ``(n_i, 3)``
-mm the interior nodes' deviation from the FE solve, so that ``u_i = -K_ii^-1 K_ib u_b + d``.  The exact
-normaliser of the elastic prior, ``(1/2) log pdet S(lam, mu)``, is :func:`log_normaliser`
-(:mod:`bayesreg.fem.normaliser`).
+discrepancy (:class:`Discrepancy`) ``theta = [u_b.ravel(), d.ravel(), phi]``, ``d``
+``(n_i, 3)`` mm the interior nodes' deviation from the FE solve, so that
+``u_i = -K_ii^-1 K_ib u_b + d``.  The exact normaliser of the elastic prior,
+``(1/2) log pdet S(lam, mu)``, is :func:`log_normaliser` (:mod:`bayesreg.fem.normaliser`).
 """
 
 from __future__ import annotations
