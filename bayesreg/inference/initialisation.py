@@ -27,6 +27,7 @@ from bayesreg.data import labels as L
 from bayesreg.config import Config
 from bayesreg.mesh.constraints import skull_distance
 from bayesreg.fem.element import stiffness_matrix
+from bayesreg.fem.stiffness import ell_dense
 from bayesreg.data.images import Image
 from bayesreg.inference.mode import find_mode
 from bayesreg.mesh.tetmesh import Mesh
@@ -299,21 +300,19 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
         disc = post.discrepancy
         _, q = discrepancy_log_prior(post, jnp.asarray(d.reshape(-1, 3)))
         tau = float(disc.shape) / (float(disc.rate) + float(q))
-        prec[3 * nb:, 3 * nb:] += tau * reference_stiffness(post, mesh, element_group)
+        prec[3 * nb:, 3 * nb:] += tau * reference_stiffness(post)
     prec = 0.5 * (prec + prec.T)
     ridge = 1e-6 * np.trace(prec) / len(prec)
     return prec + ridge * np.eye(len(prec))
 
 
-def reference_stiffness(post: Posterior, mesh: Mesh, element_group) -> np.ndarray:
-    """``K0_ii`` dense ``(3 n_i, 3 n_i)``: the interior block of ``K`` at the posterior's
-    reference parameters :attr:`~bayesreg.model.posterior.Posterior.phi_ref` (the model
-    discrepancy's prior precision per unit ``1 / T_d``), by SciPy."""
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, post.phi_ref))
-    g = np.asarray(element_group)
-    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
-    idf = _dofs(mesh.interior)
-    return k[idf][:, idf].toarray()
+def reference_stiffness(post: Posterior) -> np.ndarray:
+    """``K0_ii`` dense ``(3 n_i, 3 n_i)``: the model discrepancy's prior precision per unit
+    ``1 / T_d`` (:attr:`~bayesreg.model.posterior.Discrepancy.k_ii`, the interior block of
+    ``K`` at :attr:`~bayesreg.model.posterior.Posterior.phi_ref`), from the posterior's own
+    blocks."""
+    op = post.op
+    return np.asarray(ell_dense(post.discrepancy.k_ii, op.cols_ii, op.row_ii, op.n_interior))
 
 
 def proposal_scale(problem: Problem, cfg: Config, prec=None):

@@ -13,10 +13,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from bayesreg.model.posterior import discrepancy_of
 from bayesreg.sampling.chains import available_cores
 
 __all__ = ["node_slots", "nodal_draws", "nodal_mean", "nodal_spread", "voxel_norm_spread",
-           "discrepancy_draws", "discrepancy_summary", "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
+           "discrepancy_summary", "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
 
 
 CHUNK_DRAWS = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
@@ -46,7 +47,7 @@ def nodal_draws(problem, result, rows):
     out = np.empty((len(pos), len(b) + len(i), 3))
     out[:, b] = pos[:, : 3 * len(b)].reshape(len(pos), len(b), 3)
     out[:, i] = ui
-    d = discrepancy_draws(problem, pos)
+    d = discrepancy_of(problem.posterior, pos)
     if d is not None:
         out[:, i] += d
     return out
@@ -64,7 +65,7 @@ def nodal_mean(problem, result) -> np.ndarray:
     mean = np.empty((len(b) + len(i), 3))
     mean[b] = result.positions[..., : 3 * len(b)].mean(axis=(0, 1)).reshape(len(b), 3)
     mean[i] = result.interior.mean(axis=(0, 1))
-    d = discrepancy_draws(problem, result.positions)
+    d = discrepancy_of(problem.posterior, result.positions)
     if d is not None:
         mean[i] += d.mean(axis=(0, 1))
     return mean
@@ -135,17 +136,6 @@ def voxel_norm_spread(w, draws, max_draws=VOXEL_DRAWS, block=8192):
         q75, q25 = np.quantile(norm, [0.75, 0.25], axis=1)
         iqr[r] = q75 - q25
     return sd, iqr
-
-
-def discrepancy_draws(problem, positions):
-    """The model discrepancy's draws ``(..., n_i, 3)`` mm (``mesh.interior`` order) of stored
-    positions ``(..., dim)``, or ``None`` (a model without one;
-    :class:`bayesreg.model.posterior.Discrepancy`)."""
-    post = problem.posterior
-    if post.discrepancy is None:
-        return None
-    d = positions[..., 3 * post.n_boundary:3 * post.n_sampled]
-    return d.reshape(d.shape[:-1] + (-1, 3))
 
 
 def discrepancy_summary(problem, rms, d_mean, floor_mm: float) -> dict:

@@ -61,7 +61,7 @@ from bayesreg.config import Config
 from bayesreg.sampling.convergence import gelman_rubin
 from bayesreg.sampling.diagnostics import arviz_fast_ess, contraction, coverage, sampler_health, to_datatree
 from bayesreg.outputs.fields import (
-    VOXEL_DRAWS, discrepancy_draws, discrepancy_summary, nodal_draws, nodal_mean, nodal_spread,
+    VOXEL_DRAWS, discrepancy_summary, nodal_draws, nodal_mean, nodal_spread,
     voxel_norm_spread)
 from bayesreg.data.images import Image, save_nifti
 from bayesreg.inference.initialisation import Initialisation, registration_field
@@ -70,7 +70,7 @@ from bayesreg.mesh.tetmesh import boundary_nodes, mesh_quality
 from bayesreg.outputs.plots import plot_brain_map, plot_parameters, plot_uncertainty
 from bayesreg.outputs.result import RunResult
 from bayesreg.outputs.printed import verdict
-from bayesreg.model.posterior import elastic_groups, solve_position
+from bayesreg.model.posterior import discrepancy_of, elastic_groups, solve_position
 from bayesreg.model.problem import Problem
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampling.driver import SamplerResult
@@ -303,7 +303,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     dims = {"u_b": ["node", "axis"], "ratio": ["group"], "block_acceptance_rate": ["block"]}
     coords = {"node": mesh.boundary.astype(int), "axis": ["x", "y", "z"], "group": names,
               "block": block_names}
-    disc = discrepancy_draws(problem, pos)
+    disc = discrepancy_of(post, pos)
     if disc is not None:  # the model discrepancy: d per interior node, and its rms per draw
         posterior["d"], dims["d"] = disc, ["interior_node", "axis"]
         coords["interior_node"] = mesh.interior.astype(int)
