@@ -117,6 +117,37 @@ def test_paper_stiffness_ratio_converges():
     assert np.abs(f.reshape(-1, 3)[interior]).max() <= 1e-9 * np.abs(f).max()
 
 
+def test_load_stepping_keeps_every_node_on_its_side_of_a_skull_fin():
+    """A 4 mm fin of skull under the box, open beyond x = 40 mm (the space below it is
+    connected to the box's, as the two sides of the falx are).  The box, pushed 12 mm down,
+    would rest below the fin at the unconstrained minimiser; solved in one step, the bottom
+    nodes are pulled out of the fin on its far side (a lower energy that no continuous
+    motion reaches); by load steps (the default, 12 here) they rest on the fin."""
+    mesh = box_mesh(n=(3, 3, 3), size=(30, 30, 30))
+    forb, aff, xyz = world_grid(-20.0, 60.0, 1.0)
+    forb[xyz[..., 2] <= -16.0] = True
+    forb[(xyz[..., 2] <= -2.0) & (xyz[..., 2] >= -6.0) & (xyz[..., 0] <= 40)] = True
+    forb = Image(forb.astype(np.uint8), aff)
+    pushed = np.flatnonzero(mesh.nodes[:, 2] == 30.0)
+    lam, mu = np.array([2.0, 10.0, 30.0])[mesh.tissue], np.ones(len(mesh.tets))
+    bottom = mesh.nodes[:, 2] == 0.0
+    one, info1 = constrained_shift(mesh, lam, mu, forb, shift_mm=12.0, pushed=pushed, load_steps=1)
+    assert info1["converged"] and info1["load_steps"] == 1
+    assert (mesh.nodes + one.u)[bottom, 2].min() < -6.0  # tunnelled through the fin
+    truth, info = constrained_shift(mesh, lam, mu, forb, shift_mm=12.0, pushed=pushed)
+    assert info["converged"] and info["load_steps"] == 12 and info["load_factor"] == 1.0
+    assert info["n_forbidden_nodes"] == 0 and info["n_inverted"] == 0
+    y = mesh.nodes + truth.u
+    assert y[:, 2].min() > -2.0 and info["n_active"] > 0
+    np.testing.assert_allclose(truth.u[pushed], one.u[pushed], atol=1e-12)
+    # every node's straight path from rest to the truth stays out of the skull
+    ts = np.linspace(0.0, 1.0, 41)[:, None, None]
+    path = (mesh.nodes[None] + ts * truth.u[None]).reshape(-1, 3)
+    ijk = np.rint((path - aff[:3, 3]) / 1.0).astype(int)
+    assert not forb.data[tuple(ijk.T)].any()
+    assert info["energy"] > info1["energy"]
+
+
 def test_constrained_shift_bad_arguments():
     mesh, forb, pushed = slab_case()
     lam = mu = np.ones(len(mesh.tets))
@@ -124,6 +155,8 @@ def test_constrained_shift_bad_arguments():
         constrained_shift(mesh, lam, mu, forb, shift_mm=0.0)
     with pytest.raises(ValueError, match="n_pushed"):
         constrained_shift(mesh, lam, mu, forb, n_pushed=0)
+    with pytest.raises(ValueError, match="load_steps"):
+        constrained_shift(mesh, lam, mu, forb, load_steps=0)
     centre = int(np.flatnonzero(np.all(mesh.nodes == 10.0, axis=1))[0])
     with pytest.raises(ValueError, match=rf"\[{centre}\] are not boundary"):
         constrained_shift(mesh, lam, mu, forb, pushed=[pushed[0], centre])

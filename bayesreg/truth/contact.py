@@ -29,7 +29,7 @@ __all__ = ["constrained_shift"]
 
 def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.0, n_pushed=20,
                       pushed=None, clearance_mm=None, tol_mm=1e-3, min_volume_ratio=0.05,
-                      max_iter=100) -> tuple[Truth, dict]:
+                      max_iter=100, load_steps=None) -> tuple[Truth, dict]:
     """Synthetic brain shift of paper Sec. 4.1: elastic-energy minimiser under the skull.
 
     ``P`` pushed boundary nodes move ``shift_mm`` toward the volume-weighted centre of
@@ -55,8 +55,16 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     ``max |grad| <= 1e-9 max |grad E(u_f = 0)|``; then ``l <- max(0, l + r g)`` and
     ``r <- 10 r`` when the violation did not drop fourfold.  ``r = rho * mean(diag S)``,
     so ``rho`` (start 10) is dimensionless.  Converged when ``max_n g_n <= tol_mm``; after
-    ``max_iter`` outer iterations it returns unconverged, with the figures.  The start is
-    the unconstrained minimiser.
+    ``max_iter`` outer iterations it returns unconverged, with the figures.
+
+    Load stepping.  The skull region is not convex (ridges of the skull base, the dura's
+    sheets), so the constrained minimiser is only a local one and which one depends on the
+    path.  The push is applied in ``load_steps`` equal increments (quasi-static contact):
+    each increment starts from the last solution plus the increment's unconstrained
+    response, with the contact forces carried over, so no node moves by more than about
+    one increment's push between two solutions and none jumps across a thin part of the
+    skull to the far side, where the unconstrained minimiser would have put it and the
+    samplers, which move continuously, could never follow.
 
     Clearance.  ``c`` defaults to half the voxel diagonal: the truth's nodes stop that far in
     front of the skull, so that a sampler's smooth barrier (``model.skull_barrier_mm``, 1 mm
@@ -91,7 +99,10 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     tol_mm : float
         tolerance on the constraint violation ``max g_n``, mm (> 0)
     max_iter : int
-        augmented-Lagrangian (outer) iterations (>= 1)
+        augmented-Lagrangian (outer) iterations per load step (>= 1)
+    load_steps : int, optional
+        increments of the push (>= 1; default ``ceil(shift_mm / h)``, ``h`` the smallest
+        voxel spacing of ``forbidden``)
 
     Returns
     -------
@@ -108,7 +119,9 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         (every node, by the samplers' rule :func:`bayesreg.mesh.constraints.points_forbidden`
         against the plain skull); ``n_active`` (nodes with
         ``g_n >= -tol_mm``); ``iterations`` (outer), ``newton_iterations`` (total);
-        ``penalty`` (final dimensionless ``rho``); ``converged``; ``n_inverted`` (deformed
+        ``penalty`` (final dimensionless ``rho``); ``converged``; ``load_steps``;
+        ``load_factor`` (1 when converged: the fraction of the push reached, the pushed nodes
+        at ``load_factor * shift_mm``, where a step did not converge); ``n_inverted`` (deformed
         elements with signed volume <= 0); ``clearance_mm``; ``n_clearance_raises``;
         ``tol_mm``; ``pushed``; ``shift_mm``.
 
@@ -116,6 +129,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     ------
     ValueError
         ``shift_mm <= 0``, ``tol_mm <= 0``, ``clearance_mm < 0``, ``max_iter < 1``,
+        ``load_steps`` not an integer >= 1,
         ``n_pushed`` outside ``[1, n_b]``, ``pushed`` empty or not boundary nodes,
         ``lam_e``/``mu_e`` not of shape ``(M,)``, ``forbidden`` not 3D, or a pushed node's
         target in the forbidden region or beyond it (the nodes are named).
@@ -143,6 +157,8 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         raise ValueError(f"min_volume_ratio must be in [0, 1), got {min_volume_ratio}")
     if int(max_iter) < 1:
         raise ValueError(f"max_iter must be >= 1, got {max_iter}")
+    if load_steps is not None and not (int(load_steps) == load_steps and load_steps >= 1):
+        raise ValueError(f"load_steps must be an integer >= 1, got {load_steps}")
     mask = np.asarray(forbidden.data) > 0
     if mask.ndim != 3:
         raise ValueError(f"forbidden must be 3D, got shape {mask.shape}")
@@ -152,6 +168,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         clearance_mm = 0.5 * float(np.linalg.norm(spacing))
     if not clearance_mm >= 0:
         raise ValueError(f"clearance_mm must be >= 0, got {clearance_mm}")
+    n_steps = int(load_steps) if load_steps is not None else max(1, int(np.ceil(shift_mm / spacing.min())))
     boundary = np.asarray(mesh.boundary)
     if pushed is None:
         pushed = boundary[top_boundary(mesh, n_pushed)]
@@ -212,8 +229,11 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     scale = float(np.mean(np.diag(s_mat))) if nf else 1.0
     ridge = 1e-14 * scale * np.eye(nf)
 
+    factor = [1.0]  # the load factor: the pushed nodes at factor[0] * u_p (load stepping)
+
     def energy(uf):
-        return 0.5 * uf @ (s_mat @ uf) + load @ uf + e0
+        f = factor[0]
+        return 0.5 * uf @ (s_mat @ uf) + f * (load @ uf) + f * f * e0
 
     def cho(h):
         return sla.cho_factor(h + ridge)
@@ -232,7 +252,7 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     gtol = 1e-9 * max(float(np.abs(load).max()) if nf else 0.0, 1e-300)
 
     def positions(uf):
-        return x_c + u0_c + t3 @ uf
+        return x_c + factor[0] * u0_c + t3 @ uf
 
     # no element may shrink below min_volume_ratio of its rest volume: g_e = h_e (q - V_e / V0_e)
     # <= 0 with h_e = V0_e^(1/3), in mm like the skull constraint
@@ -242,12 +262,13 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
     u0_n = u0.reshape(n, 3)
 
     def volume_g(uf):
-        return h_e * (float(min_volume_ratio) - signed_volumes(nodes + u0_n + t_nodes @ uf, tets) / v_rest)
+        return h_e * (float(min_volume_ratio)
+                      - signed_volumes(nodes + factor[0] * u0_n + t_nodes @ uf, tets) / v_rest)
 
     def volume_jac(uf, act):
         """``d g_e / d u_f`` of the elements ``act``, ``(len(act), nf)``."""
         tt = tets[act]
-        x = nodes[tt] + u0_n[tt] + t_nodes[tt] @ uf  # (A, 4, 3)
+        x = nodes[tt] + factor[0] * u0_n[tt] + t_nodes[tt] @ uf  # (A, 4, 3)
         a, b, c = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
         dv = np.stack([np.zeros_like(a), np.cross(b, c), np.cross(c, a), np.cross(a, b)], 1) / 6.0
         dv[:, 0] = -dv[:, 1:].sum(1)
@@ -281,61 +302,74 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
                 if psd:
                     raise
 
-    uf = uf_free.copy()
+    def augmented_lagrangian(uf, lmb, lmb_v):
+        """The constrained minimiser at the current load factor from ``uf`` and the
+        multipliers: ``(uf, lmb, lmb_v, converged, outer, newton, raises)``."""
+        rho, viol_prev, converged, n_newton, n_raise, it = 10.0, np.inf, False, 0, 0, 0
+        for it in range(1, int(max_iter) + 1):
+            r = rho * scale
+            phi, z, grad, d, zv, gv = merit(uf, lmb, lmb_v, r)
+            for _ in range(100):
+                act = np.flatnonzero(z > 0)
+                act_v = np.flatnonzero(zv > 0)
+                jac = np.matmul(grad[act, None, :], t3[act])[:, 0]
+                jac_v = volume_jac(uf, act_v)
+                gphi = s_mat @ uf + factor[0] * load + jac.T @ z[act] + jac_v.T @ zv[act_v]
+                if gphi.size == 0 or np.abs(gphi).max() <= gtol:
+                    break
+                step = -sla.cho_solve(newton_factor(uf, act, grad, z, r, jac_v), gphi)
+                n_newton += 1
+                slope = gphi @ step
+                a = 1.0
+                while True:
+                    phi_new, *rest = merit(uf + a * step, lmb, lmb_v, r)
+                    # Armijo; a decrease below round-off of phi is taken as is
+                    if (phi_new <= phi + 1e-4 * a * slope or a < 1e-12
+                            or -slope < 1e-13 * abs(phi)):
+                        break
+                    a *= 0.5
+                uf = uf + a * step
+                phi, (z, grad, d, zv, gv) = phi_new, rest
+                if a < 1e-12:
+                    break
+            g = d + clear
+            lmb = np.maximum(0.0, lmb + r * g)
+            lmb_v = np.maximum(0.0, lmb_v + r * gv)
+            viol = max(float(g.max()) if g.size else -np.inf, float(gv.max()))
+            if viol <= tol_mm:
+                u_all = (factor[0] * u0 + t_mat @ uf).reshape(n, 3)
+                bad = sdf(x_c + u_all[cons])[0] >= 0
+                if not bad.any():
+                    converged = True
+                    break
+                clear[bad] += 0.5 * spacing.min()
+                n_raise += 1
+                viol_prev = np.inf
+                continue
+            if viol > 0.25 * viol_prev:
+                rho *= 10.0
+            viol_prev = viol
+        return uf, lmb, lmb_v, converged, it, n_newton, n_raise, rho
+
+    uf = np.zeros(nf)
     lmb = np.zeros(cons.size)
     lmb_v = np.zeros(m)
-    rho = 10.0
-    viol_prev = np.inf
-    converged = False
     n_newton = 0
     n_raise = 0
-    it = 0
-    for it in range(1, int(max_iter) + 1):
-        r = rho * scale
-        phi, z, grad, d, zv, gv = merit(uf, lmb, lmb_v, r)
-        for _ in range(100):
-            act = np.flatnonzero(z > 0)
-            act_v = np.flatnonzero(zv > 0)
-            jac = np.matmul(grad[act, None, :], t3[act])[:, 0]
-            jac_v = volume_jac(uf, act_v)
-            gphi = s_mat @ uf + load + jac.T @ z[act] + jac_v.T @ zv[act_v]
-            if gphi.size == 0 or np.abs(gphi).max() <= gtol:
-                break
-            step = -sla.cho_solve(newton_factor(uf, act, grad, z, r, jac_v), gphi)
-            n_newton += 1
-            slope = gphi @ step
-            a = 1.0
-            while True:
-                phi_new, *rest = merit(uf + a * step, lmb, lmb_v, r)
-                # Armijo; a decrease below round-off of phi is taken as is
-                if (phi_new <= phi + 1e-4 * a * slope or a < 1e-12
-                        or -slope < 1e-13 * abs(phi)):
-                    break
-                a *= 0.5
-            uf = uf + a * step
-            phi, (z, grad, d, zv, gv) = phi_new, rest
-            if a < 1e-12:
-                break
-        g = d + clear
-        lmb = np.maximum(0.0, lmb + r * g)
-        lmb_v = np.maximum(0.0, lmb_v + r * gv)
-        viol = max(float(g.max()) if g.size else -np.inf, float(gv.max()))
-        if viol <= tol_mm:
-            u_all = (u0 + t_mat @ uf).reshape(n, 3)
-            bad = sdf(x_c + u_all[cons])[0] >= 0
-            if not bad.any():
-                converged = True
-                break
-            clear[bad] += 0.5 * spacing.min()
-            n_raise += 1
-            viol_prev = np.inf
-            continue
-        if viol > 0.25 * viol_prev:
-            rho *= 10.0
-        viol_prev = viol
+    n_outer = 0
+    for j in range(1, n_steps + 1):
+        # load stepping: the push in n_steps increments, each from the last one's solution
+        # plus the increment's unconstrained response (the contact forces carried over), so
+        # that no node crosses a thin part of the skull between two solutions
+        uf = uf + uf_free / n_steps
+        factor[0] = j / n_steps
+        uf, lmb, lmb_v, converged, it, newton, raised, rho = augmented_lagrangian(uf, lmb, lmb_v)
+        n_newton, n_raise, n_outer = n_newton + newton, n_raise + raised, n_outer + it
+        if not converged:
+            break
 
-    u = (u0 + t_mat @ uf).reshape(n, 3)
-    u[pushed] = u_p
+    u = (u0 * factor[0] + t_mat @ uf).reshape(n, 3)
+    u[pushed] = u_p * factor[0]
     d_all, _ = sdf(nodes + u)
     g = d_all[cons] + clear
     info = {
@@ -346,7 +380,9 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         "max_constraint_mm": float(g.max()) if cons.size else None,
         "n_forbidden_nodes": int(np.sum(plain(nodes + u)[0] >= 0)),
         "n_active": int(np.sum(g >= -tol_mm)),
-        "iterations": int(it),
+        "iterations": int(n_outer),
+        "load_steps": int(n_steps),
+        "load_factor": float(factor[0]),
         "newton_iterations": int(n_newton),
         "penalty": float(rho),
         "converged": bool(converged),
