@@ -68,7 +68,7 @@ class RunPosterior(NamedTuple):
         The synthetic truth (synthetic runs).
     d : (S, n_i, 3) ndarray or None
         The model discrepancy per draw, mm, in ``mesh.interior`` order (runs with
-        ``model.discrepancy: interior``), added to the interior's FE solve.
+        ``model.discrepancy: interior`` or ``modes``), added to the interior's FE solve.
     """
 
     path: Path

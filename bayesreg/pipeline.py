@@ -53,7 +53,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     """
     init = init or initialise(problem, cfg)
     post = problem.posterior
-    nb3 = 3 * post.n_sampled
+    nb3 = post.n_displacement
 
     def estimands(draws):
         # boundary coordinates (and a discrepancy's), free parameters and the lam/mu ratios

@@ -371,3 +371,9 @@ def test_a_model_discrepancy_needs_the_solved_interior_and_a_gradient_sampler():
     assert "sampler.collapsed_moves" in _error(
         ["model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false"])
     assert "floor_mm" in _error(["model.discrepancy=interior", "model.discrepancy_prior.floor_mm=0"])
+    # the low-rank discrepancy: the same rules, and at least one mode
+    cfg = load_config("configs/quickstart.yaml", overrides=["model.discrepancy=modes"])
+    assert cfg.model.discrepancy == "modes" and cfg.model.discrepancy_prior.modes == 64
+    assert "model.discrepancy: modes needs a gradient sampler" in _error(
+        ["model.discrepancy=modes", "sampler.kind=rwmh"])
+    assert "modes" in _error(["model.discrepancy=modes", "model.discrepancy_prior.modes=0"])

@@ -1,8 +1,10 @@
-"""The model discrepancy on the interior nodes (``model.discrepancy: interior``).
+"""The model discrepancy on the interior nodes (``model.discrepancy: interior``) and its
+low-rank form (``modes``).
 
 References: the solve model's log-density (the discrepancy at zero), SciPy's multivariate
 Student t (its prior), finite differences (its gradient), JAX's Hessian at a zero residual
-(the Gauss-Newton precision) and a dense inverse (the trace behind its rate)."""
+(the Gauss-Newton precision), a dense inverse (the trace behind its rate) and NumPy's
+``eigh`` of SciPy's assembled ``K0_ii`` (the low-rank basis)."""
 
 import json
 
@@ -20,7 +22,8 @@ from bayesreg.inference.initialisation import gauss_newton_precision
 from bayesreg.model.parameters import ParamLayout
 from bayesreg.model.posterior import (
     _dense_k, build_posterior, discrepancy_log_prior, discrepancy_of, elastic_groups, log_density,
-    nodal_displacement, split_position)
+    nodal_displacement, smoothest_modes, split_position)
+from bayesreg.fem.stiffness import ell_dense, ell_sparse
 from bayesreg.model.similarity import build_ssd
 from conftest import box_mesh
 from helpers import box_skull, log_p
@@ -31,6 +34,17 @@ PRIOR = {"lam": (2.0, 3.0, 0.0, 100.0), "mu": (1.0, 1.0, 0.0, 10.0)}
 PHI = np.array([1.0, 10.0, 30.0, 0.5, 1.0])
 LAYOUT = ParamLayout(("csf", "gm", "wm"), free=(("lam", 0), ("lam", 1), ("lam", 2), ("mu", 0), ("mu", 2)),
                      fixed=(("mu", 1, 1.0),))
+
+
+MODES = 10  # of the box's 24 interior DOFs
+
+
+def _k0(mesh):
+    """``K0_ii`` at ``PHI`` (lam (1, 10, 30), mu (0.5, 1, 1) per tissue), by SciPy's assembly."""
+    k = stiffness_matrix(mesh.nodes, mesh.tets, np.array([1.0, 10.0, 30.0])[mesh.tissue],
+                         np.array([0.5, 1.0, 1.0])[mesh.tissue]).tocsc()
+    dofs = (3 * mesh.interior[:, None] + np.arange(3)).ravel()
+    return k[dofs][:, dofs].toarray()
 
 
 def _posteriors(shift=1, discrepancy=(1.0, 0.05)):
@@ -58,7 +72,7 @@ def pair():
 def test_the_position_holds_the_discrepancy_between_u_b_and_the_parameters(pair):
     mesh, post, post_d = pair
     n_b, n_i = len(mesh.boundary), len(mesh.interior)
-    assert post_d.n_discrepancy == n_i and post_d.n_sampled == n_b + n_i
+    assert post_d.n_discrepancy == 3 * n_i and post_d.n_displacement == 3 * (n_b + n_i)
     assert post_d.dim == post.dim + 3 * n_i
     theta = np.arange(post_d.dim, dtype=float)
     u_b, phi = split_position(post_d, jnp.asarray(theta))
@@ -116,11 +130,7 @@ def test_the_discrepancy_prior_is_a_multivariate_student_t(pair):
     mesh, _, post_d = pair
     n_i = len(mesh.interior)
     a, b = float(post_d.discrepancy.shape) - 1.5 * n_i, float(post_d.discrepancy.rate)
-    # K0_ii by SciPy's assembly at phi_ref (lam (1, 10, 30), mu (0.5, 1, 1) per tissue)
-    k = stiffness_matrix(mesh.nodes, mesh.tets, np.array([1.0, 10.0, 30.0])[mesh.tissue],
-                         np.array([0.5, 1.0, 1.0])[mesh.tissue]).tocsc()
-    dofs = (3 * mesh.interior[:, None] + np.arange(3)).ravel()
-    k0 = k[dofs][:, dofs].toarray()
+    k0 = _k0(mesh)  # by SciPy's assembly at phi_ref
     ref = multivariate_t(loc=np.zeros(3 * n_i), shape=(b / a) * np.linalg.inv(k0), df=2 * a)
     rng = np.random.default_rng(5)
     ds = [s * rng.normal(size=(n_i, 3)) for s in (0.01, 0.1, 0.5, 2.0)]
@@ -166,7 +176,7 @@ def test_the_gauss_newton_precision_over_u_b_and_d_is_the_hessian_at_a_zero_resi
     b``.  The Gauss-Newton precision over ``[u_b, d]`` is then ``-`` the Hessian of ``log p``
     (JAX, through the CG solve), to its ridge."""
     mesh, _, post_d = _posteriors(shift=0)
-    n_s3 = 3 * post_d.n_sampled
+    n_s3 = post_d.n_displacement
     theta = np.r_[np.zeros(n_s3), PHI]
     zeros = jnp.zeros((len(mesh.interior), 3))
 
@@ -183,11 +193,105 @@ def test_the_gauss_newton_precision_over_u_b_and_d_is_the_hessian_at_a_zero_resi
                                atol=1e-7 * np.abs(hess).max())
 
 
+@pytest.fixture(scope="module")
+def low_rank():
+    mesh, post, post_m = _posteriors(discrepancy=(1.0, 0.05, MODES))
+    return mesh, post, post_m
+
+
+def test_the_low_rank_basis_is_the_smoothest_eigenmodes_of_k0(low_rank):
+    """``V``, ``Lambda``: the ``r`` smallest eigenpairs of SciPy's ``K0_ii`` (NumPy's ``eigh``),
+    dense and by ARPACK's shift-invert alike; the sparse copy of the ELL blocks equals the
+    dense one."""
+    import bayesreg.model.posterior as P
+
+    mesh, post, post_m = low_rank
+    disc = post_m.discrepancy
+    k0 = _k0(mesh)
+    vals, vecs = np.linalg.eigh(k0)
+    np.testing.assert_allclose(disc.eigenvalues, vals[:MODES], rtol=1e-10)
+    v = np.asarray(disc.basis)
+    np.testing.assert_allclose(v.T @ v, np.eye(MODES), atol=1e-10)
+    np.testing.assert_allclose(k0 @ v, v * vals[:MODES], atol=1e-8 * vals.max())
+    op = post.op
+    np.testing.assert_allclose(ell_sparse(disc.k_ii, op.cols_ii, op.row_ii, op.n_interior).toarray(),
+                               np.asarray(ell_dense(disc.k_ii, op.cols_ii, op.row_ii, op.n_interior)),
+                               atol=0)
+    dense_max = P.DENSE_MAX_DOFS
+    try:  # the sparse path on the same matrix
+        P.DENSE_MAX_DOFS = 0
+        vals_s, vecs_s = smoothest_modes(disc.k_ii, op, 4)
+    finally:
+        P.DENSE_MAX_DOFS = dense_max
+    np.testing.assert_allclose(vals_s, vals[:4], rtol=1e-8)
+    np.testing.assert_allclose(np.abs(vecs_s.T @ v[:, :4]), np.eye(4), atol=1e-6)
+
+
+def test_the_low_rank_position_and_prior(low_rank):
+    """``theta = [u_b, c, phi]`` with ``d = V c``; the prior is SciPy's multivariate t of ``c``
+    (``df = 2a``, shape ``(b / a) Lambda^-1``); the rate puts the floor at ``floor_mm`` rms per
+    node under the truncated prior; ``d = 0`` gives the paper model's ``log p``."""
+    mesh, post, post_m = low_rank
+    disc = post_m.discrepancy
+    n_b, n_i = len(mesh.boundary), len(mesh.interior)
+    assert post_m.n_discrepancy == MODES and post_m.dim == post.dim + MODES
+    rng = np.random.default_rng(7)
+    c = rng.normal(size=MODES)
+    theta = np.r_[0.3 * rng.normal(size=3 * n_b), c, PHI]
+    np.testing.assert_allclose(discrepancy_of(post_m, jnp.asarray(theta)),
+                               (np.asarray(disc.basis) @ c).reshape(n_i, 3), atol=1e-12)
+    with pytest.raises(ValueError, match="10 discrepancy coordinates"):
+        log_p(post_m, theta[:-1])
+    lam = np.asarray(disc.eigenvalues)
+    a, b = float(disc.shape) - 0.5 * MODES, float(disc.rate)
+    ref = multivariate_t(loc=np.zeros(MODES), shape=(b / a) * np.diag(1.0 / lam), df=2 * a)
+    cs = [s * rng.normal(size=MODES) for s in (0.01, 0.1, 1.0, 5.0)]
+    ours = np.array([float(discrepancy_log_prior(post_m, discrepancy_of(post_m, jnp.asarray(
+        np.r_[np.zeros(3 * n_b), ci, PHI])))[0]) for ci in cs])
+    theirs = np.array([ref.logpdf(ci) for ci in cs])
+    np.testing.assert_allclose(ours - ours[0], theirs - theirs[0], rtol=1e-10, atol=1e-9)
+    t_floor = b / float(disc.shape)
+    np.testing.assert_allclose(np.sqrt(t_floor * np.sum(1.0 / lam) / n_i), 0.05, rtol=1e-12)
+    theta0 = np.r_[theta[:3 * n_b], np.zeros(MODES), PHI]
+    np.testing.assert_allclose(float(log_p(post_m, theta0)[0]),
+                               float(log_p(post, np.r_[theta[:3 * n_b], PHI])[0]), rtol=1e-12)
+
+
+def test_the_low_rank_gradient_and_gauss_newton_precision():
+    """The gradient in ``c`` against finite differences; at a zero residual the Gauss-Newton
+    precision over ``[u_b, c]`` is ``-`` JAX's Hessian (its ``c`` block ``tau Lambda``)."""
+    mesh, _, post_m = _posteriors(discrepancy=(1.0, 0.05, MODES))
+    rng = np.random.default_rng(8)
+    n_b3 = 3 * len(mesh.boundary)
+    theta = np.r_[0.3 * rng.normal(size=n_b3), 0.3 * rng.normal(size=MODES), PHI]
+    zeros = jnp.zeros((len(mesh.interior), 3))
+    grad = np.asarray(jax.grad(lambda t: log_density(post_m, t, zeros, rtol=1e-12)[0])(jnp.asarray(theta)))
+    for k in (n_b3, n_b3 + MODES - 1):
+        e = np.zeros_like(theta)
+        e[k] = 1e-5
+        fd = (float(log_p(post_m, theta + e)[0]) - float(log_p(post_m, theta - e)[0])) / 2e-5
+        np.testing.assert_allclose(grad[k], fd, rtol=1e-5, atol=1e-6)
+    mesh, _, post_m = _posteriors(shift=0, discrepancy=(1.0, 0.05, MODES))
+    n = post_m.n_displacement
+
+    def logp_x(x):
+        return log_density(post_m, jnp.concatenate([x, jnp.asarray(PHI)]), zeros, rtol=1e-13)[0]
+
+    column = jax.jit(lambda e: jax.jvp(jax.grad(logp_x), (jnp.zeros(n),), (e,))[1])
+    hess = -np.stack([np.asarray(column(jnp.asarray(e))) for e in np.eye(n)], axis=1)
+    prec = gauss_newton_precision(post_m, mesh, mesh.tissue, np.r_[np.zeros(n), PHI])
+    assert prec.shape == (n, n)
+    ridge = 1e-6 * np.trace(hess) / n
+    np.testing.assert_allclose(prec - ridge * np.eye(n), hess, rtol=1e-6, atol=1e-7 * np.abs(hess).max())
+
+
 def test_a_model_discrepancy_needs_interior_nodes_and_a_valid_prior(pair):
     mesh, post, _ = pair
     kw = dict(t_s=0.5, t_r=3.0, layout=LAYOUT, element_group=mesh.tissue, prior=PRIOR, phi_ref=PHI)
     with pytest.raises(ValueError, match="discrepancy must be"):
         build_posterior(mesh, post.similarity, box_skull(), discrepancy=(1.0, -0.1), **kw)
+    with pytest.raises(ValueError, match="modes must be an integer"):
+        build_posterior(mesh, post.similarity, box_skull(), discrepancy=(1.0, 0.1, 0), **kw)
     every = mesh._replace(boundary=np.arange(len(mesh.nodes)))
     with pytest.raises(ValueError, match="needs interior nodes"):
         build_posterior(every, build_ssd(every.nodes, every.tets, *_images()), box_skull(),

@@ -87,3 +87,28 @@ def test_random_field_is_a_smooth_gaussian_field_scaled_at_the_nodes():
     assert np.abs(random_field(grid, mesh, shift_mm=2.0, length_mm=3.0, seed=2).data - u).max() > 0.5
     with pytest.raises(ValueError, match="folds the image"):
         random_field(grid, mesh, shift_mm=15.0, length_mm=3.0)
+
+
+def test_the_solenoidal_random_field_preserves_volume():
+    """``random_field(solenoidal=True)``: the curl of a random potential, scaled at the nodes
+    like the plain field; its divergence (NumPy's central differences on the voxel grid) is
+    a small fraction of the plain field's, whose volume change is of the order of
+    ``shift_mm / length_mm``; ``synthetic.solenoidal`` is refused for other truths."""
+    from bayesreg.config import ConfigError, load_config
+    from bayesreg.truth.synthetic import field_truth, random_field
+    from helpers import smooth_image
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    grid = smooth_image(shape=(40, 40, 40), origin=-5.0)
+
+    def divergence(field):
+        u = field.data
+        return sum(np.gradient(u[..., c], axis=c) for c in range(3))[4:-4, 4:-4, 4:-4]
+
+    plain = random_field(grid, mesh, shift_mm=2.0, length_mm=6.0, seed=3)
+    curl = random_field(grid, mesh, shift_mm=2.0, length_mm=6.0, seed=3, solenoidal=True)
+    np.testing.assert_allclose(np.linalg.norm(field_truth(mesh, curl).u, axis=1).max(), 2.0, rtol=0.02)
+    assert np.abs(curl.data - plain.data).max() > 0.5
+    assert np.abs(divergence(curl)).max() < 0.1 * np.abs(divergence(plain)).max()
+    with pytest.raises(ConfigError, match="synthetic.solenoidal"):
+        load_config("configs/mismatch_bump.yaml", overrides=["synthetic.solenoidal=true"])

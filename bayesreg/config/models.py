@@ -218,6 +218,11 @@ class SyntheticConfig(_Strict):
         "image, white noise smoothed by a Gaussian of sd falloff_mm, largest displacement "
         "shift_mm at the nodes, seeded by the run's seed (bayesreg.truth.synthetic."
         "random_field); field, the displacement field of synthetic.field")
+    solenoidal: bool = Field(
+        False, description="truth: random: the curl of a random vector potential instead, a "
+        "divergence-free (volume-preserving) field, as nearly incompressible tissue moves; the "
+        "plain random field changes volume by tens of percent, which an FE model fits with "
+        "compressible tissue (bayesreg.truth.synthetic.random_field)")
     field: Path | None = Field(
         None, description="truth: field: a displacement-field NIfTI (ITK/ANTs/Slicer or "
         "bayesreg's displacement_*.nii.gz, fixed to moving: m(x + u(x)) = f(x)) in f's world "
@@ -268,6 +273,9 @@ class SyntheticConfig(_Strict):
         if (self.truth == "field") != (self.field is not None):
             raise ValueError("synthetic.truth: field and synthetic.field go together (the field "
                              "file is the truth)")
+        if self.solenoidal and self.truth != "random":
+            raise ValueError(f"synthetic.solenoidal is for synthetic.truth: random, not "
+                             f"{self.truth}")
         if self.truth in _UNUSED_BY:
             given = [k for k in _UNUSED_BY[self.truth] if k in self.model_fields_set
                      and getattr(self, k) != type(self).model_fields[k].default]
@@ -303,7 +311,7 @@ class GammaPrior(_Strict):
 
 
 class DiscrepancyPrior(_Strict):
-    """The prior of the model discrepancy's amplitude (``model.discrepancy: interior``)."""
+    """The prior of the model discrepancy (``model.discrepancy: interior`` or ``modes``)."""
 
     shape: Float = Field(1.0, gt=0, description="shape a of the Gamma prior of 1 / T_d (a = 1: "
                          "weakly informative, the images set the amplitude)")
@@ -311,6 +319,9 @@ class DiscrepancyPrior(_Strict):
                             "discrepancy at the floor of T_d, where the images ask for none: "
                             "sets the Gamma prior's rate b (bayesreg.model.posterior."
                             "discrepancy_rate); well below a voxel")
+    modes: int = Field(64, ge=1, description="discrepancy: modes: how many of the smoothest "
+                       "eigenmodes of K0_ii the discrepancy spans (capped at 3 n_i; "
+                       "bayesreg.model.posterior.smoothest_modes)")
 
 
 class TissuePriors(_Strict):
@@ -434,18 +445,21 @@ class ModelConfig(_Strict):
         "real brain shift) are reachable, but the images then no longer identify the ratios "
         "(the interior's obeying the FE solve is what carries them); needs prior_normaliser: "
         "exact (the normaliser of the whole K)")
-    discrepancy: Literal["none", "interior"] = Field(
+    discrepancy: Literal["none", "interior", "modes"] = Field(
         "none", description="none: the paper's model, the interior at the FE solve; interior: "
         "a model discrepancy (Kennedy and O'Hagan 2001), u_i = -K_ii^-1 K_ib u_b + d with d "
         "sampled under N(0, T_d K0_ii^-1) (K0 at the start's parameters, model.initial_*, "
         "fixed: d says nothing of lam, mu) and its amplitude T_d learned (a Gamma prior on "
         "1 / T_d, integrated out: a Student t), so that what the FE model cannot make (a "
         "bump, real brain shift) goes into d while the elastic parameters keep what it can; "
-        "the report maps |d| (bayesreg.model.posterior.Discrepancy).  Needs interior: solve "
+        "the report maps |d| (bayesreg.model.posterior.Discrepancy); modes: the same prior "
+        "restricted to the discrepancy_prior.modes smoothest eigenmodes of K0_ii (a truncated "
+        "Karhunen-Loeve expansion), so that a smooth shift is representable while the "
+        "interior's finer pattern still follows the FE solve.  Needs interior: solve "
         "and a gradient sampler (nuts, hmc, mala) without collapsed moves")
     discrepancy_prior: DiscrepancyPrior = Field(
-        DiscrepancyPrior(), description="prior of the discrepancy's amplitude (discrepancy: "
-        "interior)")
+        DiscrepancyPrior(), description="prior of the discrepancy (discrepancy: interior or "
+        "modes)")
     initial_lam: TissueValues = Field(TissueValues(csf=1.0, gm=5.0, wm=5.0),
                                       description="the chains' central start of lambda per tissue "
                                       "(uniform: their volume-weighted mean)")
@@ -737,15 +751,16 @@ class Config(_Strict):
                              "every node sampled, the paper's unnormalised prior drives the "
                              "free parameters to zero)")
         if self.model.discrepancy != "none":
+            which = f"model.discrepancy: {self.model.discrepancy}"
             if self.model.interior != "solve":
-                raise ValueError("model.discrepancy: interior needs model.interior: solve (the "
+                raise ValueError(f"{which} needs model.interior: solve (the "
                                  "discrepancy is the interior's deviation from the FE solve)")
             if not self.sampler.gradient:
-                raise ValueError("model.discrepancy: interior needs a gradient sampler "
-                                 "(sampler.kind: nuts, hmc or mala): it samples every interior "
-                                 "node too")
+                raise ValueError(f"{which} needs a gradient sampler "
+                                 "(sampler.kind: nuts, hmc or mala): it samples the interior's "
+                                 "deviation too")
             if self.sampler.collapsed_moves:
-                raise ValueError("model.discrepancy: interior does not work with "
+                raise ValueError(f"{which} does not work with "
                                  "sampler.collapsed_moves (their Gaussian is of u_b alone)")
         self._initial_in_support()
         if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:

@@ -24,7 +24,7 @@ from bayesreg._checks import as_index_array
 from bayesreg.fem.element import check_mesh, unit_element_stiffness
 
 __all__ = ["ElasticOperator", "GroupBlocks", "ELL_SLICES", "build_operator", "ell_matvec",
-           "ell_diagonal", "ell_dense", "group_blocks", "check_blocks"]
+           "ell_diagonal", "ell_dense", "ell_sparse", "group_blocks", "check_blocks"]
 
 
 ELL_SLICES = 4
@@ -162,6 +162,24 @@ def ell_dense(blocks, cols, rows, n_cols):
     pos = np.concatenate([s + np.repeat(np.arange(x.shape[0]), x.shape[1]) for s, x in zip(starts, cols)])
     dense = jnp.zeros((n_rows, n_cols + 1, 3, 3), b.dtype).at[pos, c].add(b)[rows, :n_cols]
     return dense.transpose(0, 2, 1, 3).reshape(3 * n_rows, 3 * n_cols)
+
+
+def ell_sparse(blocks, cols, rows, n_cols):
+    """The matrix of :func:`ell_dense` as a SciPy CSR matrix ``(3R, 3 n_cols)`` (host code)."""
+    import scipy.sparse as sp
+
+    b = np.concatenate([np.asarray(x).reshape(-1, 3, 3) for x in blocks], axis=0)
+    c = np.concatenate([np.asarray(x).reshape(-1) for x in cols])
+    starts = np.cumsum([0] + [x.shape[0] for x in cols])
+    pos = np.concatenate([s + np.repeat(np.arange(x.shape[0]), x.shape[1]) for s, x in zip(starts, cols)])
+    # the concatenated row order back to the rows' order: row r sits at position rows[r]
+    row_of = np.full(int(starts[-1]), -1, dtype=np.int64)
+    row_of[np.asarray(rows)] = np.arange(len(rows))
+    keep = (c < n_cols) & (row_of[pos] >= 0)  # the padding column reads a zero row
+    r_node, c_node, b = row_of[pos[keep]], c[keep], b[keep]
+    i = (3 * r_node[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
+    j = (3 * c_node[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
+    return sp.csr_matrix((b.ravel(), (i.ravel(), j.ravel())), shape=(3 * len(rows), 3 * n_cols))
 
 
 class GroupBlocks(NamedTuple):

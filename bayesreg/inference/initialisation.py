@@ -32,7 +32,7 @@ from bayesreg.data.images import Image
 from bayesreg.inference.mode import find_mode
 from bayesreg.mesh.tetmesh import Mesh
 from bayesreg.model.posterior import (
-    Posterior, discrepancy_log_prior, elastic_groups, energies, similarity_weight)
+    Posterior, discrepancy_log_prior, discrepancy_of, elastic_groups, energies, similarity_weight)
 from bayesreg.model.problem import Problem
 from bayesreg.data.registration import displacement_at, optical_flow_displacement
 from bayesreg.inference.targets import make_logdensity
@@ -89,7 +89,7 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     elif problem.truth is not None:
         base_u = cfg.init.fraction * problem.truth.u[mesh.boundary]
     # a model discrepancy (if any) starts at zero: the interior at the FE solve
-    theta = np.concatenate([base_u.ravel(), np.zeros(3 * post.n_discrepancy), problem.phi_init])
+    theta = np.concatenate([base_u.ravel(), np.zeros(post.n_discrepancy), problem.phi_init])
     check = start_check(problem, cfg) if check is None else check
     shrink = 1.0
     # a node nearer the skull than half the barrier's width counts as offending: its barrier
@@ -180,7 +180,7 @@ def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None, *,
         If some chain has no valid start after 20 halvings.
     """
     post = problem.posterior
-    nb3 = 3 * post.n_sampled
+    nb3 = post.n_displacement
     c = cfg.sampler.chains
     lo = np.asarray(post.prior.r1)
     hi = np.asarray(post.prior.r2)
@@ -251,7 +251,9 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     With a model discrepancy ``d`` (:class:`~bayesreg.model.posterior.Discrepancy`,
     ``u_i = H u_b + d``) the precision is of ``[u_b, d]``: ``J`` over both, and the block of
     ``d`` adds ``tau K0_ii`` with ``tau = (a + 3 n_i / 2) / (b + q)`` the posterior mean of
-    ``1 / T_d`` given ``theta``'s ``d`` (the positive part of the Student prior's curvature).
+    ``1 / T_d`` given ``theta``'s ``d`` (the positive part of the Student prior's curvature);
+    low rank (``d = V c``) it is of ``[u_b, c]``, ``J`` through ``V`` and ``c``'s block
+    ``tau Lambda``.
 
     Parameters
     ----------
@@ -265,19 +267,21 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
 
     Returns
     -------
-    (3 n_s, 3 n_s) array
-        ``n_s`` = :attr:`~bayesreg.model.posterior.Posterior.n_sampled` (``n_b``, or
-        ``n_b + n_i`` with a discrepancy); dense, symmetric, with a ridge of ``1e-6``
+    (n, n) array
+        ``n`` = :attr:`~bayesreg.model.posterior.Posterior.n_displacement` (``3 n_b``, plus
+        the discrepancy's ``3 n_i`` or ``r``); dense, symmetric, with a ridge of ``1e-6``
         times its mean diagonal.
     """
     nb = len(mesh.boundary)
     theta = np.asarray(theta)
-    phi = theta[3 * post.n_sampled:]
+    phi = theta[post.n_displacement:]
     h, schur = schur_complement(post, mesh, element_group, phi)
     bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
     # residual Jacobian w.r.t. nodal displacements, through the interior map
     u_b = theta[: 3 * nb]
-    d = theta[3 * nb:3 * post.n_sampled]
+    disc = post.discrepancy
+    basis = None if disc is None or disc.basis is None else np.asarray(disc.basis)
+    d = np.asarray(discrepancy_of(post, jnp.asarray(theta))).ravel() if disc is not None else np.zeros(0)
     u = np.zeros(3 * len(mesh.nodes))
     u[bd] = u_b
     u[idf] = h @ u_b + (d if d.size else 0.0)
@@ -286,9 +290,12 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     g_ib, g_ii = gram[idf][:, bd], gram[idf][:, idf]
     g_ii_h = g_ii @ h
     jtj = gram[bd][:, bd].toarray() + g_ib.T @ h + h.T @ g_ib + h.T @ g_ii_h
-    if d.size:  # J over [u_b, d]: d moves the interior nodes directly
+    if d.size:  # J over [u_b, d] (or [u_b, c], d = V c): d moves the interior nodes directly
         cross = g_ib.T.toarray() + g_ii_h.T  # (3 n_b, 3 n_i)
-        jtj = np.block([[jtj, cross], [cross.T, g_ii.toarray()]])
+        g_dd = g_ii.toarray()
+        if basis is not None:
+            cross, g_dd = cross @ basis, basis.T @ g_dd @ basis
+        jtj = np.block([[jtj, cross], [cross.T, g_dd]])
     # E_s matters only where the temperature is integrated out (similarity_weight)
     e_s = energies(post, jnp.asarray(u), jnp.asarray(phi))[0] if float(post.t_s_shape) > 0 else 0.0
     prec = 2.0 * float(similarity_weight(post, e_s)) * jtj
@@ -310,9 +317,11 @@ def reference_stiffness(post: Posterior) -> np.ndarray:
     """``K0_ii`` dense ``(3 n_i, 3 n_i)``: the model discrepancy's prior precision per unit
     ``1 / T_d`` (:attr:`~bayesreg.model.posterior.Discrepancy.k_ii`, the interior block of
     ``K`` at :attr:`~bayesreg.model.posterior.Posterior.phi_ref`), from the posterior's own
-    blocks."""
-    op = post.op
-    return np.asarray(ell_dense(post.discrepancy.k_ii, op.cols_ii, op.row_ii, op.n_interior))
+    blocks; low rank, that of its coordinates ``c``: ``diag(Lambda)`` ``(r, r)``."""
+    disc, op = post.discrepancy, post.op
+    if disc.basis is not None:
+        return np.diag(np.asarray(disc.eigenvalues))
+    return np.asarray(ell_dense(disc.k_ii, op.cols_ii, op.row_ii, op.n_interior))
 
 
 def proposal_scale(problem: Problem, cfg: Config, prec=None):
@@ -327,7 +336,7 @@ def proposal_scale(problem: Problem, cfg: Config, prec=None):
     post = problem.posterior
     s = cfg.sampler
     sig_p = np.array([s.sigma_lam if p == "lam" else s.sigma_mu for p, _ in problem.layout.free])
-    nb3 = 3 * post.n_sampled
+    nb3 = post.n_displacement
     if s.proposal == "isotropic":
         return np.full(nb3, s.sigma_u), sig_p
     chol = sla.cholesky(prec, lower=True)
@@ -381,7 +390,7 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
         prec = laplace_precision(problem, center)
     x0 = initial_positions(problem, cfg, center, rng, prec, check=check)
     post = problem.posterior
-    nb3 = 3 * post.n_sampled
+    nb3 = post.n_displacement
     if cfg.sampler.gradient:
         # u_b = c + F w: F = R^-T with prec = R R^T (laplace), or 1 mm (isotropic)
         if cfg.sampler.proposal == "laplace":

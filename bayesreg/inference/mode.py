@@ -142,7 +142,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     # the barrier's own wall off: its huge finite values make the line search step back,
     # where -inf would stop the search (the sampled posterior keeps the wall)
     post = post._replace(skull=post.skull._replace(barrier_wall=jnp.asarray(False)))
-    nb3 = 3 * post.n_sampled  # the displacements (u_b, and a discrepancy d if any), then phi
+    nb3 = post.n_displacement  # the displacements (u_b, and a discrepancy d if any), then phi
     theta0 = np.asarray(theta0, dtype=np.float64)
     zeros = jnp.zeros((post.op.n_interior, 3))
     # the exact normaliser depends on lam, mu only: u_b (and the parameters) are first

@@ -154,7 +154,7 @@ def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     wrapped by :func:`bayesreg.sampling.kernels.target.joint_target` (the parameters' logits
     centred on ``center``'s) where :func:`use_joint` says so."""
     post = problem.posterior
-    nb3 = 3 * post.n_sampled  # u_b (and a model discrepancy, if any)
+    nb3 = post.n_displacement  # u_b (and a model discrepancy, if any)
     joint = use_joint(problem, cfg)
     base = make_target(post, center_u=center[:nb3], factor=factor,
                        exact=cfg.model.prior_normaliser == "exact",
@@ -225,7 +225,7 @@ def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm
     """
     s = cfg.sampler
     post = problem.posterior
-    nb3 = 3 * post.n_sampled
+    nb3 = post.n_displacement
     interior0 = jnp.zeros((post.op.n_interior, 3))
     if s.gradient:
         target = gradient_target(problem, cfg, init.center, init.sigma[0])

@@ -20,7 +20,8 @@ Position layout: one flat float64 vector ``theta = [u_b.ravel(), phi]`` with ``u
 node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters; with a model
 discrepancy (:class:`Discrepancy`) ``theta = [u_b.ravel(), d.ravel(), phi]``, ``d``
 ``(n_i, 3)`` mm the interior nodes' deviation from the FE solve, so that
-``u_i = -K_ii^-1 K_ib u_b + d``.  The exact normaliser of the elastic prior,
+``u_i = -K_ii^-1 K_ib u_b + d``; with a low-rank discrepancy ``theta = [u_b.ravel(), c,
+phi]``, ``c`` ``(r,)`` the coordinates of ``d`` in its basis (:func:`discrepancy_of`).  The exact normaliser of the elastic prior,
 ``(1/2) log pdet S(lam, mu)``, is :func:`log_normaliser` (:mod:`bayesreg.fem.normaliser`).
 """
 
@@ -54,7 +55,7 @@ from bayesreg.model.lncc import LNCCTerm
 from bayesreg.model.similarity import SSDTerm
 from bayesreg.fem.solver import SolveInfo, interior_map_blocks, solve_interior_blocks
 from bayesreg.fem.stiffness import (
-    ElasticOperator, GroupBlocks, build_operator, ell_matvec, group_blocks)
+    ElasticOperator, GroupBlocks, build_operator, ell_dense, ell_matvec, ell_sparse, group_blocks)
 
 __all__ = [
     "Posterior",
@@ -63,6 +64,7 @@ __all__ = [
     "discrepancy_of",
     "discrepancy_log_prior",
     "discrepancy_rate",
+    "smoothest_modes",
     "nodal_displacement",
     "build_posterior",
     "with_skull_barrier",
@@ -123,21 +125,34 @@ class Discrepancy(NamedTuple):
     explains (``u_b`` through the Schur complement, ``u_i`` through the solve); what it
     cannot make (a bump, real brain shift) goes into ``d``.
 
+    Low rank (``basis`` given): ``d = V c`` with ``V`` the ``r`` eigenvectors of ``K0_ii``
+    of its smallest eigenvalues ``Lambda`` (the smoothest deviations, the leading terms of
+    the Karhunen-Loeve expansion of the same Gaussian), ``c`` ``(r,)`` sampled:
+    ``q = c^T Lambda c / 2`` and ``3 n_i`` becomes ``r`` above.  A smooth shift stays
+    representable while the interior's finer pattern still follows the FE solve, which is
+    what identifies the elastic parameters.
+
     Attributes
     ----------
     k_ii : tuple of (R_k, S_k, 3, 3) arrays
         Sliced ELL blocks of ``K0_ii`` (the layout of :attr:`Posterior.op`).
     shape : ()
-        ``a + 3 n_i / 2``.
+        ``a + 3 n_i / 2`` (``a + r / 2`` low rank).
     rate : ()
         ``b`` ([lam] mm^3, the unit of the strain energy): the floor of ``T_d``, which
-        is about ``2 b / (3 n_i)`` where the images ask for no discrepancy
+        is about ``2 b / (3 n_i)`` (``2 b / r``) where the images ask for no discrepancy
         (:func:`discrepancy_rate`).
+    basis : (3 n_i, r) array or None
+        Low rank: the orthonormal eigenvectors ``V`` (interior DOFs ``3 i + axis``).
+    eigenvalues : (r,) array or None
+        Low rank: ``Lambda``, ascending ([lam] mm).
     """
 
     k_ii: tuple
     shape: jax.Array
     rate: jax.Array
+    basis: jax.Array | None = None
+    eigenvalues: jax.Array | None = None
 
 
 class Posterior(NamedTuple):
@@ -232,13 +247,17 @@ class Posterior(NamedTuple):
 
     @property
     def n_discrepancy(self) -> int:
-        """Rows of the sampled discrepancy ``d``: ``n_i`` with :attr:`discrepancy`, else 0."""
-        return 0 if self.discrepancy is None else self.op.n_interior
+        """Entries of ``theta`` that the discrepancy takes: ``3 n_i``, ``r`` low rank
+        (:class:`Discrepancy`), 0 without one."""
+        if self.discrepancy is None:
+            return 0
+        basis = self.discrepancy.basis
+        return 3 * self.op.n_interior if basis is None else basis.shape[1]
 
     @property
-    def n_sampled(self) -> int:
-        """Rows of ``theta``'s displacement block: ``n_b`` (+ ``n_i`` with a discrepancy)."""
-        return self.n_boundary + self.n_discrepancy
+    def n_displacement(self) -> int:
+        """Length of ``theta``'s displacement block: ``3 n_b`` (+ :attr:`n_discrepancy`)."""
+        return 3 * self.n_boundary + self.n_discrepancy
 
     @property
     def n_free(self) -> int:
@@ -246,7 +265,7 @@ class Posterior(NamedTuple):
 
     @property
     def dim(self) -> int:
-        return 3 * self.n_sampled + self.n_free
+        return self.n_displacement + self.n_free
 
     @property
     def barrier_width(self) -> float:
@@ -322,11 +341,12 @@ def build_posterior(
         (:attr:`Posterior.inv_rigid_var`); ``None``: flat along them.
     t_s_prior : (shape, rate), optional
         Gamma prior of ``1 / T_s``, integrated out (:attr:`Posterior.t_s_shape`).
-    discrepancy : (a, floor_mm), optional
+    discrepancy : (a, floor_mm) or (a, floor_mm, modes), optional
         Sample a model discrepancy on the interior nodes (:class:`Discrepancy`): the Gamma
         prior's shape ``a`` of ``1 / T_d`` and the rms per node (mm) of ``d`` at the floor
-        of ``T_d`` (:func:`discrepancy_rate`), with ``K0_ii`` at ``phi_ref``.  ``None``: the
-        paper's model.
+        of ``T_d`` (:func:`discrepancy_rate`), with ``K0_ii`` at ``phi_ref``; ``modes``
+        (an int, or ``None``: every interior DOF) spans ``d`` by that many of ``K0_ii``'s
+        smoothest eigenmodes (:func:`smoothest_modes`).  ``None``: the paper's model.
 
     Returns
     -------
@@ -341,8 +361,8 @@ def build_posterior(
         ``phi_ref`` not of shape ``(n_free,)`` or not strictly inside its support (NaN
         included); ``forbidden`` not a 3D :class:`~bayesreg.data.images.Image` with a finite
         invertible affine; a negative barrier width; ``rigid_sd`` not finite and > 0;
-        ``t_s_prior`` or ``discrepancy`` not two finite numbers > 0; ``discrepancy`` on a
-        mesh without interior nodes.
+        ``t_s_prior`` or ``discrepancy``'s first two not finite numbers > 0; its ``modes``
+        not an integer >= 1; ``discrepancy`` on a mesh without interior nodes.
     RuntimeError
         JAX runs in float32 (call :func:`bayesreg.configure_jax` first).
 
@@ -438,21 +458,71 @@ def build_posterior(
         ub = post.unit_blocks
         post = post._replace(spectral=spectral_preconditioner(op, *ub.group(0)))
     if discrepancy is not None:
-        if not (len(discrepancy) == 2 and all(np.isfinite(v) and v > 0 for v in discrepancy)):
-            raise ValueError(f"discrepancy must be (shape, floor_mm), both finite and > 0, got "
-                             f"{discrepancy}")
+        if not (len(discrepancy) in (2, 3) and all(np.isfinite(v) and v > 0 for v in discrepancy[:2])):
+            raise ValueError(f"discrepancy must be (shape, floor_mm[, modes]), shape and floor_mm "
+                             f"finite and > 0, got {discrepancy}")
+        modes = discrepancy[2] if len(discrepancy) == 3 else None
+        if modes is not None and not (int(modes) == modes and modes >= 1):
+            raise ValueError(f"the discrepancy's modes must be an integer >= 1, got {modes}")
         if n_i == 0:
             raise ValueError("a model discrepancy on the interior nodes needs interior nodes "
                              "(model.interior: solve, a mesh with interior nodes)")
         lam0, mu0 = elastic_groups(post, post.phi_ref)
-        a, floor_mm = (float(v) for v in discrepancy)
+        a, floor_mm = (float(v) for v in discrepancy[:2])
+        k_ii = stiffness_blocks(post, lam0, mu0)[0]
+        basis = eigenvalues = None
+        if modes is not None:
+            eigenvalues, basis = smoothest_modes(k_ii, post.op, int(modes))
+        dofs = 3 * n_i if basis is None else basis.shape[1]
         post = post._replace(discrepancy=Discrepancy(
-            stiffness_blocks(post, lam0, mu0)[0], jnp.asarray(a + 1.5 * n_i),
-            jnp.asarray(discrepancy_rate(post, a, floor_mm))))
+            k_ii, jnp.asarray(a + 0.5 * dofs),
+            jnp.asarray(discrepancy_rate(post, a, floor_mm, eigenvalues)),
+            None if basis is None else jnp.asarray(basis),
+            None if eigenvalues is None else jnp.asarray(eigenvalues)))
     return post
 
 
-def discrepancy_rate(post: Posterior, shape: float, floor_mm: float) -> float:
+def smoothest_modes(k_ii, op: ElasticOperator, modes: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``modes`` eigenpairs of ``K_ii`` (sliced ELL blocks ``k_ii`` in ``op``'s layout)
+    of its smallest eigenvalues: the smoothest interior deviations (Dirichlet on the
+    boundary nodes), the leading Karhunen-Loeve modes of ``N(0, K_ii^-1)``.  Host code.
+
+    Dense ``eigh`` up to :data:`~bayesreg.fem.preconditioners.DENSE_MAX_DOFS` interior DOFs,
+    else ARPACK in shift-invert mode about 0 (:func:`scipy.sparse.linalg.eigsh`).  ``modes``
+    is capped at ``3 n_i``.
+
+    Returns
+    -------
+    eigenvalues : (r,) ndarray
+        Ascending, > 0 ([lam] mm).
+    basis : (3 n_i, r) ndarray
+        Orthonormal eigenvectors, interior DOF order ``3 i + axis``.
+
+    Raises
+    ------
+    ValueError
+        ``K_ii`` not positive definite (an eigenvalue <= 0).
+    """
+    import scipy.linalg as sla
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    n = 3 * op.n_interior
+    r = min(int(modes), n)
+    if n <= DENSE_MAX_DOFS or r >= n - 1:
+        dense = np.asarray(ell_dense(k_ii, op.cols_ii, op.row_ii, op.n_interior))
+        vals, vecs = sla.eigh(0.5 * (dense + dense.T), subset_by_index=[0, r - 1])
+    else:
+        k = ell_sparse(k_ii, op.cols_ii, op.row_ii, op.n_interior)
+        vals, vecs = spla.eigsh(sp.csc_matrix(0.5 * (k + k.T)), k=r, sigma=0.0, which="LM")
+        order = np.argsort(vals)
+        vals, vecs = vals[order], vecs[:, order]
+    if not np.all(vals > 0):
+        raise ValueError(f"K_ii is not positive definite (smallest eigenvalue {vals.min():.3g})")
+    return vals, vecs
+
+
+def discrepancy_rate(post: Posterior, shape: float, floor_mm: float, eigenvalues=None) -> float:
     """The Gamma prior's rate ``b`` of ``1 / T_d`` (:class:`Discrepancy`) that puts the floor of
     ``T_d`` at ``floor_mm`` rms per interior node.
 
@@ -460,7 +530,8 @@ def discrepancy_rate(post: Posterior, shape: float, floor_mm: float) -> float:
     ``(a + 3 n_i / 2) / b``; under ``N(0, T K0_ii^-1)`` the mean squared norm of ``d`` per
     node is ``T tr(K0_ii^-1) / n_i`` (:func:`bayesreg.fem.normaliser.trace_inverse_interior`,
     exact), so ``b = (a + 3 n_i / 2) floor_mm^2 n_i / tr(K0_ii^-1)``, ``K0_ii`` at
-    :attr:`Posterior.phi_ref`.
+    :attr:`Posterior.phi_ref`.  Low rank (``eigenvalues`` ``(r,)`` of the kept modes):
+    ``b = (a + r / 2) floor_mm^2 n_i / sum(1 / eigenvalues)``.
 
     Returns
     -------
@@ -468,6 +539,9 @@ def discrepancy_rate(post: Posterior, shape: float, floor_mm: float) -> float:
         ``b`` in [lam] mm^3.
     """
     n_i = post.op.n_interior
+    if eigenvalues is not None:
+        ev = np.asarray(eigenvalues)
+        return (shape + 0.5 * len(ev)) * floor_mm**2 * n_i / float(np.sum(1.0 / ev))
     lam0, mu0 = elastic_groups(post, post.phi_ref)
     trace = trace_inverse_interior(post.normaliser, post.op.klam, post.op.kmu, lam0, mu0, post.group)
     return (shape + 1.5 * n_i) * floor_mm**2 * n_i / trace
@@ -486,10 +560,13 @@ def with_skull_barrier(post: Posterior, barrier_mm: float) -> Posterior:
 
 
 def _check_theta(post: Posterior, theta):
-    disc = (f" + 3 * {post.n_discrepancy} discrepancy DOFs" if post.discrepancy is not None
-            else "")
+    disc, name = "", ""
+    if post.discrepancy is not None:
+        low = post.discrepancy.basis is not None
+        disc = f" + {post.n_discrepancy} discrepancy {'coordinates' if low else 'DOFs'}"
+        name = "c, " if low else "d.ravel(), "
     check_shape("theta", theta, (post.dim,),
-                 f"[u_b.ravel(), {'d.ravel(), ' if disc else ''}phi]: 3 * {post.n_boundary} "
+                 f"[u_b.ravel(), {name}phi]: 3 * {post.n_boundary} "
                  f"boundary DOFs{disc} + {post.n_free} free parameters")
 
 
@@ -504,22 +581,25 @@ def split_position(post: Posterior, theta):
     """
     _check_theta(post, theta)
     nb3 = 3 * post.n_boundary
-    return theta[:nb3].reshape(-1, 3), theta[3 * post.n_sampled:]
+    return theta[:nb3].reshape(-1, 3), theta[post.n_displacement:]
 
 
 def discrepancy_of(post: Posterior, theta):
     """The model discrepancy ``d`` ``(n_i, 3)`` mm of a position ``theta`` ``(..., dim)``
-    (batches allowed), or ``None`` without one (:class:`Discrepancy`)."""
+    (batches allowed; low rank ``d = V c``), or ``None`` without one (:class:`Discrepancy`)."""
     if post.discrepancy is None:
         return None
-    nb3 = 3 * post.n_boundary
-    d = theta[..., nb3:3 * post.n_sampled]
+    d = theta[..., 3 * post.n_boundary:post.n_displacement]
+    if post.discrepancy.basis is not None:
+        d = d @ post.discrepancy.basis.T
     return d.reshape(d.shape[:-1] + (-1, 3))
 
 
 def discrepancy_log_prior(post: Posterior, d):
     """``-(a + 3 n_i / 2) log(1 + q / b)``, ``q = d^T K0_ii d / 2``: the log prior of the
     discrepancy ``d`` ``(n_i, 3)`` mm up to a constant (:class:`Discrepancy`; 0 without one).
+    Low rank: ``-(a + r / 2) log(1 + q / b)`` with ``q = c^T Lambda c / 2``, ``c = V^T d``
+    (``d`` in the basis's span, as :func:`discrepancy_of` makes it).
 
     Returns
     -------
@@ -529,7 +609,11 @@ def discrepancy_log_prior(post: Posterior, d):
         zero = jnp.zeros(())
         return zero, zero
     disc = post.discrepancy
-    q = 0.5 * jnp.sum(d * ell_matvec(disc.k_ii, post.op.cols_ii, post.op.row_ii, d))
+    if disc.basis is not None:
+        c = d.reshape(-1) @ disc.basis
+        q = 0.5 * jnp.sum(disc.eigenvalues * c * c)
+    else:
+        q = 0.5 * jnp.sum(d * ell_matvec(disc.k_ii, post.op.cols_ii, post.op.row_ii, d))
     return -disc.shape * jnp.log1p(q / disc.rate), q
 
 

@@ -262,9 +262,9 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
             info = {"truth": "bump", "shift_mm": s.shift_mm, "radius_mm": s.falloff_mm}
         elif s.truth == "random":
             field = random_field(labels, mesh, shift_mm=s.shift_mm, length_mm=s.falloff_mm,
-                                 seed=cfg.seed)
+                                 seed=cfg.seed, solenoidal=s.solenoidal)
             info = {"truth": "random", "shift_mm": s.shift_mm, "length_mm": s.falloff_mm,
-                    "seed": cfg.seed}
+                    "seed": cfg.seed, "solenoidal": s.solenoidal}
         else:
             given = load_displacement(s.field)
             field = Image(np.stack([resample(Image(given.data[..., c], given.affine), labels.affine,
@@ -501,7 +501,9 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
         prior=prior, phi_ref=phi_init, barrier_mm=cfg.model.skull_barrier_mm,
         spectral=choice in ("auto", "spectral"),
         discrepancy=(None if cfg.model.discrepancy == "none" else
-                     (cfg.model.discrepancy_prior.shape, cfg.model.discrepancy_prior.floor_mm)),
+                     (cfg.model.discrepancy_prior.shape, cfg.model.discrepancy_prior.floor_mm,
+                      cfg.model.discrepancy_prior.modes if cfg.model.discrepancy == "modes"
+                      else None)),
     )
     return Problem(f, m, labels, mesh, layout, group, post, truth, phi_true, phi_init,
                    data.intensity_scale, data.n_skull_carved, dict(data.timings),

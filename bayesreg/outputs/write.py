@@ -21,7 +21,7 @@ run in progress keeps its draws in ``checkpoint/``, see :mod:`bayesreg.checkpoin
 ``displacement_reference.nii.gz``   the point estimate to beat: scikit-image optical flow
                                     of ``f`` to ``m`` (synthetic runs; ITK/ANTs field)
 ``mesh_mask.nii.gz``                voxels inside the undeformed mesh (where the maps are defined)
-``discrepancy_amplitude.nii.gz``    ``model.discrepancy: interior``: ``|E[d]|`` of the model
+``discrepancy_amplitude.nii.gz``    ``model.discrepancy`` (not none): ``|E[d]|`` of the model
                                     discrepancy, (I, J, K) mm, and ``discrepancy.png`` over ``f``
                                     (``posterior.nc`` then holds ``d`` and ``discrepancy_rms``)
 ``mesh.vtu``                        mesh with point data ``u_mean``, ``u_sd``, ``u_norm_sd``,
@@ -141,7 +141,7 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
     """
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
-    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, result.positions[..., 3 * post.n_sampled:]))
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, result.positions[..., post.n_displacement:]))
     ratio = lam_g / mu_g
     ratios = {}
     for k, name in enumerate(problem.layout.group_names[:16]):
@@ -295,7 +295,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     pos = result.positions
     c, d = pos.shape[:2]
     ub = pos[..., : 3 * nb].reshape(c, d, nb, 3)
-    phi = pos[..., 3 * post.n_sampled:]
+    phi = pos[..., post.n_displacement:]
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, phi))
     names = list(layout.group_names)
     block_names = list(s_info.blocks)

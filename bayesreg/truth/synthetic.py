@@ -172,7 +172,8 @@ def bump_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, n_pushed=20, radius_mm=
     return Image(u.reshape(*grid.data.shape[:3], 3), grid.affine)
 
 
-def random_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, length_mm=30.0, seed=0) -> Image:
+def random_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, length_mm=30.0, seed=0,
+                 solenoidal: bool = False) -> Image:
     """A smooth random displacement of the whole image: a mismatch no FE field makes.
 
     Each component is white noise convolved with a Gaussian of sd ``length_mm`` (a
@@ -182,6 +183,13 @@ def random_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, length_mm=30.0, seed=
     resolution at a fraction of the cost), then scaled so that the largest displacement at
     the mesh's nodes is ``shift_mm``.  Unlike :func:`bump_field` the brain is deformed
     everywhere, in directions that vary over tens of millimetres.
+
+    Such a field changes volume by tens of percent where it varies (its divergence is of the
+    order of ``shift_mm / length_mm``), which brain tissue, nearly incompressible, does not:
+    an FE model fits it with compressible tissue, low ``lam / mu``.  With ``solenoidal`` the
+    field is the curl of such a random vector potential instead, divergence-free (volume
+    preserving to second order) up to the lattice's central differences: shift without
+    compression, as an incompressible tissue would move.
 
     Parameters
     ----------
@@ -195,6 +203,8 @@ def random_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, length_mm=30.0, seed=
         sd of the smoothing Gaussian, mm.
     seed : int
         Seed of NumPy's generator (the same seed, grid and mesh give the same field).
+    solenoidal : bool
+        The curl of a random vector potential (divergence-free) instead of the field itself.
 
     Returns
     -------
@@ -218,6 +228,9 @@ def random_field(grid: Image, mesh: Mesh, *, shift_mm=8.0, length_mm=30.0, seed=
     n = np.ceil((pts.max(axis=0) + 4.0 * length_mm - lo) / h).astype(int) + 1
     rng = np.random.default_rng(seed)
     coarse = [ndi.gaussian_filter(rng.standard_normal(tuple(n)), 3.0, mode="wrap") for _ in range(3)]
+    if solenoidal:  # u = curl A on the lattice (its axes are the world's; the scale is set below)
+        d = [np.gradient(a) for a in coarse]  # d[c][axis] = d A_c / d x_axis
+        coarse = [d[2][1] - d[1][2], d[0][2] - d[2][0], d[1][0] - d[0][1]]
 
     def at(points):
         c = ((points - lo) / h).T
