@@ -12,8 +12,9 @@ overrides apply to every subject): the problem is made (data, mesh, truth; a tru
 fails is a row with its error), then the starts (:func:`bayesreg.inference.initialisation.initialise`,
 the mode search).  One row per subject: nodes, the truth's active skull constraints, the
 mode search's message and gain in ``log p``, the central start's distance to the truth
-over the boundary nodes (median and 95th percentile, mm; the sweep calls a run whose median
-exceeds 1 mm a bad start), the chains' starts' too, the times.  Printed as a table and
+over the boundary nodes (median, 95th percentile and largest, mm, and how many nodes are
+more than 1 mm from it; the sweep calls a run whose median exceeds 1 mm a bad start), the
+chains' starts' too, the times.  Printed as a table and
 written to ``--out`` (JSON).
 """
 
@@ -71,6 +72,7 @@ def one(subject: int, sets: list[str]) -> dict:
     row.update(message=info.get("message"), logp_start=info.get("logp_start"),
                logp_mode=info.get("logp_mode"), iterations=info.get("iterations"),
                center_median_mm=float(np.median(d_c)), center_q95_mm=float(np.quantile(d_c, 0.95)),
+               center_max_mm=float(d_c.max()), center_over_1mm=int(np.sum(d_c > 1.0)),
                starts_median_mm=float(np.median(d_x)),
                phi_center=[float(v) for v in np.asarray(init.center)[nb3:]])
     return row
@@ -94,14 +96,15 @@ def main(argv=None):
         print(json.dumps(row), flush=True)
         if args.out:
             args.out.write_text(json.dumps({"sets": args.set, "rows": rows}, indent=1))
-    print("| subject | nodes | truth active | mode search | start median / q95 mm | chains' starts median mm | s |")
+    print("| subject | nodes | truth active | mode search | start median / q95 / max mm (nodes > 1 mm) | chains' starts median mm | s |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:
             print(f"| {r['subject']} | {r.get('nodes', '-')} | - | {r['stage']} failed: {r['error'][:80]} | - | - | {r['total_s']:.0f} |")
         else:
             print(f"| {r['subject']} | {r['nodes']} | {r['truth_active']} | {r['message']} ({r['logp_mode']:.6g}) | "
-                  f"{r['center_median_mm']:.2f} / {r['center_q95_mm']:.2f} | {r['starts_median_mm']:.2f} | {r['total_s']:.0f} |")
+                  f"{r['center_median_mm']:.2f} / {r['center_q95_mm']:.2f} / {r['center_max_mm']:.2f} "
+                  f"({r['center_over_1mm']}) | {r['starts_median_mm']:.2f} | {r['total_s']:.0f} |")
     return rows
 
 
