@@ -281,7 +281,8 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     u_b = theta[: 3 * nb]
     disc = post.discrepancy
     basis = None if disc is None or disc.basis is None else np.asarray(disc.basis)
-    d = np.asarray(discrepancy_of(post, jnp.asarray(theta))).ravel() if disc is not None else np.zeros(0)
+    d = (np.asarray(discrepancy_of(post, jnp.asarray(theta))).ravel() if disc is not None
+         else np.zeros(0))
     u = np.zeros(3 * len(mesh.nodes))
     u[bd] = u_b
     u[idf] = h @ u_b + (d if d.size else 0.0)

@@ -21,8 +21,9 @@ node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters; with a 
 discrepancy (:class:`Discrepancy`) ``theta = [u_b.ravel(), d.ravel(), phi]``, ``d``
 ``(n_i, 3)`` mm the interior nodes' deviation from the FE solve, so that
 ``u_i = -K_ii^-1 K_ib u_b + d``; with a low-rank discrepancy ``theta = [u_b.ravel(), c,
-phi]``, ``c`` ``(r,)`` the coordinates of ``d`` in its basis (:func:`discrepancy_of`).  The exact normaliser of the elastic prior,
-``(1/2) log pdet S(lam, mu)``, is :func:`log_normaliser` (:mod:`bayesreg.fem.normaliser`).
+phi]``, ``c`` ``(r,)`` the coordinates of ``d`` in its basis (:func:`discrepancy_of`).  The
+exact normaliser of the elastic prior, ``(1/2) log pdet S(lam, mu)``, is
+:func:`log_normaliser` (:mod:`bayesreg.fem.normaliser`).
 """
 
 from __future__ import annotations
@@ -458,7 +459,8 @@ def build_posterior(
         ub = post.unit_blocks
         post = post._replace(spectral=spectral_preconditioner(op, *ub.group(0)))
     if discrepancy is not None:
-        if not (len(discrepancy) in (2, 3) and all(np.isfinite(v) and v > 0 for v in discrepancy[:2])):
+        if not (len(discrepancy) in (2, 3)
+                and all(np.isfinite(v) and v > 0 for v in discrepancy[:2])):
             raise ValueError(f"discrepancy must be (shape, floor_mm[, modes]), shape and floor_mm "
                              f"finite and > 0, got {discrepancy}")
         modes = discrepancy[2] if len(discrepancy) == 3 else None

@@ -168,7 +168,8 @@ def constrained_shift(mesh: Mesh, lam_e, mu_e, forbidden: Image, *, shift_mm=15.
         clearance_mm = 0.5 * float(np.linalg.norm(spacing))
     if not clearance_mm >= 0:
         raise ValueError(f"clearance_mm must be >= 0, got {clearance_mm}")
-    n_steps = int(load_steps) if load_steps is not None else max(1, int(np.ceil(shift_mm / spacing.min())))
+    n_steps = (int(load_steps) if load_steps is not None
+               else max(1, int(np.ceil(shift_mm / spacing.min()))))
     boundary = np.asarray(mesh.boundary)
     if pushed is None:
         pushed = boundary[top_boundary(mesh, n_pushed)]
