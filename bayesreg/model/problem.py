@@ -286,7 +286,8 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
         )
         if not info["converged"] or info["n_forbidden_nodes"] or info["n_inverted"]:
             raise ValueError(
-                "the constrained ground truth failed on {data}: converged {converged}, max "
+                "the constrained ground truth failed on {data}: converged {converged} (the push "
+                "reached {load_factor:.0%} in {load_steps} load steps), max "
                 "violation {max_violation_mm:.3g} mm (tol {tol_mm}), nodes in the skull "
                 "{n_forbidden_nodes}, inverted elements {n_inverted}, smallest volume ratio "
                 "{min_volume_ratio:.3g}; try another mesh (mesh.file, or meshing again), a "
