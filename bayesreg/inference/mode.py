@@ -22,10 +22,14 @@ from bayesreg.model.posterior import (
     surrogate_normaliser, with_skull_barrier)
 from bayesreg.inference.targets import logdensity_fn
 
-__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM", "MODE_VOLUME_RATIO", "SURROGATE_ROUNDS"]
+__all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM", "MODE_WIDE_BARRIER_MM", "MODE_VOLUME_RATIO",
+           "SURROGATE_ROUNDS"]
 
 MODE_BARRIER_MM = 1.0
 """Width (mm) of the skull barrier that :func:`find_mode` adds to a model without one."""
+
+MODE_WIDE_BARRIER_MM = 3.0
+"""Width (mm) of the skull barrier of :func:`find_mode`'s first stage (``u_b`` alone)."""
 
 MODE_VOLUME_RATIO = 0.1
 """Volume ratio below which :func:`find_mode`'s objective bends down against an element's
@@ -44,13 +48,14 @@ class ModeSearch(NamedTuple):
     theta : (dim,) ndarray
         The mode found, ``[u_b.ravel() (mm), phi]``.
     logp_start, logp_mode : float
-        The searched objective (the barriers included) at the start and at the result.
+        The searched objective (the barriers included) at the start (with the first
+        stage's wide barrier) and at the result.
     iterations : int
         L-BFGS iterations, all stages.
     message : str
         Why the search stopped (``"converged: ..."``, ``"reached N iterations"``, or that the
-        line search found no feasible step: a hard constraint); for the joint search, why
-        each of its two stages stopped (``"u_b alone: ...; joint: ..."``).
+        line search found no feasible step: a hard constraint); why each stage stopped
+        (``"wide barrier (3 mm), u_b alone: ...; u_b alone: ...; joint: ..."``).
     parameters_optimized : bool
     search_barrier_mm : float
         Width of the skull barrier of the searched objective, mm.
@@ -76,11 +81,18 @@ def _normaliser_gap(post: Posterior, surrogate, phi):
 
 
 def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_parameters: bool = True,
-              exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000) -> ModeSearch:
+              exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000,
+              wide_barrier_mm: float | None = MODE_WIDE_BARRIER_MM) -> ModeSearch:
     """Maximise the log posterior from ``theta0`` (L-BFGS, JAX gradients through the solve).
 
     Optimises ``u_b`` and, with ``optimize_parameters``, the free elastic parameters too;
-    otherwise the parameters stay at ``theta0``'s.  The joint search runs in two stages of
+    otherwise the parameters stay at ``theta0``'s.  A first stage of ``iterations // 2``
+    moves ``u_b`` alone under a skull barrier of ``wide_barrier_mm`` (where it is wider
+    than the search's own): nodes that the images press toward the skull then slide along
+    it at a distance instead of sticking in a pocket of the wall, from which the narrow
+    barrier's search does not bring them back (BrainWeb, 1 mm: a node 7 mm from its truth,
+    pressed 0.25 mm from the skull; from the wide stage's result it ends 0.1 mm from it).
+    The joint search then runs in two stages of
     ``iterations // 2`` L-BFGS iterations each: ``u_b`` alone at ``theta0``'s parameters,
     then ``u_b`` and the parameters together, these in the coordinates ``log(phi - r1)``
     (the result kept a relative margin 1e-3 inside the prior support).  Far from the mode
@@ -125,6 +137,8 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         The posterior includes the exact normaliser of the elastic prior.
     rtol, maxiter
         The CG solve's tolerance and cap.
+    wide_barrier_mm : float or None
+        The first stage's barrier width (mm); ``None``: no such stage.
 
     Returns
     -------
@@ -150,24 +164,26 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     # every node sampled (model.interior: sample): without the normaliser the whole K's
     # energy drives the parameters onto their lower edge: with it (its surrogate)
     exact_joint = exact and post.op.n_interior == 0
-    model = logdensity_fn(post, rtol=rtol, maxiter=maxiter)
     volumes0 = element_volumes(post.nodes, post.tets)
 
-    def plain(theta, guess):  # the model plus the search's barrier against inverted elements
-        lp, aux = model(theta, guess)
+    def plain(theta, guess, width):
+        """The model with a skull barrier of ``width`` mm (traced: the wide stage and the
+        others share one compiled step), plus the barrier against inverted elements."""
+        skull = post.skull._replace(barrier_width=width)
+        lp, aux = logdensity_fn(post._replace(skull=skull), rtol=rtol, maxiter=maxiter)(theta, guess)
         u = nodal_displacement(post, theta, aux.interior)
         return lp + inversion_barrier(post.nodes + u, post.tets, volumes0, MODE_VOLUME_RATIO), aux
     grouped = post.normaliser.grounded.unit is not None
 
-    def with_normaliser(theta, guess, data=None):
-        """``log p`` with the normaliser: with ``data = (surrogate, on)``, its surrogate where
-        ``on`` (``()`` bool; both traced, so that every stage and round shares one compiled
-        step) and none elsewhere; the exact one where ``data`` is ``None``."""
-        lp, aux = plain(theta, guess)
+    def with_normaliser(theta, guess, data):
+        """``log p`` with the normaliser: with ``data = (width, surrogate, on)``, its surrogate
+        where ``on`` (``()`` bool; all traced, so that every stage and round shares one
+        compiled step) and none elsewhere; the exact one where ``data`` is ``(width,)``."""
+        lp, aux = plain(theta, guess, data[0])
         phi = split_position(post, theta)[1]
-        if data is None:
+        if len(data) == 1:
             return add_normaliser(lp, log_normaliser(post, phi)), aux
-        surrogate, on = data
+        _, surrogate, on = data
         ln = surrogate_normaliser(post, surrogate, phi)
         return add_normaliser(lp, jnp.where(on, ln, 0.0)), aux
 
@@ -297,22 +313,34 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
 
     iters = iterations
     x = to_log(theta0)
-    objective, data = in_log(plain), None
+    width = jnp.asarray(float(search_barrier))
+    objective, data = in_log(plain), width
     normalised = in_log(with_normaliser)
     surrogates = exact and grouped and post.n_free
     if surrogates:  # one objective for every stage: the surrogate (at theta0's parameters) on or off
         objective = normalised
-        data = (normaliser_surrogate(post, to_theta(x)[nb3:]), jnp.asarray(exact_joint))
+        data = (width, normaliser_surrogate(post, to_theta(x)[nb3:]), jnp.asarray(exact_joint))
     elif exact_joint:
         objective = normalised
+        data = (width,)
+    wide = wide_barrier_mm is not None and wide_barrier_mm > search_barrier
+    pre, nit = "", 0
+    if wide:  # stage 0: u_b alone under the wide barrier
+        data_w = (jnp.asarray(float(wide_barrier_mm)),) + data[1:] if isinstance(data, tuple) \
+            else jnp.asarray(float(wide_barrier_mm))
+        x, start0, res0 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1), data_w)
+        pre, nit = f"wide barrier ({wide_barrier_mm:g} mm), u_b alone: {res0.message} ({res0.nit} its); ", res0.nit
     if joint and post.n_free:  # stage 1: u_b alone at theta0's parameters
         x, start, res1 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1), data)
         x, _, res = maximise(objective, x, free, max(iters - iters // 2, 1), data)
-        nit = res1.nit + res.nit
-        res.message = f"u_b alone: {res1.message} ({res1.nit} its); joint: {res.message}"
+        nit += res1.nit + res.nit
+        res.message = f"{pre}u_b alone: {res1.message} ({res1.nit} its); joint: {res.message}"
     else:
         x, start, res = maximise(objective, x, free, iters, data)
-        nit = res.nit
+        nit += res.nit
+        res.message = pre + res.message
+    if wide:
+        start = start0
     logp_mode, exact_its = -float(res.fun), None
     if joint and exact and post.n_free:
         # the parameters alone with the normaliser: rounds of its surrogate built where each
@@ -320,7 +348,8 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         exact_its = 0
         for _ in range(SURROGATE_ROUNDS if surrogates else 1):
             before = to_theta(x)[nb3:]
-            data = (normaliser_surrogate(post, before), jnp.asarray(True)) if surrogates else None
+            data = ((width, normaliser_surrogate(post, before), jnp.asarray(True)) if surrogates
+                    else (width,))
             x, _, res_p = maximise(normalised, x, slice(nb3, post.dim), 100, data)
             exact_its += int(res_p.nit)
             if np.max(np.abs(np.log(to_theta(x)[nb3:] / before))) < 1e-3:
@@ -329,9 +358,9 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         # normaliser (no program compiled for the whole exact log-density)
         if surrogates:
             phi = jnp.asarray(to_theta(x)[nb3:])
-            logp_mode = -float(res_p.fun) + float(_normaliser_gap(post, data[0], phi))
+            logp_mode = -float(res_p.fun) + float(_normaliser_gap(post, data[1], phi))
         else:
-            logp_mode = float(jax.jit(in_log(with_normaliser))(jnp.asarray(x), zeros)[0])
+            logp_mode = float(jax.jit(in_log(with_normaliser))(jnp.asarray(x), zeros, (width,))[0])
     theta = to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])
     return ModeSearch(theta, float(start), logp_mode, int(nit), str(res.message), bool(joint),
                       float(search_barrier), exact_its)
