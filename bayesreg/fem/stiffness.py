@@ -152,14 +152,21 @@ def ell_diagonal(b_ii, rows):
     return jnp.concatenate([b[:, 0] for b in b_ii], axis=0)[rows]
 
 
+def _slot_rows(cols):
+    """The row (in the concatenated slices' order) of every ELL slot, flattened as the
+    slices' ``cols`` are, and the number of concatenated rows."""
+    starts = np.cumsum([0] + [x.shape[0] for x in cols])
+    pos = np.concatenate([s + np.repeat(np.arange(x.shape[0]), x.shape[1]) for s, x in zip(starts, cols)])
+    return pos, int(starts[-1])
+
+
 def ell_dense(blocks, cols, rows, n_cols):
     """Dense ``(3R, 3 n_cols)`` matrix of sliced ELL 3x3 blocks (padding column ``n_cols`` dropped)."""
     n_rows = rows.shape[0]
     b = jnp.concatenate([x.reshape(-1, 3, 3) for x in blocks], axis=0)
     c = jnp.concatenate([x.reshape(-1) for x in cols])
     # assembled in the concatenated row order, then the row order restored (as ell_matvec)
-    starts = np.cumsum([0] + [x.shape[0] for x in cols])
-    pos = np.concatenate([s + np.repeat(np.arange(x.shape[0]), x.shape[1]) for s, x in zip(starts, cols)])
+    pos, _ = _slot_rows(cols)
     dense = jnp.zeros((n_rows, n_cols + 1, 3, 3), b.dtype).at[pos, c].add(b)[rows, :n_cols]
     return dense.transpose(0, 2, 1, 3).reshape(3 * n_rows, 3 * n_cols)
 
@@ -170,10 +177,9 @@ def ell_sparse(blocks, cols, rows, n_cols):
 
     b = np.concatenate([np.asarray(x).reshape(-1, 3, 3) for x in blocks], axis=0)
     c = np.concatenate([np.asarray(x).reshape(-1) for x in cols])
-    starts = np.cumsum([0] + [x.shape[0] for x in cols])
-    pos = np.concatenate([s + np.repeat(np.arange(x.shape[0]), x.shape[1]) for s, x in zip(starts, cols)])
+    pos, n_concat = _slot_rows(cols)
     # the concatenated row order back to the rows' order: row r sits at position rows[r]
-    row_of = np.full(int(starts[-1]), -1, dtype=np.int64)
+    row_of = np.full(n_concat, -1, dtype=np.int64)
     row_of[np.asarray(rows)] = np.arange(len(rows))
     keep = (c < n_cols) & (row_of[pos] >= 0)  # the padding column reads a zero row
     r_node, c_node, b = row_of[pos[keep]], c[keep], b[keep]
