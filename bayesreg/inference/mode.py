@@ -166,10 +166,10 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     exact_joint = exact and post.op.n_interior == 0
     volumes0 = element_volumes(post.nodes, post.tets)
 
-    def plain(theta, guess, width):
-        """The model with a skull barrier of ``width`` mm (traced: the wide stage and the
+    def plain(theta, guess, data):
+        """The model with a skull barrier of ``data[0]`` mm (traced: the wide stage and the
         others share one compiled step), plus the barrier against inverted elements."""
-        skull = post.skull._replace(barrier_width=width)
+        skull = post.skull._replace(barrier_width=data[0])
         lp, aux = logdensity_fn(post._replace(skull=skull), rtol=rtol, maxiter=maxiter)(theta, guess)
         u = nodal_displacement(post, theta, aux.interior)
         return lp + inversion_barrier(post.nodes + u, post.tets, volumes0, MODE_VOLUME_RATIO), aux
@@ -179,7 +179,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         """``log p`` with the normaliser: with ``data = (width, surrogate, on)``, its surrogate
         where ``on`` (``()`` bool; all traced, so that every stage and round shares one
         compiled step) and none elsewhere; the exact one where ``data`` is ``(width,)``."""
-        lp, aux = plain(theta, guess, data[0])
+        lp, aux = plain(theta, guess, data)
         phi = split_position(post, theta)[1]
         if len(data) == 1:
             return add_normaliser(lp, log_normaliser(post, phi)), aux
@@ -192,7 +192,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
 
     steps = {}  # one jitted L-BFGS step (and its solver) per objective, shared by its searches
 
-    def maximise(logdensity, theta, sl, maxiter, data=None):
+    def maximise(logdensity, theta, sl, maxiter, data):
         """L-BFGS (optax, zoom line search) over ``theta[sl]``, the rest of ``theta`` held.
 
         The rest is held by a mask (``stop_gradient`` outside ``sl``): with zero gradient
@@ -204,7 +204,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         search, which shortens it (a line search fed a huge value with a zero gradient
         there, as SciPy's L-BFGS-B's, collapses and reports convergence far from the
         mode).  ``data`` is passed to ``logdensity`` as its third argument (traced: one
-        compilation for every ``data`` of one structure), unless ``None``."""
+        compilation for every ``data`` of one structure)."""
         if logdensity not in steps:
             solver = optax.lbfgs()
 
@@ -212,8 +212,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
             def step(x, state, mask, data):
                 def neg(y):
                     y = jnp.where(mask, y, jax.lax.stop_gradient(y))
-                    args = (zeros,) if data is None else (zeros, data)
-                    return -logdensity(y, *args)[0]
+                    return -logdensity(y, zeros, data)[0]
 
                 v, g = optax.value_and_grad_from_state(neg)(x, state=state)
                 upd, state = solver.update(g, state, x, value=v, grad=g, value_fn=neg)
@@ -221,7 +220,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
 
             @jax.jit
             def value(y, data):  # compiled only if a gradient step is needed
-                return -logdensity(y, *((zeros,) if data is None else (zeros, data)))[0]
+                return -logdensity(y, zeros, data)[0]
 
             steps[logdensity] = step, solver, value
         step, solver, value = steps[logdensity]
@@ -297,9 +296,9 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     margin = 1e-3
 
     def in_log(logdensity):
-        def f(x, guess, *data):
+        def f(x, guess, data):
             phi = lo + jnp.exp(x[nb3:])
-            return logdensity(jnp.concatenate([x[:nb3], phi]), guess, *data)
+            return logdensity(jnp.concatenate([x[:nb3], phi]), guess, data)
         return f
 
     def clip(phi):  # parameters kept the relative margin inside their support
@@ -314,7 +313,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     iters = iterations
     x = to_log(theta0)
     width = jnp.asarray(float(search_barrier))
-    objective, data = in_log(plain), width
+    objective, data = in_log(plain), (width,)
     normalised = in_log(with_normaliser)
     surrogates = exact and grouped and post.n_free
     if surrogates:  # one objective for every stage: the surrogate (at theta0's parameters) on or off
@@ -322,12 +321,10 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         data = (width, normaliser_surrogate(post, to_theta(x)[nb3:]), jnp.asarray(exact_joint))
     elif exact_joint:
         objective = normalised
-        data = (width,)
     wide = wide_barrier_mm is not None and wide_barrier_mm > search_barrier
     pre, nit = "", 0
     if wide:  # stage 0: u_b alone under the wide barrier
-        data_w = (jnp.asarray(float(wide_barrier_mm)),) + data[1:] if isinstance(data, tuple) \
-            else jnp.asarray(float(wide_barrier_mm))
+        data_w = (jnp.asarray(float(wide_barrier_mm)),) + data[1:]
         x, start0, res0 = maximise(objective, x, slice(0, nb3), max(iters // 2, 1), data_w)
         pre, nit = f"wide barrier ({wide_barrier_mm:g} mm), u_b alone: {res0.message} ({res0.nit} its); ", res0.nit
     if joint and post.n_free:  # stage 1: u_b alone at theta0's parameters
