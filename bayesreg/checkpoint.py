@@ -182,7 +182,7 @@ class Checkpoint:
         if data.truth is not None:
             t = data.truth
             arrays.update(truth_u=t.u, truth_pushed=t.pushed)
-            if t.made_by_model:
+            if t.parameters_known:
                 arrays.update(truth_lam_e=t.lam_e, truth_mu_e=t.mu_e)
             if t.field is not None:
                 arrays.update(truth_field=t.field.data, truth_field_affine=t.field.affine)

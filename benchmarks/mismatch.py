@@ -1,14 +1,16 @@
-"""Deformations the model did not make: a finished run against TV-L1 and the FE bound.
+"""Deformations the model did not make: a finished run against its reference and the FE bound.
 
 For each run directory of a synthetic case (best a truth the model did not make,
-``synthetic.truth: bump`` or ``field``), prints one row: the brain-voxel MSE (mm^2) and
-boundary 95th percentile (mm) of the posterior mean, of its start and of scikit-image's
-TV-L1 on the same images (the run's ``errors.json``), the 90% coverage where the truth moves
+``synthetic.truth: bump``, ``random`` or ``field``, or ``synthetic.discrepancy_mm``), prints
+one row: the brain-voxel MSE (mm^2) and boundary 95th percentile (mm) of the posterior mean,
+of its start and of the run's reference registration on the same images (TV-L1 or ANTs SyN,
+``output.reference``; the run's ``errors.json``), the 90% coverage where the truth moves
 the tissue at least 1 mm, the GM and WM ``lam/mu`` medians and which parameters sit on their
 prior's edge; then the **bound of the model's interior**: the smallest brain-voxel MSE any FE
 field can reach whose interior solves ``K u = 0`` (boundary values chosen by least squares
 against the truth itself) at the run's posterior-median parameters and over a scan of one
-common ``lam/mu``, and that of free nodal values (the mesh's own resolution limit).  The
+common ``lam/mu``, and that of free nodal values (the mesh's own resolution limit,
+:func:`bayesreg.outputs.fields.mesh_best_fit`).  The
 bound says how much of the error is the model's, not the sampler's.
 
 Usage (from the repository root)::
@@ -34,6 +36,8 @@ from bayesreg.checkpoint import Checkpoint
 from bayesreg.fem.element import stiffness_matrix
 from bayesreg.data.labels import TISSUE_LABELS
 from bayesreg.mesh.warp import interpolation_matrix
+from bayesreg.outputs.fields import mesh_best_fit
+from bayesreg.outputs.printed import reference_method
 
 
 def elastic_fit(mesh, w, target, lam_t, mu_t):
@@ -70,7 +74,7 @@ def row(path: Path) -> dict:
     def mse(v):
         return float(np.mean(np.sum((v - true_v) ** 2, axis=1)))
 
-    free = spla.spsolve((w.T @ w + 1e-9 * sp.identity(w.shape[1])).tocsc(), w.T @ true_v)
+    free = mesh_best_fit(w, true_v, truth.u)
     ratio = {k: v["median"] for k, v in errors["ratio"].items()}
     lam_t = np.array([ratio.get(t, 1.0) for t in ("csf", "gm", "wm")])
     bound_post = mse(elastic_fit(mesh, w, true_v, lam_t, np.ones(3)))
@@ -87,6 +91,7 @@ def row(path: Path) -> dict:
         "coverage_boundary_90": errors["coverage_boundary"]["0.9"],
         "ratio": ratio, "at_prior_edge": edge, "bound_posterior_median": bound_post,
         "bound_scan": scan, "bound_free_nodes": mse(w @ free),
+        "reference": reference_method(errors),
         "converged": info["sampler"]["converged"], "sampling_s": info["timings_s"].get("sampling_s"),
     }
 
@@ -97,7 +102,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     bayesreg.configure_jax()
     rows = [row(p) for p in args.runs]
-    print("| run | T_s | brain MSE mm^2: posterior / start / TV-L1 | boundary q95 mm: posterior / TV-L1 "
+    print("| run | T_s | brain MSE mm^2: posterior / start / reference | boundary q95 mm: posterior / reference "
           "| 90% coverage moving / boundary | lam/mu GM, WM | on prior edge | FE bound: at posterior "
           "median / best common ratio / free nodes |")
     print("|" + "---|" * 9)
@@ -106,7 +111,7 @@ def main(argv=None):
         best = min(r["bound_scan"].items(), key=lambda kv: kv[1])
         ts = "fixed" if r["t_s_prior"] is None else f"Gamma({r['t_s_prior']['shape']}, {r['t_s_prior']['rate']})"
         print(f"| {r['run']} | {ts} | {m['posterior_mean']:.4f} / {m['start']:.4f} / {m['reference']:.4f} "
-              f"| {q['posterior_mean']:.3f} / {q['reference']:.3f} | {r['coverage_moving_90']:.2f} / "
+              f"({r['reference']}) | {q['posterior_mean']:.3f} / {q['reference']:.3f} | {r['coverage_moving_90']:.2f} / "
               f"{r['coverage_boundary_90']:.2f} | {r['ratio'].get('gm', float('nan')):.3g}, "
               f"{r['ratio'].get('wm', float('nan')):.3g} | {', '.join(r['at_prior_edge']) or '-'} "
               f"| {r['bound_posterior_median']:.4f} / {best[1]:.4f} (lam/mu {best[0]:g}) / "

@@ -46,3 +46,28 @@ def test_nodal_statistics_in_one_thread_when_memory_is_short(monkeypatch):
     single = fields.nodal_spread(problem, result, mean)
     for a, b in zip(threaded, single):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_the_mesh_best_fit_is_the_ridge_least_squares_projection():
+    """``mesh_best_fit``: NumPy's least squares of ``[W; sqrt(eps) I] v = [t; sqrt(eps)
+    u_ref]`` per axis, ``eps`` the ridge times the mean diagonal of ``W^T W``; a target that
+    is an FE field gives its nodal values back whatever ``u_ref``; bad shapes are refused."""
+    import scipy.sparse as sp
+
+    from bayesreg.outputs.fields import BEST_FIT_RIDGE, mesh_best_fit
+
+    rng = np.random.default_rng(5)
+    v, n = 400, 30
+    w = sp.random(v, n, density=0.1, random_state=rng, format="csr")
+    t, u_ref = rng.normal(size=(v, 3)), rng.normal(size=(n, 3))
+    eps = BEST_FIT_RIDGE * float((w.T @ w).diagonal().mean())
+    a = np.vstack([w.toarray(), np.sqrt(eps) * np.eye(n)])
+    want = np.linalg.lstsq(a, np.vstack([t, np.sqrt(eps) * u_ref]), rcond=None)[0]
+    np.testing.assert_allclose(mesh_best_fit(w, t, u_ref), want, rtol=1e-9, atol=1e-10)
+    v0 = rng.normal(size=(n, 3))
+    dense = sp.csr_matrix(rng.uniform(size=(v, n)))
+    np.testing.assert_allclose(mesh_best_fit(dense, dense @ v0, u_ref, ridge=1e-12), v0, atol=1e-6)
+    with pytest.raises(ValueError, match="do not match"):
+        mesh_best_fit(w, t[:-1], u_ref)
+    with pytest.raises(ValueError, match="ridge must be > 0"):
+        mesh_best_fit(w, t, u_ref, ridge=0.0)

@@ -39,7 +39,8 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     moved by it (``m(x + u(x)) ~= f(x)``), the truth has no Lamé parameters (no parameter
     truth to compare), survives the checkpoint, and the error table compares the
     posterior mean, the start and a reference field over the brain's voxels and gives the
-    coverage where the tissue moves."""
+    coverage where the tissue moves.  A random field, and an FE truth plus one
+    (``synthetic.discrepancy_mm``: dense, yet its Lamé parameters known), on the same mesh."""
     from types import SimpleNamespace
 
     from bayesreg import configure_jax
@@ -97,6 +98,19 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     assert info["truth"] == "random" and info["length_mm"] == 30.0 and not rand.made_by_model
     np.testing.assert_allclose(np.linalg.norm(rand.u, axis=1).max(), 2.0, rtol=0.02)
     assert _truth_line(info, rand.u).startswith("random (not made by the model), smoothing sd 30 mm")
+    # the FE truth plus a volume-preserving random field: a dense truth with known ratios
+    fe_cfg = load_config("configs/mismatch_discrepancy.yaml", overrides=[
+        "data.resolution_mm=3.0", "synthetic.shift_mm=2", "synthetic.discrepancy_mm=1.5"])
+    plus, info = _make_truth(fe_cfg, data.mesh, data.labels)
+    assert info["truth"] == "smooth" and info["discrepancy"]["solenoidal"] and info["n_inverted"] == 0
+    assert plus.parameters_known and not plus.made_by_model and plus.field is not None
+    fe_only, _ = _make_truth(load_config("configs/quickstart.yaml", overrides=[
+        "data.resolution_mm=3.0", "synthetic.shift_mm=2"]), data.mesh, data.labels)
+    added = np.linalg.norm(plus.u - fe_only.u, axis=1)
+    np.testing.assert_allclose(added.max(), 1.5, rtol=0.02)
+    assert _truth_line(info, plus.u).endswith("plus a volume-preserving random field of 1.5 mm "
+                                              "(smoothing sd 30 mm, not made by the model)")
+    assert assemble(fe_cfg, data._replace(truth=plus)).phi_true is not None
 
     ckpt = Checkpoint(tmp_path)
     ckpt.save_problem(data)
@@ -127,3 +141,19 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     mse = errors["brain"]["mse_mm2"]
     assert mse["reference"] == 0.0 and errors["boundary_reference_mm"]["max"] < 1e-9
     assert 0.0 < mse["posterior_mean"] < mse["start"]
+    # the mesh's best fit to the dense truth: nearer it than the draws' mean, near the
+    # truth at the nodes (the bump varies slowly within an element), printed with its coverage
+    best = errors["mesh_best_fit"]
+    assert best["brain_mse_mm2"] < mse["posterior_mean"]
+    assert 0.0 < best["nodes_from_truth_mm"]["median"] < 0.5
+    assert 0.5 < best["coverage_moving"]["0.9"] <= 1.0
+    from bayesreg.outputs.printed import format_report
+
+    sampler = {"converged": True, "rhat_classic_max": 1.0, "rhat_classic_split_max": 1.0,
+               "rhat_rank_max": 1.0, "ess_bulk_min": 800.0, "ess_tail_min": 800.0,
+               "stuck_chains": [], "draws_per_chain": d, "blocks": ["u_b"], "acceptance": [0.8],
+               "thinning": 1, "chains": c, "cg_iterations_per_step_mean": 1.0,
+               "solve_failures": 0, "steps_per_s_per_chain": 1.0}
+    line = next(x for x in format_report(errors, {"sampler": sampler}).splitlines()
+                if "best fit" in x)
+    assert f"90% coverage of it {best['coverage_moving']['0.9']:.2f}" in line

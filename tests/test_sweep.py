@@ -188,8 +188,9 @@ def test_the_tables_average_only_runs_that_met_their_rule(tmp_path):
 
 def test_the_shipped_sweeps_validate_every_run():
     """``configs/sweeps/*.yaml``: every run's config validates (as the sweep checks before
-    its first run), e.g. the mismatch benchmarks: two truths the model did not make, each on
-    MNI152 and three BrainWeb brains, with ANTs SyN as the reference."""
+    its first run), e.g. the mismatch benchmarks: two truths the model did not make and an FE
+    truth plus a random field, each on MNI152 and three BrainWeb brains, with ANTs SyN as the
+    reference."""
     from bayesreg.config import load_config
 
     for path in sorted((CONFIGS / "sweeps").glob("*.yaml")):
@@ -197,9 +198,11 @@ def test_the_shipped_sweeps_validate_every_run():
         assert runs, path
         for r in runs:
             load_config(r.config, overrides=list(r.overrides))
-    mismatch = expand(load_sweep(CONFIGS / "sweeps" / "mismatch.yaml"))
-    assert len(mismatch) == 8
-    assert {load_config(r.config, overrides=list(r.overrides)).synthetic.truth for r in mismatch} == {"bump", "random"}
+    mismatch = [load_config(r.config, overrides=list(r.overrides))
+                for r in expand(load_sweep(CONFIGS / "sweeps" / "mismatch.yaml"))]
+    assert len(mismatch) == 12
+    assert {(c.synthetic.truth, c.synthetic.discrepancy_mm > 0) for c in mismatch} == {
+        ("bump", False), ("random", False), ("smooth", True)}
     paper = [load_config(r.config, overrides=list(r.overrides))
              for r in expand(load_sweep(CONFIGS / "sweeps" / "paper_brainweb.yaml"))]
     assert len(paper) == 20 and {c.model.interpolation for c in paper} == {"cubic"}

@@ -112,3 +112,69 @@ def test_the_solenoidal_random_field_preserves_volume():
     assert np.abs(divergence(curl)).max() < 0.1 * np.abs(divergence(plain)).max()
     with pytest.raises(ConfigError, match="synthetic.solenoidal"):
         load_config("configs/mismatch_bump.yaml", overrides=["synthetic.solenoidal=true"])
+
+
+def test_an_fe_truth_with_a_discrepancy_keeps_its_parameters_and_adds_the_field(tmp_path):
+    """``with_discrepancy``: at every voxel centre inside the mesh the dense truth is the
+    linear interpolation of the FE nodal field in its tetrahedron (barycentric coordinates
+    computed here from the vertices) plus the added field, beyond it the inverse-square
+    mean of the nearest boundary nodes' plus the field; at the nodes the FE values plus the
+    field read there.  The Lamé parameters stay (``parameters_known``) while
+    ``made_by_model`` is false; the checkpoint keeps both; a dense truth is refused; the
+    config refuses ``discrepancy_mm`` on a dense truth and accepts ``solenoidal`` with it."""
+    from bayesreg.checkpoint import Checkpoint
+    from bayesreg.config import ConfigError, load_config
+    from bayesreg.data.images import grid_points
+    from bayesreg.data.registration import displacement_at
+    from bayesreg.model.problem import ProblemData
+    from bayesreg.truth.synthetic import field_truth, random_field, with_discrepancy
+    from helpers import smooth_image
+
+    mesh = box_mesh((3, 3, 3), size=(30.0, 30.0, 30.0))
+    lam = np.array([2.0, 10.0, 30.0])[mesh.tissue]
+    mu = np.ones(len(mesh.tets))
+    fe = brain_shift(mesh, lam, mu, shift_mm=3.0, n_pushed=16, falloff_mm=12.0)
+    grid = smooth_image(shape=(40, 40, 40), origin=-5.0)
+    extra = random_field(grid, mesh, shift_mm=1.5, length_mm=6.0, seed=4, solenoidal=True)
+    truth = with_discrepancy(fe, mesh, extra)
+    assert truth.parameters_known and not truth.made_by_model and fe.made_by_model
+    np.testing.assert_array_equal(truth.lam_e, lam)
+    np.testing.assert_array_equal(truth.pushed, fe.pushed)
+    np.testing.assert_allclose(truth.u, fe.u + displacement_at(extra, mesh.nodes), atol=1e-12)
+    pts = grid_points(grid)
+    dense = truth.field.data.reshape(-1, 3) - extra.data.reshape(-1, 3)
+    rng = np.random.default_rng(0)
+    inside = np.all((pts > 0.5) & (pts < 29.5), axis=1)
+    for p in rng.choice(np.flatnonzero(inside), 200, replace=False):
+        for tet in mesh.tets:  # the element holding the voxel centre, by its barycentric coordinates
+            x = mesh.nodes[tet]
+            b = np.linalg.solve(np.vstack([x.T, np.ones(4)]), np.append(pts[p], 1.0))
+            if b.min() >= -1e-9:
+                np.testing.assert_allclose(dense[p], b @ fe.u[tet], atol=1e-9)
+                break
+        else:
+            raise AssertionError(f"no element holds {pts[p]}")
+    b = np.asarray(mesh.boundary)
+    for p in rng.choice(np.flatnonzero(np.any((pts < -0.5) | (pts > 30.5), axis=1)), 200, replace=False):
+        dist = np.linalg.norm(mesh.nodes[b] - pts[p], axis=1)  # beyond the mesh: 8 nearest
+        k = np.argsort(dist)
+        if dist[k[8]] - dist[k[7]] < 1e-6:  # a tie for the eighth nearest (the box's lattice)
+            continue
+        k = k[:8]
+        np.testing.assert_allclose(dense[p], (fe.u[b[k]] / dist[k, None] ** 2).sum(0)
+                                   / (1.0 / dist[k] ** 2).sum(), atol=1e-9)
+
+    ckpt = Checkpoint(tmp_path)
+    ckpt.save_problem(ProblemData(grid, grid, grid, mesh, truth, {"truth": "smooth"}, 1.0, 0, {}, None))
+    back = ckpt.load_problem().truth
+    assert back.parameters_known and not back.made_by_model
+    np.testing.assert_array_equal(back.lam_e, lam)
+    np.testing.assert_array_equal(back.field.data, truth.field.data)
+
+    with pytest.raises(ValueError, match="adds to an FE truth"):
+        with_discrepancy(field_truth(mesh, extra), mesh, extra)
+    with pytest.raises(ConfigError, match="synthetic.discrepancy_mm adds to an FE truth"):
+        load_config("configs/mismatch_bump.yaml", overrides=["synthetic.discrepancy_mm=2"])
+    cfg = load_config("configs/quickstart.yaml", overrides=["synthetic.discrepancy_mm=2",
+                                                           "synthetic.solenoidal=true"])
+    assert cfg.synthetic.discrepancy_mm == 2.0 and cfg.synthetic.solenoidal

@@ -219,10 +219,20 @@ class SyntheticConfig(_Strict):
         "shift_mm at the nodes, seeded by the run's seed (bayesreg.truth.synthetic."
         "random_field); field, the displacement field of synthetic.field")
     solenoidal: bool = Field(
-        False, description="truth: random: the curl of a random vector potential instead, a "
+        False, description="the random field (truth: random, or the discrepancy_mm added to an "
+        "FE truth): the curl of a random vector potential instead, a "
         "divergence-free (volume-preserving) field, as nearly incompressible tissue moves; the "
         "plain random field changes volume by tens of percent, which an FE model fits with "
         "compressible tissue (bayesreg.truth.synthetic.random_field)")
+    discrepancy_mm: Float = Field(
+        0.0, ge=0, description="FE truths (constrained, smooth): add a smooth random field of "
+        "this largest displacement at the nodes (mm; as truth: random, of smoothing sd "
+        "discrepancy_length_mm, seeded by the run's seed, volume-preserving with solenoidal) to "
+        "the FE field, a part of the shift no FE field makes: the ratios keep their truths, so "
+        "the elastography can be checked under mismatch (bayesreg.truth.synthetic."
+        "with_discrepancy); 0: none")
+    discrepancy_length_mm: Float = Field(
+        30.0, gt=0, description="the sd of the Gaussian that smooths the added field's noise, mm")
     field: Path | None = Field(
         None, description="truth: field: a displacement-field NIfTI (ITK/ANTs/Slicer or "
         "bayesreg's displacement_*.nii.gz, fixed to moving: m(x + u(x)) = f(x)) in f's world "
@@ -273,9 +283,12 @@ class SyntheticConfig(_Strict):
         if (self.truth == "field") != (self.field is not None):
             raise ValueError("synthetic.truth: field and synthetic.field go together (the field "
                              "file is the truth)")
-        if self.solenoidal and self.truth != "random":
-            raise ValueError(f"synthetic.solenoidal is for synthetic.truth: random, not "
-                             f"{self.truth}")
+        if self.discrepancy_mm > 0 and self.truth not in ("constrained", "smooth"):
+            raise ValueError(f"synthetic.discrepancy_mm adds to an FE truth (constrained, "
+                             f"smooth), not to synthetic.truth: {self.truth}")
+        if self.solenoidal and self.truth != "random" and self.discrepancy_mm == 0:
+            raise ValueError(f"synthetic.solenoidal is for synthetic.truth: random or a "
+                             f"synthetic.discrepancy_mm > 0, not {self.truth} alone")
         if self.truth in _UNUSED_BY:
             given = [k for k in _UNUSED_BY[self.truth] if k in self.model_fields_set
                      and getattr(self, k) != type(self).model_fields[k].default]

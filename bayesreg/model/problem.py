@@ -37,7 +37,8 @@ from bayesreg.model.posterior import Posterior, build_posterior
 from bayesreg.model.lncc import build_lncc
 from bayesreg.model.similarity import build_ssd
 from bayesreg.stages import Stages
-from bayesreg.truth.synthetic import Truth, brain_shift, bump_field, field_truth, random_field
+from bayesreg.truth.synthetic import (Truth, brain_shift, bump_field, field_truth, random_field,
+                                      with_discrepancy)
 from bayesreg.interop.transforms import load_displacement
 from bayesreg.mesh.warp import warp_image, warp_image_field
 
@@ -226,8 +227,8 @@ def _group_values(layout: ParamLayout, tv, group, mesh: Mesh):
 
 
 def _truth_line(info: dict, u) -> str:
-    """One line on a synthetic truth: its kind, push, largest displacement and, for the
-    constrained truth, its active sets and energy."""
+    """One line on a synthetic truth: its kind, push, largest displacement, for the
+    constrained truth its active sets and energy, and the field added to an FE truth."""
     if info["truth"] in ("bump", "random", "field"):
         line = f"{info['truth']} (not made by the model)"
         if info["truth"] == "bump":
@@ -240,6 +241,10 @@ def _truth_line(info: dict, u) -> str:
     if info["truth"] == "constrained":
         line += (f", {info['n_active']} skull and {info['n_volume_active']} volume constraints "
                  f"active, energy {info['energy']:.4g}")
+    if "discrepancy" in info:
+        d = info["discrepancy"]
+        line += (f", plus a {'volume-preserving ' if d['solenoidal'] else ''}random field of "
+                 f"{d['shift_mm']:g} mm (smoothing sd {d['length_mm']:g} mm, not made by the model)")
     return line
 
 
@@ -305,6 +310,18 @@ def _make_truth(cfg: Config, mesh: Mesh, labels: Image):
     info.setdefault("truth", s.truth)
     info["lam"] = s.lam.model_dump()
     info["mu"] = s.mu.model_dump()
+    if s.discrepancy_mm > 0:  # a part of the shift no FE field makes, on top
+        extra = random_field(labels, mesh, shift_mm=s.discrepancy_mm,
+                             length_mm=s.discrepancy_length_mm, seed=cfg.seed,
+                             solenoidal=s.solenoidal)
+        truth = with_discrepancy(truth, mesh, extra)
+        info["discrepancy"] = {"shift_mm": s.discrepancy_mm, "length_mm": s.discrepancy_length_mm,
+                               "seed": cfg.seed, "solenoidal": s.solenoidal}
+        _check_truth_nodes(truth, mesh, labels, info)
+        if info["n_inverted"]:
+            raise ValueError(f"the FE truth plus the {s.discrepancy_mm:g} mm random field inverts "
+                             f"{info['n_inverted']} element(s): lower synthetic.discrepancy_mm or "
+                             "raise synthetic.discrepancy_length_mm")
     return truth, info
 
 
@@ -318,7 +335,8 @@ def _check_truth_nodes(truth, mesh: Mesh, labels: Image, info: dict) -> None:
     if np.any(bad):
         raise ValueError(
             f"the synthetic truth moves {int(np.sum(bad))} node(s) into the "
-            "skull region; lower synthetic.shift_mm or widen data.skull_margin_mm"
+            "skull region; lower synthetic.shift_mm (or synthetic.discrepancy_mm) or widen "
+            "data.skull_margin_mm"
         )
     info["n_inverted"] = int(np.sum(signed_volumes(mesh.nodes + truth.u, mesh.tets) <= 0))
 
@@ -476,7 +494,7 @@ def assemble(cfg: Config, data: ProblemData) -> Problem:
 
     phi_init = free_values(cfg.model.initial_lam, cfg.model.initial_mu)
     phi_true = None
-    if truth is not None and truth.made_by_model and layout.group_names != ("all",):
+    if truth is not None and truth.parameters_known and layout.group_names != ("all",):
         phi_true = free_values(cfg.synthetic.lam, cfg.synthetic.mu)
 
     def prior_tuple(pr):

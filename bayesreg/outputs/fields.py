@@ -17,7 +17,7 @@ from bayesreg.model.posterior import discrepancy_of
 from bayesreg.sampling.chains import available_cores
 
 __all__ = ["node_slots", "nodal_draws", "nodal_mean", "nodal_spread", "voxel_norm_spread",
-           "discrepancy_summary", "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
+           "discrepancy_summary", "mesh_best_fit", "BEST_FIT_RIDGE", "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
 
 
 CHUNK_DRAWS = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)
@@ -51,6 +51,58 @@ def nodal_draws(problem, result, rows):
     if d is not None:
         out[:, i] += d
     return out
+
+
+#: The ridge of :func:`mesh_best_fit`, relative to the mean diagonal of ``W^T W``.
+BEST_FIT_RIDGE = 1e-3
+
+
+def mesh_best_fit(w, target, u_ref, *, ridge: float = BEST_FIT_RIDGE) -> np.ndarray:
+    """The nodal field whose FE interpolation is nearest a dense displacement: the mesh's
+    resolution limit for a truth the model did not make.
+
+    ``v = argmin ||W v - t||^2 + eps ||v - u_ref||^2`` per axis, ``eps = ridge * mean
+    diag(W^T W)``: the least-squares projection of ``t`` onto the mesh's piecewise-linear
+    fields over the voxels of ``W``, held near ``u_ref`` only where few voxels see a node
+    (a boundary node outside the brain's voxels).  Where the truth varies within an
+    element the projection differs from the truth at the nodes; the posterior, a
+    distribution over nodal values, can at best centre on it.
+
+    Parameters
+    ----------
+    w : (V, N) sparse matrix
+        FE shape-function values at the voxels (rows of :func:`bayesreg.mesh.warp.interpolation_matrix`).
+    target : (V, 3) ndarray
+        The dense displacement at those voxels, mm.
+    u_ref : (N, 3) ndarray
+        Nodal values the ridge pulls toward (the truth at the nodes), mm.
+    ridge : float
+        > 0.
+
+    Returns
+    -------
+    (N, 3) ndarray
+        mm.
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not match, or ``ridge <= 0``.
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    w = sp.csr_matrix(w)
+    target, u_ref = np.asarray(target, np.float64), np.asarray(u_ref, np.float64)
+    if target.shape != (w.shape[0], 3) or u_ref.shape != (w.shape[1], 3):
+        raise ValueError(f"w {w.shape}, target {target.shape} and u_ref {u_ref.shape} do not "
+                         "match ((V, N), (V, 3), (N, 3))")
+    if not ridge > 0:
+        raise ValueError(f"ridge must be > 0, got {ridge}")
+    wtw = (w.T @ w).tocsc()
+    eps = ridge * float(wtw.diagonal().mean())
+    lu = spla.splu((wtw + eps * sp.identity(w.shape[1], format="csc")).tocsc())
+    return lu.solve(np.asarray(w.T @ target) + eps * u_ref)
 
 
 def _draw_chunks(result):

@@ -61,7 +61,7 @@ from bayesreg.config import Config
 from bayesreg.sampling.convergence import gelman_rubin
 from bayesreg.sampling.diagnostics import arviz_fast_ess, contraction, coverage, sampler_health, to_datatree
 from bayesreg.outputs.fields import (
-    VOXEL_DRAWS, discrepancy_summary, nodal_draws, nodal_mean, nodal_spread,
+    VOXEL_DRAWS, discrepancy_summary, mesh_best_fit, nodal_draws, nodal_mean, nodal_spread,
     voxel_norm_spread)
 from bayesreg.data.images import Image, save_nifti
 from bayesreg.inference.initialisation import Initialisation, registration_field
@@ -137,7 +137,11 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         CSF, GM and WM inside the mesh, the MSE (mm^2) and 95th percentile (mm) of the error
         of the posterior mean, the start and the reference (the truth there: the dense
         field of a truth the model did not make, else the FE interpolation of ``u``).  With
-        ``reference``, ``boundary_reference_mm``: its error at the boundary nodes.
+        ``reference``, ``boundary_reference_mm``: its error at the boundary nodes.  With
+        ``grid`` and a dense truth, ``mesh_best_fit``: the mesh's resolution limit
+        (:func:`bayesreg.outputs.fields.mesh_best_fit` over the brain's voxels), its
+        distance from the truth at the nodes (mm), its brain MSE (mm^2) and the coverage of
+        its components where the truth moves (the posterior can at best centre on it).
     """
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
@@ -152,7 +156,7 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         }
     if truth is None:
         return {"ratio": ratios}
-    if problem.layout.group_names == ("csf", "gm", "wm") and truth.made_by_model:
+    if problem.layout.group_names == ("csf", "gm", "wm") and truth.parameters_known:
         true_ratio = truth.lam_e / truth.mu_e
         for k, name in enumerate(problem.layout.group_names):
             ratios[name]["true"] = float(np.median(true_ratio[mesh.tissue == k]))
@@ -207,6 +211,15 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         out["brain"] = {"n_voxels": int(brain.sum()),
                         "mse_mm2": {k: float(np.mean(e**2)) for k, e in err.items()},
                         "q95_mm": {k: float(np.quantile(e, 0.95)) for k, e in err.items()}}
+        if truth.field is not None:  # the mesh's resolution limit, and coverage against it
+            w_brain = w[np.flatnonzero(brain)]
+            fit = mesh_best_fit(w_brain, true_v, truth.u)
+            best = {"nodes_from_truth_mm": stats(np.linalg.norm(fit - truth.u, axis=1)),
+                    "brain_mse_mm2": float(np.mean(np.sum((w_brain @ fit - true_v) ** 2, axis=1)))}
+            if moving.any():
+                best["coverage_moving"] = {str(k): float(v) for k, v in coverage(
+                    draws[:, moving].reshape(len(draws), -1), fit[moving].ravel()).items()}
+            out["mesh_best_fit"] = best
     return out
 
 

@@ -17,6 +17,10 @@ case real brain shift poses):
 * a displacement field from a file (another registration's: ITK/ANTs or bayesreg's own),
   :func:`field_truth` samples it at the nodes.
 
+Between the two, :func:`with_discrepancy` adds a dense field to an FE truth: known ``lam``,
+``mu`` and a part no FE field makes (the model discrepancy of Kennedy and O'Hagan 2001),
+so that the elastic parameters' intervals can be checked against their truths under mismatch.
+
 The intra-operative image of a synthetic case is ``f`` warped through the truth's FE map
 (:func:`bayesreg.mesh.warp.warp_image`) or through the dense field
 (:func:`bayesreg.mesh.warp.warp_image_field`).  Units: world mm.
@@ -34,8 +38,8 @@ from bayesreg.fem.element import stiffness_matrix
 from bayesreg.data.images import Image, grid_points
 from bayesreg.mesh.tetmesh import Mesh, signed_volumes
 
-__all__ = ["Truth", "brain_shift", "bump_field", "field_truth", "solve_dirichlet",
-           "centre_of_gravity", "top_boundary"]
+__all__ = ["Truth", "brain_shift", "bump_field", "field_truth", "random_field",
+           "with_discrepancy", "fe_field", "solve_dirichlet", "centre_of_gravity", "top_boundary"]
 
 
 class Truth(NamedTuple):
@@ -64,6 +68,12 @@ class Truth(NamedTuple):
     @property
     def made_by_model(self) -> bool:
         """Whether the truth is an FE field of known ``lam``, ``mu`` (the model can make it)."""
+        return self.lam_e is not None and self.field is None
+
+    @property
+    def parameters_known(self) -> bool:
+        """Whether the truth carries the Lamé parameters of an FE field, alone or with a part
+        the model did not make (:func:`with_discrepancy`): the ratios have truths."""
         return self.lam_e is not None
 
 
@@ -279,6 +289,87 @@ def field_truth(mesh: Mesh, field: Image, *, n_pushed=20) -> Truth:
     u = displacement_at(field, mesh.nodes)
     pushed = np.argsort(-np.linalg.norm(u, axis=1))[:max(1, min(int(n_pushed), len(u)))]
     return Truth(u, None, None, np.sort(pushed), field)
+
+
+def fe_field(mesh: Mesh, u, grid: Image, *, extend_k: int = 8) -> Image:
+    """The FE displacement of nodal values ``u`` on the voxel centres of ``grid``.
+
+    Inside the undeformed mesh the linear interpolation of ``u`` in each tetrahedron
+    (:func:`bayesreg.mesh.warp.interpolation_matrix`); beyond it, the inverse-square-distance
+    mean of the displacements of the ``extend_k`` nearest boundary nodes (the continuation
+    :func:`bayesreg.mesh.warp.warp_image` uses with ``outside="extend"``).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    u : (N, 3) array
+        Nodal displacements, mm.
+    grid : Image
+        The grid (``f``'s), world mm.
+    extend_k : int
+        Boundary nodes averaged beyond the mesh.
+
+    Returns
+    -------
+    Image
+        ``(I, J, K, 3)`` float64 displacement, world mm, ``grid``'s affine.
+    """
+    from scipy.spatial import cKDTree
+
+    from bayesreg.mesh.warp import interpolation_matrix
+
+    u = np.asarray(u, np.float64)
+    w, inside = interpolation_matrix(mesh, grid)
+    inside = np.ravel(inside)
+    out = np.asarray(w @ u)
+    pts = grid_points(grid)[~inside]
+    if len(pts):
+        b = np.asarray(mesh.boundary)
+        k = min(int(extend_k), len(b))
+        dist, j = cKDTree(mesh.nodes[b]).query(pts, k=k)
+        dist, j = dist.reshape(len(pts), k), j.reshape(len(pts), k)
+        wt = 1.0 / np.maximum(dist, 1e-9) ** 2
+        out[~inside] = np.einsum("pk,pkd->pd", wt, u[b][j]) / wt.sum(axis=1, keepdims=True)
+    return Image(out.reshape(*grid.data.shape[:3], 3), grid.affine)
+
+
+def with_discrepancy(truth: Truth, mesh: Mesh, extra: Image) -> Truth:
+    """An FE truth plus a dense field the FE model does not make (a known model discrepancy).
+
+    The dense truth is :func:`fe_field` of ``truth.u`` plus ``extra`` on ``extra``'s grid;
+    at the nodes, ``truth.u`` plus ``extra`` read trilinearly there.  The Lamé parameters
+    and the pushed nodes are kept, so the ratios keep their truths while
+    :attr:`Truth.made_by_model` is false: the FE model with those parameters explains the
+    shift only up to ``extra``'s part that no FE field follows (what a model discrepancy,
+    ``model.discrepancy``, is for).
+
+    Parameters
+    ----------
+    truth : Truth
+        An FE truth (``lam_e`` known, no dense field).
+    mesh : Mesh
+    extra : Image
+        ``(I, J, K, 3)`` displacement, world mm, on ``f``'s grid (e.g. :func:`random_field`).
+
+    Returns
+    -------
+    Truth
+
+    Raises
+    ------
+    ValueError
+        ``truth`` is not an FE truth, or ``extra`` is not a displacement field.
+    """
+    from bayesreg.data.registration import displacement_at
+
+    if not truth.made_by_model:
+        raise ValueError("with_discrepancy adds to an FE truth (known lam, mu and no dense field)")
+    data = np.asarray(extra.data, np.float64)
+    if data.ndim != 4 or data.shape[-1] != 3:
+        raise ValueError(f"the added field must be (I, J, K, 3), got {data.shape}")
+    field = Image(fe_field(mesh, truth.u, extra).data + data, extra.affine)
+    u = truth.u + displacement_at(extra, mesh.nodes)
+    return Truth(u, truth.lam_e, truth.mu_e, truth.pushed, field)
 
 
 # ----------------------------------------------------------------------------------------
