@@ -17,7 +17,8 @@ from bayesreg.model.posterior import discrepancy_of
 from bayesreg.sampling.chains import available_cores
 
 __all__ = ["node_slots", "nodal_draws", "nodal_mean", "nodal_spread", "voxel_norm_spread",
-           "discrepancy_summary", "mesh_best_fit", "BEST_FIT_RIDGE", "CHUNK_DRAWS", "VOXEL_DRAWS", "SPREAD_MAX_BYTES"]
+           "discrepancy_summary", "mesh_best_fit", "BEST_FIT_RIDGE", "CHUNK_DRAWS", "VOXEL_DRAWS",
+           "SPREAD_MAX_BYTES"]
 
 
 CHUNK_DRAWS = 2048  # draws per chunk of the nodal statistics (memory CHUNK x N x 3 doubles)

@@ -85,9 +85,11 @@ def format_report(errors: dict | None, info: dict) -> str:
                          f"{_f(errors['coverage_boundary'].get('0.9'), '.2f')}")
         best = errors.get("mesh_best_fit")
         if best and best.get("coverage_moving"):
-            lines.append(f"  the mesh's best fit to the truth (brain MSE {_f(best['brain_mse_mm2'], '.4f')} "
-                         f"mm^2; {_f(best['nodes_from_truth_mm']['median'], '.3f')} mm median from "
-                         f"the truth at the nodes): 90% coverage of it {_f(best['coverage_moving'].get('0.9'), '.2f')}")
+            lines.append(f"  the mesh's best fit to the truth (brain MSE "
+                         f"{_f(best['brain_mse_mm2'], '.4f')} mm^2; "
+                         f"{_f(best['nodes_from_truth_mm']['median'], '.3f')} mm median from the "
+                         f"truth at the nodes): 90% coverage of it "
+                         f"{_f(best['coverage_moving'].get('0.9'), '.2f')}")
     if errors:
         lines.append("lam/mu posterior       median        5%       95%     truth  contraction")
         for name, r in errors["ratio"].items():

@@ -50,13 +50,14 @@ class Truth(NamedTuple):
     u : (N, 3)
         nodal displacements, mm
     lam_e, mu_e : (M,) or None
-        per-element Lamé parameters used; ``None`` for a truth the model did not make
+        per-element Lamé parameters used (also of an FE truth with a field added,
+        :func:`with_discrepancy`); ``None`` for a dense truth made without them
     pushed : (P,) int
         nodes given the full push (Dirichlet); for a dense field, the nodes nearest its peak
     field : Image or None
         the dense displacement field ``(I, J, K, 3)`` mm on ``f``'s grid of a truth the
         model did not make (``m(x + u(x)) = f(x)`` for every voxel centre ``x``); ``None``
-        for an FE truth (its field is the FE interpolation of ``u``)
+        for an FE truth alone (its field is the FE interpolation of ``u``)
     """
 
     u: np.ndarray
@@ -67,7 +68,8 @@ class Truth(NamedTuple):
 
     @property
     def made_by_model(self) -> bool:
-        """Whether the truth is an FE field of known ``lam``, ``mu`` (the model can make it)."""
+        """Whether the truth is an FE field of known ``lam``, ``mu`` and nothing more (the
+        model can make it)."""
         return self.lam_e is not None and self.field is None
 
     @property
