@@ -206,3 +206,30 @@ def test_the_shipped_sweeps_validate_every_run():
     paper = [load_config(r.config, overrides=list(r.overrides))
              for r in expand(load_sweep(CONFIGS / "sweeps" / "paper_brainweb.yaml"))]
     assert len(paper) == 20 and {c.model.interpolation for c in paper} == {"cubic"}
+
+
+def test_a_run_rows_columns_come_from_its_run_json(tmp_path):
+    """``run_row`` on a finished run's ``run.json`` (no truth field on disk): the sampler's
+    figures, the brain MSEs, the reference and, for a dense truth, the mesh's best fit
+    (``brain_mse_best_fit``, ``coverage_best_fit_90``) as written; absent without it."""
+    from bayesreg.experiments.sweep import run_row
+
+    errors = {"boundary_initial_mm": {"median": 0.3}, "brain": {"mse_mm2": {
+        "posterior_mean": 0.03, "start": 0.04, "reference": 0.7}},
+        "boundary_reference_mm": {"q95": 3.2}, "reference_method": "tvl1",
+        "coverage_moving": {"0.9": 0.79}, "mesh_best_fit": {
+            "brain_mse_mm2": 0.0086, "coverage_moving": {"0.9": 0.84},
+            "nodes_from_truth_mm": {"median": 0.13}}}
+    info = {"sampler": {"converged": False, "rhat_rank_max": 1.02, "ess_bulk_min": 211.0,
+                        "draws_per_chain": 1500}, "mesh": {"n_nodes": 344},
+            "timings_s": {"total_before_outputs_s": 639.5}, "errors": errors}
+    (tmp_path / "run.json").write_text(json.dumps(info))
+    row = run_row(tmp_path)
+    assert row["brain_mse_posterior_mean"] == 0.03 and row["brain_mse_reference"] == 0.7
+    assert row["reference"] == "tvl1" and row["boundary_reference_q95"] == 3.2
+    assert row["coverage_moving_90"] == 0.79 and row["start_median_mm"] == 0.3
+    assert row["coverage_best_fit_90"] == 0.84 and row["brain_mse_best_fit"] == 0.0086
+    assert row["ess_bulk_min"] == 211.0 and row["n_nodes"] == 344 and row["run_s"] == 639.5
+    del errors["mesh_best_fit"]
+    (tmp_path / "run.json").write_text(json.dumps(info))
+    assert "coverage_best_fit_90" not in run_row(tmp_path)

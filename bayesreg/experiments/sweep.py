@@ -227,7 +227,9 @@ def run_row(run_dir) -> dict:
     reference is the run's ``output.reference`` on the same images, named in ``reference``:
     ``tvl1``, ``ilk`` or ``syn``), ``boundary_reference_q95`` (mm, the reference's error at
     the boundary nodes, 95th percentile) and ``coverage_moving_90`` (where the truth moves
-    the tissue at least 1 mm), from ``errors.json``; Table 1: ``t1_median``, ``t1_q95``,
+    the tissue at least 1 mm), and for a dense truth the mesh's best fit to it
+    (``brain_mse_best_fit``, mm^2, and ``coverage_best_fit_90``, its coverage where the
+    tissue moves: :func:`bayesreg.outputs.fields.mesh_best_fit`), from ``errors.json``; Table 1: ``t1_median``, ``t1_q95``,
     ``t1_max`` (mm); Table 2: ``t2_brain``, ``t2_csf``, ``t2_gm``, ``t2_wm`` (mm^2);
     ``coverage_90`` (boundary components inside their 90% intervals); per elastic group
     ``G`` with a true ratio: ``ratio_G_median``, ``ratio_G_q05``, ``ratio_G_q95``,
@@ -260,6 +262,11 @@ def run_row(run_dir) -> dict:
         row["boundary_reference_q95"] = errors["boundary_reference_mm"]["q95"]
     if errors.get("coverage_moving"):
         row["coverage_moving_90"] = errors["coverage_moving"]["0.9"]
+    best = errors.get("mesh_best_fit") or {}
+    if best.get("coverage_moving"):
+        row["coverage_best_fit_90"] = best["coverage_moving"]["0.9"]
+    if "brain_mse_mm2" in best:
+        row["brain_mse_best_fit"] = best["brain_mse_mm2"]
     if not (run_dir / "displacement_true.nii.gz").is_file():
         return row
     data = load_run(run_dir)
@@ -326,6 +333,8 @@ _SUMMARY = [
     ("reference's boundary-node error, 95th percentile (mm)", "boundary_reference_q95", None),
     ("boundary coverage of 90% intervals", "coverage_90", None),
     ("coverage of 90% intervals where the tissue moves", "coverage_moving_90", None),
+    ("brain MSE of the mesh's best fit to a dense truth (mm^2)", "brain_mse_best_fit", None),
+    ("coverage of the mesh's best fit where the tissue moves", "coverage_best_fit_90", None),
     ("lam/mu GM, posterior median", "ratio_gm_median", None),
     ("lam/mu WM, posterior median", "ratio_wm_median", None),
     ("R-hat (rank-normalised), max", "rhat_rank_max", None),
