@@ -90,8 +90,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     moves ``u_b`` alone under a skull barrier of ``wide_barrier_mm`` (where it is wider
     than the search's own): nodes that the images press toward the skull then slide along
     it at a distance instead of sticking in a pocket of the wall, from which the narrow
-    barrier's search does not bring them back (BrainWeb, 1 mm: a node 7 mm from its truth,
-    pressed 0.25 mm from the skull; from the wide stage's result it ends 0.1 mm from it).
+    barrier's search does not bring them back (docs: *Method*).
     The joint search then runs in two stages of
     ``iterations // 2`` L-BFGS iterations each: ``u_b`` alone at ``theta0``'s parameters,
     then ``u_b`` and the parameters together, these in the coordinates ``log(phi - r1)``

@@ -22,7 +22,7 @@ from bayesreg.data.images import Image, grid_points, interpolate_numpy, world_to
 from bayesreg.mesh.tetmesh import Mesh, signed_volumes
 
 __all__ = ["locate", "locate_voxels", "locate_grid", "interpolation_matrix", "grid_moments",
-           "grid_moments_from", "warp_image", "warp_image_field"]
+           "grid_moments_from", "continue_displacement", "warp_image", "warp_image_field"]
 
 
 def locate(nodes, tets, points, *, tol=1e-9):
@@ -233,6 +233,18 @@ def grid_moments_from(mesh: Mesh, grid: Image, mean, cov, *, located=None):
     return mean.reshape(*shape, 3), sd.reshape(*shape, 3)
 
 
+def continue_displacement(points, anchors, u, *, k: int = 8) -> np.ndarray:
+    """A displacement continued beyond the mesh: at each point the inverse-square-distance
+    mean of the displacements ``u`` ``(A, 3)`` mm of its ``k`` nearest ``anchors`` ``(A, 3)``
+    (world mm; boundary nodes).  Returns ``(P, 3)`` mm for ``points`` ``(P, 3)``."""
+    points = np.asarray(points, np.float64)
+    k = min(int(k), len(anchors))
+    dist, j = cKDTree(anchors).query(points, k=k)
+    dist, j = dist.reshape(len(points), k), j.reshape(len(points), k)
+    w = 1.0 / np.maximum(dist, 1e-9) ** 2
+    return np.einsum("pk,pkd->pd", w, np.asarray(u)[j]) / w.sum(axis=1, keepdims=True)
+
+
 def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "background",
                extend_k: int = 8, order: int = 1) -> Image:
     """Intra-operative image ``m`` with ``m(x + u(x)) = f(x)`` for the FE map ``x -> x + u(x)``.
@@ -287,11 +299,7 @@ def warp_image(f: Image, mesh: Mesh, u, *, background=0.0, outside: str = "backg
     out[inside] = interpolate_numpy(f, x, order=order, cval=background)
     if outside == "extend" and not np.all(inside):
         b = np.asarray(mesh.boundary)
-        k = min(int(extend_k), len(b))
-        dist, j = cKDTree(deformed[b]).query(pts[~inside], k=k)
-        dist, j = dist.reshape(len(dist), k), j.reshape(len(j), k)
-        w = 1.0 / np.maximum(dist, 1e-9) ** 2
-        u_ext = np.einsum("pk,pkd->pd", w, u[b][j]) / w.sum(axis=1, keepdims=True)
+        u_ext = continue_displacement(pts[~inside], deformed[b], u[b], k=extend_k)
         out[~inside] = interpolate_numpy(f, pts[~inside] - u_ext, order=order, cval=background)
     return Image(out.reshape(f.data.shape), f.affine)
 

@@ -298,7 +298,8 @@ def fe_field(mesh: Mesh, u, grid: Image, *, extend_k: int = 8) -> Image:
 
     Inside the undeformed mesh the linear interpolation of ``u`` in each tetrahedron
     (:func:`bayesreg.mesh.warp.interpolation_matrix`); beyond it, the inverse-square-distance
-    mean of the displacements of the ``extend_k`` nearest boundary nodes (the continuation
+    mean of the displacements of the ``extend_k`` nearest boundary nodes
+    (:func:`bayesreg.mesh.warp.continue_displacement`, the continuation
     :func:`bayesreg.mesh.warp.warp_image` uses with ``outside="extend"``).
 
     Parameters
@@ -316,22 +317,16 @@ def fe_field(mesh: Mesh, u, grid: Image, *, extend_k: int = 8) -> Image:
     Image
         ``(I, J, K, 3)`` float64 displacement, world mm, ``grid``'s affine.
     """
-    from scipy.spatial import cKDTree
-
-    from bayesreg.mesh.warp import interpolation_matrix
+    from bayesreg.mesh.warp import continue_displacement, interpolation_matrix
 
     u = np.asarray(u, np.float64)
     w, inside = interpolation_matrix(mesh, grid)
     inside = np.ravel(inside)
     out = np.asarray(w @ u)
-    pts = grid_points(grid)[~inside]
-    if len(pts):
+    if not np.all(inside):
         b = np.asarray(mesh.boundary)
-        k = min(int(extend_k), len(b))
-        dist, j = cKDTree(mesh.nodes[b]).query(pts, k=k)
-        dist, j = dist.reshape(len(pts), k), j.reshape(len(pts), k)
-        wt = 1.0 / np.maximum(dist, 1e-9) ** 2
-        out[~inside] = np.einsum("pk,pkd->pd", wt, u[b][j]) / wt.sum(axis=1, keepdims=True)
+        out[~inside] = continue_displacement(grid_points(grid)[~inside], mesh.nodes[b], u[b],
+                                             k=extend_k)
     return Image(out.reshape(*grid.data.shape[:3], 3), grid.affine)
 
 
