@@ -202,9 +202,10 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
     if grid is not None:
         w, in_mesh = grid
         brain = np.isin(np.asarray(problem.labels.data).ravel(), TISSUE_LABELS) & np.ravel(in_mesh)
+        w_brain = w[np.flatnonzero(brain)]  # the interpolation at the brain's voxels only
         true_v = (truth.field.data.reshape(-1, 3)[brain] if truth.field is not None
-                  else (w @ truth.u)[brain])
-        fields = {"posterior_mean": (w @ u_mean)[brain], "start": (w @ np.asarray(u_init))[brain]}
+                  else w_brain @ truth.u)
+        fields = {"posterior_mean": w_brain @ u_mean, "start": w_brain @ np.asarray(u_init)}
         if reference is not None:
             fields["reference"] = np.asarray(reference.data).reshape(-1, 3)[brain]
         err = {k: np.linalg.norm(v - true_v, axis=1) for k, v in fields.items()}
@@ -212,7 +213,6 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
                         "mse_mm2": {k: float(np.mean(e**2)) for k, e in err.items()},
                         "q95_mm": {k: float(np.quantile(e, 0.95)) for k, e in err.items()}}
         if truth.field is not None:  # the mesh's resolution limit, and coverage against it
-            w_brain = w[np.flatnonzero(brain)]
             fit = mesh_best_fit(w_brain, true_v, truth.u)
             best = {"nodes_from_truth_mm": stats(np.linalg.norm(fit - truth.u, axis=1)),
                     "brain_mse_mm2": float(np.mean(np.sum((w_brain @ fit - true_v) ** 2, axis=1)))}
