@@ -7,6 +7,8 @@ use.  Fixtures live in ``conftest.py``; these are plain functions.
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -339,3 +341,12 @@ def sample_gibbs(rng_key, target, x0, interior0, **kw):
 
     alg, run = _split_keywords(gibbs.as_algorithm, kw)
     return sample(rng_key, gibbs.as_algorithm(target, interior0, **alg), x0, **run)
+
+
+def load_benchmark(name: str):
+    """The script ``benchmarks/<name>.py`` as a module (the benchmarks are not a package)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"bayesreg_bench_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -2,21 +2,15 @@
 coordinates, checked on draws with a planted ridge (one direction of ``w`` that follows a
 parameter) against the values it was made with."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "geometry.py"
+from helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def geometry():
-    spec = importlib.util.spec_from_file_location("bayesreg_bench_geometry", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("geometry")
 
 
 def test_a_planted_ridge_is_found_with_its_share_and_r2(geometry):

@@ -1,20 +1,14 @@
 """``benchmarks/profiling.py``: reading a profile's events and the dumped HLO (no profiler run;
 the compiled scopes themselves are checked in ``test_posterior.py``)."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "profiling.py"
+from helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def profiling():
-    spec = importlib.util.spec_from_file_location("bayesreg_bench_profiling", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("profiling")
 
 
 def test_event_op_reads_cpu_stats_and_gpu_kernel_annotations(profiling):
