@@ -13,7 +13,8 @@ near 1, the displacement follows the parameters along a ridge that the whitening
 fixed parameters, does not see, and NUTS trajectories must be long to travel it.
 
 The draws are read from ``posterior.nc`` for a finished run, else from the checkpoint's
-chunks (an interrupted run).
+chunks (an interrupted run); the problem, the centre and ``F`` from the run's checkpoint
+(``output.checkpoint: true``, the default).
 
 Usage (from the repository root)::
 
@@ -67,6 +68,8 @@ def positions(path: Path, problem) -> np.ndarray:
 
 
 def report(path: Path) -> None:
+    if not (path / "checkpoint" / "init.npz").is_file():
+        raise SystemExit(f"{path}: no checkpoint/init.npz (the run needs output.checkpoint: true)")
     cfg = Config.model_validate(json.loads((path / "checkpoint" / "config.json").read_text()))
     problem = assemble(cfg, Checkpoint(path).load_problem())
     post = problem.posterior
