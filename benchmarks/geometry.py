@@ -24,15 +24,13 @@ Usage (from the repository root)::
 from __future__ import annotations
 
 import argparse
-import glob
-import json
 from pathlib import Path
 
 import numpy as np
 
 import bayesreg
+from bayesreg.apply import load_posterior
 from bayesreg.checkpoint import Checkpoint
-from bayesreg.config import Config
 from bayesreg.model.problem import assemble
 
 #: The widest directions regressed on (at most).
@@ -40,50 +38,41 @@ TOP = 10
 
 
 def positions(path: Path, problem) -> np.ndarray:
-    """The draws ``(C, D, dim)`` in the position's layout ``[u_b, d (or c), phi]``."""
-    chunks = sorted(glob.glob(str(path / "checkpoint" / "draws" / "*.npz")))
+    """The draws ``(S, dim)``, chains pooled, in the position's layout ``[u_b, d (or c),
+    phi]``: a finished run's (:func:`bayesreg.apply.load_posterior`), else the checkpoint's
+    stored chunks (:meth:`bayesreg.checkpoint.Checkpoint.load_state`)."""
     if not (path / "posterior.nc").is_file():
-        if not chunks:
+        state = Checkpoint(path).load_state()
+        if state is None or state[1] is None:
             raise SystemExit(f"{path}: neither posterior.nc nor checkpoint draws")
-        return np.concatenate([np.load(f)["positions"] for f in chunks], axis=1)
-    import arviz as az
-
-    post = az.from_netcdf(path / "posterior.nc").posterior
-    mesh = problem.mesh
-    if not np.array_equal(post["node"].values, mesh.boundary):
-        raise SystemExit(f"{path}: posterior.nc's boundary nodes are not the checkpoint's")
-    u_b = post["u_b"].transpose("chain", "draw", "node", "axis").values
-    parts = [u_b.reshape(u_b.shape[:2] + (-1,))]
+        pos = state[1][0]  # (C, D, dim)
+        return pos.reshape(-1, pos.shape[-1])
+    rp = load_posterior(path)
+    parts = [rp.u_b.reshape(len(rp.u_b), -1)]
     disc = problem.posterior.discrepancy
     if disc is not None:
-        d = post["d"].transpose("chain", "draw", "interior_node", "axis").values
-        d = d.reshape(d.shape[:2] + (-1,))
+        d = rp.d.reshape(len(rp.d), -1)
         parts.append(d if disc.basis is None else d @ np.asarray(disc.basis))
-    names = list(problem.layout.group_names)
-    for param, g in problem.layout.free:
-        var = post[param]
-        dim = "group" if param == "lam" else "mu_group"
-        parts.append(var.sel({dim: names[g]}).values[..., None])
-    return np.concatenate(parts, axis=-1)
+    parts += [(rp.lam if p == "lam" else rp.mu)[:, [g]] for p, g in problem.layout.free]
+    return np.concatenate(parts, axis=1)
 
 
 def report(path: Path) -> None:
-    if not (path / "checkpoint" / "init.npz").is_file():
+    ckpt = Checkpoint(path)
+    init = ckpt.load_init()
+    if init is None:
         raise SystemExit(f"{path}: no checkpoint/init.npz (the run needs output.checkpoint: true)")
-    cfg = Config.model_validate(json.loads((path / "checkpoint" / "config.json").read_text()))
-    problem = assemble(cfg, Checkpoint(path).load_problem())
+    problem = assemble(ckpt.load_config(), ckpt.load_problem())
     post = problem.posterior
-    init = np.load(path / "checkpoint" / "init.npz")
-    factor, center = init["sigma_0"], init["center"]
-    if factor.ndim != 2:
+    factor, center = init.sigma[0], init.center
+    if np.ndim(factor) != 2:
         raise SystemExit(f"{path}: no Laplace whitening (sampler.proposal is not laplace)")
     pos = positions(path, problem)
     n_x = post.n_displacement
-    x = pos[..., :n_x].reshape(-1, n_x)
-    w = np.linalg.solve(factor, (x - center[:n_x]).T).T
+    w = np.linalg.solve(factor, (pos[:, :n_x] - center[:n_x]).T).T
     nb3 = 3 * post.n_boundary
-    g = whitened_geometry(w, np.log(pos[..., n_x:].reshape(len(w), -1)), factor, nb3)
-    print(f"{path}: {pos.shape[0]} chains x {pos.shape[1]} draws, {n_x} whitened coordinates "
+    g = whitened_geometry(w, np.log(pos[:, n_x:]), factor, nb3)
+    print(f"{path}: {len(pos)} draws (chains pooled), {n_x} whitened coordinates "
           f"({nb3} of u_b, {n_x - nb3} of the discrepancy)")
     var = g["variance"]
     print(f"  per-coordinate variance: median {np.median(var):.2f}, 90% {np.quantile(var, 0.9):.2f}, "
