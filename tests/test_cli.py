@@ -539,11 +539,12 @@ def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, c
 @pytest.mark.heavy
 # MALA: NUTS runs end to end in the tiny quickstart above (and in the notebook); the two
 # kinds share the driver, and each recovers a known joint in tests/test_kernels.py
-@pytest.mark.parametrize("kind", ["mala"])
+@pytest.mark.parametrize("kind,discrepancy", [("mala", "none"), ("mala", "interior")])
 def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_path, capsys, kind,
-                                                                          tiny_mesh):
+                                                                          discrepancy, tiny_mesh):
     """A gradient kernel end to end: exact normaliser, no fixed parameter, collapsed moves of
-    the parameters (Laplace proposal), sample stats and adapted values written."""
+    the parameters (Laplace proposal; with a model discrepancy they carry ``[u_b, d]``),
+    sample stats and adapted values written."""
     out = tmp_path / "run"
     tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps",
                                                  "sampler.proposal", "sampler.max_draws"))]
@@ -551,6 +552,7 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
                    "sampler.warmup_steps=20", "sampler.max_draws=10", "model.prior_normaliser=exact",
                    "model.fixed=null",
                    "sampler.proposal=laplace", "sampler.collapsed_moves=1",
+                   f"model.discrepancy={discrepancy}",
                    "init.method=perturb"]  # (the mode search under exact: the tiny run above)
     args = ["run", "configs/quickstart.yaml", "--out", str(out)] + sum((["--set", s] for s in sets), [])
     assert main(args) == 0
@@ -568,6 +570,7 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
     tree = az.from_netcdf(out / "posterior.nc")
     assert {"n_steps", "diverging", "acceptance_rate", "step_size"} <= set(tree.sample_stats.data_vars)
     assert np.all(np.isfinite(tree.posterior["lam"].values)) and np.all(tree.posterior["mu"].values > 0)
+    assert ("d" in tree.posterior) == (discrepancy != "none")
 
 
 def test_strict_gives_each_failure_its_own_exit_status(monkeypatch, tmp_path, capsys):

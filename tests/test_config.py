@@ -368,8 +368,10 @@ def test_a_model_discrepancy_needs_the_solved_interior_and_a_gradient_sampler():
     assert "needs model.interior: solve" in _error(
         ["model.discrepancy=interior", "model.interior=sample", "model.fixed=null"])
     assert "needs a gradient sampler" in _error(["model.discrepancy=interior", "sampler.kind=rwmh"])
-    assert "sampler.collapsed_moves" in _error(
-        ["model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false"])
+    # collapsed moves carry [u_b, d] (their Gaussian is of the nodal displacement)
+    cfg = load_config("configs/quickstart.yaml", overrides=[
+        "model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false"])
+    assert cfg.sampler.collapsed_moves == 2
     assert "floor_mm" in _error(["model.discrepancy=interior", "model.discrepancy_prior.floor_mm=0"])
     # the low-rank discrepancy: the same rules, and at least one mode
     cfg = load_config("configs/quickstart.yaml", overrides=["model.discrepancy=modes"])

@@ -347,3 +347,85 @@ def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, c
     np.testing.assert_allclose(u.mean(axis=0), mesh.point_data["u_mean"], atol=1e-5)
     np.testing.assert_allclose(u[:, interior] - nodal_field_draws(rp._replace(d=None), np.arange(30))[:, interior],
                                rp.d, atol=1e-12)
+
+
+@pytest.mark.parametrize("modes", [None, MODES])
+def test_the_collapsed_moves_gaussian_of_u_b_and_d_is_the_gauss_newton_step(modes):
+    """The collapsed moves' Gaussian of ``x = [u_b, d]`` (``[u_b, c]`` low rank) given the
+    parameters and ``tau``, from the likelihood linearised in the nodal displacement at
+    ``x0`` (:func:`nodal_laplace_likelihood` of :func:`similarity_curvature`, as a run makes
+    it), at ``x0``'s own parameters: its precision is
+    :func:`gauss_newton_precision` (SciPy's interior map; ``tau`` its posterior mean of
+    ``1 / T_d``), to that one's ridge, and its mean one Gauss-Newton step from ``x0``,
+    ``x0 + P^-1 grad log p(x0 | tau)`` (JAX's gradient through the CG solve)."""
+    from bayesreg.model.parameters import to_unconstrained
+    from bayesreg.model.posterior import discrepancy_mixture_log_ratio, similarity_curvature
+    from bayesreg.sampling.kernels.target import make_target, nodal_laplace_likelihood
+
+    disc_arg = (1.0, 0.05) if modes is None else (1.0, 0.05, modes)
+    mesh, _, post_d = _posteriors(shift=1, discrepancy=disc_arg)
+    n = post_d.n_displacement
+    rng = np.random.default_rng(11)
+    x0 = np.r_[0.3 * rng.normal(size=3 * len(mesh.boundary)), 0.2 * rng.normal(size=n - 3 * len(mesh.boundary))]
+    theta = np.r_[x0, PHI]
+    lik = nodal_laplace_likelihood(post_d, *similarity_curvature(post_d, theta))
+    target = make_target(post_d, center_u=np.zeros(n), factor=np.ones(n), exact=False,
+                         condensed=False, likelihood=lik)
+    assert target.mixture is not None
+    disc = post_d.discrepancy
+    d0 = discrepancy_of(post_d, jnp.asarray(theta))
+    tau = float(disc.shape) / (float(disc.rate) + float(discrepancy_log_prior(post_d, d0)[1]))
+    mean, chol = target.conditional(to_unconstrained(post_d.prior, jnp.asarray(PHI)), tau)
+    prec = np.asarray(chol @ chol.T)
+    gn = gauss_newton_precision(post_d, mesh, mesh.tissue, theta)
+    ridge = 1e-6 * np.trace(gn) / n / (1 + 1e-6)  # gn = P + r I with r = 1e-6 tr(P) / n
+    np.testing.assert_allclose(prec, gn - ridge * np.eye(n), rtol=1e-8, atol=1e-9 * np.abs(gn).max())
+    zeros = jnp.zeros((len(mesh.interior), 3))
+
+    def logp_tau(x):
+        th = jnp.concatenate([x, jnp.asarray(PHI)])
+        return (log_density(post_d, th, zeros, rtol=1e-13)[0]
+                + discrepancy_mixture_log_ratio(post_d, discrepancy_of(post_d, th), tau))
+
+    grad = np.asarray(jax.grad(logp_tau)(jnp.asarray(x0)))
+    np.testing.assert_allclose(np.asarray(mean), x0 + np.linalg.solve(prec, grad), rtol=1e-7,
+                               atol=1e-9 * np.abs(x0).max())
+
+
+def test_the_discrepancys_precision_given_d_is_its_gamma_conditional(pair):
+    """``tau | d ~ Gamma(a + 3 n_i / 2, b + q)`` (the Student prior as a scale mixture): the
+    draws' mean and variance within 5 Monte Carlo standard errors of SciPy's Gamma; the
+    mixture's log-ratio is ``-tau q`` less the Student log prior, and the Student prior is
+    the Gaussian at ``tau`` integrated over that Gamma prior (SciPy's quadrature)."""
+    from scipy import integrate, stats
+
+    from bayesreg.model.posterior import discrepancy_mixture_log_ratio, discrepancy_precision_draw
+
+    mesh, post, post_d = pair
+    disc = post_d.discrepancy
+    rng = np.random.default_rng(5)
+    d = jnp.asarray(0.05 * rng.normal(size=(len(mesh.interior), 3)))
+    log_p, q = (float(v) for v in discrepancy_log_prior(post_d, d))
+    shape, rate = float(disc.shape), float(disc.rate) + q
+    taus = np.asarray(jax.vmap(lambda k: discrepancy_precision_draw(post_d, k, d))(
+        jax.random.split(jax.random.key(0), 4000)))
+    ref = stats.gamma(shape, scale=1.0 / rate)
+    assert abs(taus.mean() - ref.mean()) < 5 * ref.std() / np.sqrt(len(taus))
+    assert abs(taus.var() - ref.var()) < 5 * np.sqrt((ref.moment(4) - 4 * ref.mean() * ref.moment(3)
+                                                       + 6 * ref.mean()**2 * ref.moment(2)
+                                                       - 3 * ref.mean()**4 - ref.var()**2) / len(taus))
+    tau = 0.7 * ref.mean()
+    np.testing.assert_allclose(float(discrepancy_mixture_log_ratio(post_d, d, tau)), -tau * q - log_p,
+                               rtol=1e-12)
+    # log p(d) = log of the integral over tau ~ Gamma(a, b) of tau^(n/2) exp(-tau q), up to a
+    # constant: compare two values of d
+    n = 3 * len(mesh.interior)
+    a, b = shape - n / 2, float(disc.rate)
+
+    def log_marginal(qv):
+        f = lambda t: np.exp((a + n / 2 - 1) * np.log(t) - (b + qv) * t - (a + n / 2 - 1) * np.log(ref.mean()))
+        return np.log(integrate.quad(f, 0, np.inf, limit=200)[0])
+
+    d2 = 2.0 * d
+    log_p2, q2 = (float(v) for v in discrepancy_log_prior(post_d, d2))
+    np.testing.assert_allclose(log_p2 - log_p, log_marginal(q2) - log_marginal(q), rtol=1e-6)

@@ -198,7 +198,7 @@ def _toy_conditional(shift=0.0, scale=1.0):
     (``N(A eta, e^(2 eta) S^2)``), else a deliberately wrong Gaussian."""
     from helpers import A
 
-    def conditional(eta):
+    def conditional(eta, _tau=None):
         mean = jnp.full(D, A * eta[0] + shift)
         return mean, jnp.diag(1.0 / (scale * jnp.asarray(S) * jnp.exp(eta[0])))
 
@@ -290,3 +290,132 @@ def test_chains_with_their_own_data_sample_their_own_targets_in_one_program():
         sample(jax.random.key(3), alg, x0[:3], **run)
     with pytest.raises(ValueError, match="chain_data goes with"):
         gk.as_algorithm(_shifted_gaussian(0.0), chain_data=data, **common)
+
+
+Y_OBS, SD_OBS = 3.0, 0.5  # an observation of eta + d: d follows eta (a ridge)
+
+
+def _mixture_toy(a=3.0, b=1.0, scales=(1.0, 2.0, 4.0, 2.0)):
+    """The toy with a Student-t "discrepancy" ``d`` (``df = 2a``, scale ``sqrt(b / a)``)
+    that every ``u_j`` sees, ``u_j | eta, d ~ N(A eta + d, (S_j e^eta)^2)`` (``S`` the
+    ``scales``), and an observation ``Y_OBS ~ N(eta + d, SD_OBS^2)``, so that ``d`` follows
+    ``eta`` along a ridge, as the model discrepancy follows the elastic parameters.  The
+    position is ``[d, u, eta]``; the target's mixture is ``d``'s scale mixture (``tau | d ~
+    Gamma(a + 1/2, b + d^2 / 2)``) and its conditional the exact Gaussian of ``x = [d, u]``
+    given ``eta`` and ``tau``.  Marginals of ``(eta, d)``: :func:`_mixture_moments`."""
+    from helpers import A
+    from bayesreg.sampling.kernels.target import Mixture
+
+    base = toy_target()
+    sc = jnp.asarray(scales)
+    f = jnp.r_[1.0, sc]
+    shape = a + 0.5
+
+    def lp(w, eta):
+        x = f * w
+        d, u = x[0], x[1:]
+        return (-0.5 * jnp.sum(((u - A * eta[0] - d) / (sc * jnp.exp(eta[0]))) ** 2)
+                - 0.5 * ((Y_OBS - eta[0] - d) / SD_OBS) ** 2
+                - 0.5 * ((eta[0] - M_ETA) / SD_ETA) ** 2 - shape * jnp.log1p(d * d / (2 * b)))
+
+    def evaluate(w, eta, interior, ln):
+        v = lp(w, eta) + ln
+        return v, v, interior, jnp.asarray(0), jnp.asarray(True)
+
+    def conditional(eta, tau):
+        p = 1.0 / (sc * jnp.exp(eta[0])) ** 2
+        p_dd = jnp.sum(p) + tau + 1.0 / SD_OBS**2
+        prec = jnp.block([[p_dd[None, None], -p[None, :]], [-p[:, None], jnp.diag(p)]])
+        lin = jnp.r_[(Y_OBS - eta[0]) / SD_OBS**2 - A * eta[0] * jnp.sum(p), A * eta[0] * p]
+        chol = jnp.linalg.cholesky(prec)
+        return jax.scipy.linalg.cho_solve((chol, True), lin), chol
+
+    mixture = Mixture(
+        draw=lambda key, x: jax.random.gamma(key, shape) / (b + 0.5 * x[0] ** 2),
+        log_ratio=lambda x, tau: -0.5 * tau * x[0] ** 2 + shape * jnp.log1p(x[0] ** 2 / (2 * b)))
+    return base._replace(
+        u_logdensity=lambda w, eta, cache, interior: lp(w, eta),
+        u_evaluate=lambda w, eta, cache, interior: (lp(w, eta), interior, jnp.asarray(0), jnp.asarray(True)),
+        evaluate=evaluate, position=lambda w, eta: jnp.concatenate([f * w, eta]),
+        coordinates=lambda theta: (theta[:D + 1] / f, theta[D + 1:]), conditional=conditional,
+        mixture=mixture)
+
+
+def _mixture_moments(a, b):
+    """Mean, variance and fourth central moment of ``d`` and of ``eta`` under
+    :func:`_mixture_toy` (the ``u`` integrate out), by quadrature on a 2-D grid."""
+    from scipy.stats import norm, t
+
+    eta = np.linspace(M_ETA - 10 * SD_ETA, M_ETA + 10 * SD_ETA, 1201)
+    d = np.linspace(-12.0, 12.0, 4801)
+    e, dd = np.meshgrid(eta, d, indexing="ij")
+    p = (norm.pdf(e, M_ETA, SD_ETA) * t.pdf(dd, 2 * a, scale=np.sqrt(b / a))
+         * norm.pdf(Y_OBS, e + dd, SD_OBS))
+    p /= p.sum()
+    out = []
+    for v in (dd, e):
+        m = np.sum(p * v)
+        out.append((m, np.sum(p * (v - m) ** 2), np.sum(p * (v - m) ** 4)))
+    return out
+
+
+def test_collapsed_moves_at_a_drawn_discrepancy_precision_keep_the_student_marginal():
+    """Collapsed moves of ``eta`` carrying ``[d, u]`` along a ridge (``d`` follows ``eta``),
+    each transition's made at a precision ``tau`` of ``d`` drawn from its conditional and
+    accepted against the log-density at that ``tau`` (the target's :class:`Mixture`), leave
+    the joint invariant: the means and variances of ``d`` (a Student prior times a
+    Gaussian) and ``eta`` within 5 Monte Carlo standard errors of their quadrature, the
+    ``u``'s means at ``A E[eta] + E[d]``."""
+    a, b = 3.0, 1.0
+    rng = np.random.default_rng(0)
+    x0 = np.concatenate([rng.normal(size=(4, D + 1)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
+    res = sample_gibbs(jax.random.key(5), _mixture_toy(a, b), x0, jnp.zeros((1, 3)), kind="nuts",
+                       step_size=0.3, eta_scale=0.5, warmup_steps=300, elastic_moves=1,
+                       collapsed_moves=4, max_draws=1500, min_draws=1500, chunk_draws=100,
+                       progress=False)
+    (m_d, v_d, f_d), (m_e, v_e, f_e) = _mixture_moments(a, b)
+    assert_moments(res.positions[..., 0], m_d, v_d, f_d, n_se=5.0, what="d")
+    assert_moments(res.positions[..., D + 1], m_e, v_e, f_e, n_se=5.0, what="eta")
+    from helpers import A
+    for j in range(1, D + 1):
+        x = res.positions[..., j]
+        se = np.sqrt(x.var() / float(az.ess(x, method="mean")))
+        assert abs(x.mean() - (A * m_e + m_d)) < 5 * se, (j, x.mean(), se)
+    acc = res.acceptance.reshape(-1, 3).mean(axis=0)
+    assert 0.05 < acc[2] < 0.95, acc
+
+
+def test_a_collapsed_proposal_under_the_exact_conditional_accepts_by_the_parameters_marginal():
+    """With the exact Gaussian of ``x = [d, u]`` given ``eta`` and ``tau``, a collapsed move's
+    log acceptance ratio (the log-density ratio plus :func:`collapsed_proposal`'s correction:
+    the Jacobian and the mixture's term) is that of the parameters' marginal at ``tau``
+    whatever ``x``: for the ridge toy ``log N(eta; M, s^2) + log N(Y - eta; 0, 1/tau +
+    SD_OBS^2)`` (``d`` integrated out in closed form).  Without the mixture's term the
+    ratio would be the Student marginal's, which differs."""
+    from scipy.stats import norm
+
+    a, b = 1.0, 1.0
+    target = _mixture_toy(a, b)
+
+    def log_marginal(eta, tau):
+        return norm.logpdf(eta, M_ETA, SD_ETA) + norm.logpdf(Y_OBS - eta, 0.0, np.sqrt(1 / tau + SD_OBS**2))
+
+    def lz(w, eta):
+        return float(target.evaluate(w, eta, None, target.log_norm(eta))[0])
+
+    rng = np.random.default_rng(3)
+    gaps = []
+    for _ in range(5):
+        x = jnp.asarray(np.r_[rng.normal(2.0, 1.0), rng.normal(size=D)])
+        eta, eta_p = jnp.asarray(rng.normal(M_ETA, 0.2, 1)), jnp.asarray(rng.normal(M_ETA, 0.2, 1))
+        tau = float(rng.gamma(2.0, 0.5))
+        w, _ = target.coordinates(jnp.concatenate([x, eta]))
+        mean, chol = target.conditional(eta, tau)
+        w_p, mean_p, chol_p, log_corr = gk.collapsed_proposal(target, w, eta, eta_p, tau, mean, chol)
+        np.testing.assert_allclose(np.asarray(target.conditional(eta_p, tau)[0]), np.asarray(mean_p))
+        ratio = lz(w_p, eta_p) - lz(w, eta) + float(log_corr)
+        expected = log_marginal(float(eta_p[0]), tau) - log_marginal(float(eta[0]), tau)
+        np.testing.assert_allclose(ratio, expected, rtol=1e-9, atol=1e-9)
+        gaps.append(abs(float(target.mixture.log_ratio(target.position(w_p, eta_p)[:-1], tau)
+                              - target.mixture.log_ratio(x, tau))))
+    assert max(gaps) > 1e-2  # the mixture's term is not negligible in these moves

@@ -600,7 +600,8 @@ class SamplerConfig(_Strict):
                                "elastic parameters per transition (cheap next to a trajectory)")
     collapsed_moves: Int = Field(0, ge=0, description="gradient kernels with proposal laplace: "
                                  "collapsed moves of the elastic parameters per transition, which "
-                                 "carry u_b along by its Laplace approximation given the "
+                                 "carry u_b (with a model discrepancy [u_b, d]) along by its "
+                                 "Laplace approximation given the "
                                  "parameters (one dense factorisation each): they move the "
                                  "parameters as if u_b were integrated out, where random-walk "
                                  "moves given u_b barely move them")
@@ -772,9 +773,6 @@ class Config(_Strict):
                 raise ValueError(f"{which} needs a gradient sampler "
                                  "(sampler.kind: nuts, hmc or mala): it samples the interior's "
                                  "deviation too")
-            if self.sampler.collapsed_moves:
-                raise ValueError(f"{which} does not work with "
-                                 "sampler.collapsed_moves (their Gaussian is of u_b alone)")
         self._initial_in_support()
         if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:
             raise ValueError("init.start 'between' needs a synthetic truth (synthetic.enabled); "

@@ -27,12 +27,12 @@ from bayesreg.data import labels as L
 from bayesreg.config import Config
 from bayesreg.mesh.constraints import skull_distance
 from bayesreg.fem.element import stiffness_matrix
-from bayesreg.fem.stiffness import ell_dense
 from bayesreg.data.images import Image
 from bayesreg.inference.mode import find_mode
 from bayesreg.mesh.tetmesh import Mesh
 from bayesreg.model.posterior import (
-    Posterior, discrepancy_log_prior, discrepancy_of, elastic_groups, energies, similarity_weight)
+    Posterior, discrepancy_log_prior, discrepancy_of, discrepancy_stiffness, elastic_groups, energies,
+    similarity_weight)
 from bayesreg.model.problem import Problem
 from bayesreg.data.registration import displacement_at, optical_flow_displacement
 from bayesreg.inference.targets import make_logdensity
@@ -318,11 +318,9 @@ def reference_stiffness(post: Posterior) -> np.ndarray:
     """``K0_ii`` dense ``(3 n_i, 3 n_i)``: the model discrepancy's prior precision per unit
     ``1 / T_d`` (:attr:`~bayesreg.model.posterior.Discrepancy.k_ii`, the interior block of
     ``K`` at :attr:`~bayesreg.model.posterior.Posterior.phi_ref`), from the posterior's own
-    blocks; low rank, that of its coordinates ``c``: ``diag(Lambda)`` ``(r, r)``."""
-    disc, op = post.discrepancy, post.op
-    if disc.basis is not None:
-        return np.diag(np.asarray(disc.eigenvalues))
-    return np.asarray(ell_dense(disc.k_ii, op.cols_ii, op.row_ii, op.n_interior))
+    blocks; low rank, that of its coordinates ``c``: ``diag(Lambda)`` ``(r, r)``
+    (:func:`~bayesreg.model.posterior.discrepancy_stiffness`, as NumPy)."""
+    return np.asarray(discrepancy_stiffness(post))
 
 
 def proposal_scale(problem: Problem, cfg: Config, prec=None):

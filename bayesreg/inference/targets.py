@@ -23,12 +23,14 @@ from bayesreg.config import Config
 from bayesreg.sampling.kernels import gibbs, rwmh
 from bayesreg.sampling.kernels.base import SamplingAlgorithm
 from bayesreg.sampling.kernels.rwmh import Condensation, Preconditioner
-from bayesreg.sampling.kernels.target import Target, joint_target, laplace_likelihood, make_target
+from bayesreg.sampling.kernels.target import (
+    Target, joint_target, laplace_likelihood, make_target, nodal_laplace_likelihood)
 from bayesreg.fem.normaliser import add_normaliser
 from bayesreg.model.parameters import from_unconstrained, to_unconstrained
 from bayesreg.model.posterior import (
     Posterior, condensation, log_density, log_density_condensed, log_normaliser,
-    normaliser_surrogate, preconditioner, prior_precision, split_position, surrogate_normaliser)
+    normaliser_surrogate, preconditioner, prior_precision, similarity_curvature, split_position,
+    surrogate_normaliser)
 from bayesreg.fem.preconditioners import DENSE_MAX_DOFS
 from bayesreg.model.problem import Problem
 
@@ -192,12 +194,19 @@ def use_joint(problem: Problem, cfg: Config) -> bool:
 
 
 def _likelihood(problem: Problem, center, factor):
-    """The collapsed moves' Gaussian likelihood of ``u_b``, linearised at the central start
-    ``center`` with the Gauss-Newton curvature that ``factor`` holds (``F F^T = P^-1``, ``P``
-    the Gauss-Newton precision at ``center``, :func:`bayesreg.inference.initialisation.laplace_precision`):
-    ``A = P - Q(phi_center)`` (:func:`bayesreg.sampling.kernels.target.laplace_likelihood`)."""
+    """The collapsed moves' Gaussian likelihood, linearised at the central start ``center``.
+
+    Of ``u_b``, with the Gauss-Newton curvature that ``factor`` holds (``F F^T = P^-1``,
+    ``P`` the Gauss-Newton precision at ``center``,
+    :func:`bayesreg.inference.initialisation.laplace_precision`): ``A = P - Q(phi_center)``
+    (:func:`bayesreg.sampling.kernels.target.laplace_likelihood`).  With a model discrepancy,
+    of the nodal displacement at ``center``, with the similarity's Gauss-Newton curvature
+    ``2 J^T J / T_s`` over every node
+    (:func:`bayesreg.sampling.kernels.target.nodal_laplace_likelihood`)."""
     post = problem.posterior
     nb3 = 3 * post.n_boundary
+    if post.discrepancy is not None:
+        return nodal_laplace_likelihood(post, *similarity_curvature(post, center))
     f_inv = np.linalg.inv(np.asarray(factor))
     a_lik = f_inv.T @ f_inv - np.asarray(prior_precision(post, jnp.asarray(center[nb3:])))
     return laplace_likelihood(post, jnp.asarray(center), 0.5 * (a_lik + a_lik.T))

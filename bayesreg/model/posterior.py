@@ -65,6 +65,12 @@ __all__ = [
     "discrepancy_of",
     "discrepancy_log_prior",
     "discrepancy_rate",
+    "discrepancy_stiffness",
+    "discrepancy_precision_draw",
+    "discrepancy_mixture_log_ratio",
+    "data_log_likelihood",
+    "similarity_curvature",
+    "interior_map_and_precision",
     "smoothest_modes",
     "nodal_displacement",
     "build_posterior",
@@ -619,6 +625,62 @@ def discrepancy_log_prior(post: Posterior, d):
     return -disc.shape * jnp.log1p(q / disc.rate), q
 
 
+def discrepancy_stiffness(post: Posterior):
+    """The discrepancy prior's precision per unit ``1 / T_d``, dense: ``K0_ii``
+    ``(3 n_i, 3 n_i)`` (:attr:`Discrepancy.k_ii`), low rank ``diag(Lambda)`` ``(r, r)`` (of
+    the coordinates ``c``).
+
+    Raises
+    ------
+    ValueError
+        A posterior without a discrepancy.
+    """
+    disc = post.discrepancy
+    if disc is None:
+        raise ValueError("the discrepancy's stiffness needs a posterior with a model discrepancy")
+    if disc.basis is not None:
+        return jnp.diag(disc.eigenvalues)
+    return ell_dense(disc.k_ii, post.op.cols_ii, post.op.row_ii, post.op.n_interior)
+
+
+def discrepancy_precision_draw(post: Posterior, key, d):
+    """A draw of the discrepancy's precision ``tau = 1 / T_d`` given ``d`` ``(n_i, 3)`` mm:
+    ``Gamma(a + 3 n_i / 2, b + q)`` (``a + r / 2`` low rank; :class:`Discrepancy`), the
+    conditional that makes the Student prior of ``d`` a Gaussian scale mixture
+    (``d | tau ~ N(0, (tau K0_ii)^-1)``, ``tau ~ Gamma(a, b)``).  ``()`` array, [lam]^-1 mm^-3.
+
+    Raises
+    ------
+    ValueError
+        A posterior without a discrepancy.
+    """
+    if post.discrepancy is None:
+        raise ValueError("the discrepancy's precision needs a posterior with a model discrepancy")
+    _, q = discrepancy_log_prior(post, d)
+    return jax.random.gamma(key, post.discrepancy.shape) / (post.discrepancy.rate + q)
+
+
+def discrepancy_mixture_log_ratio(post: Posterior, d, tau):
+    """``log N(d; 0, (tau K0_ii)^-1) - log p(d)`` up to a constant in ``d``: ``-tau q + (a +
+    3 n_i / 2) log(1 + q / b)`` (:func:`discrepancy_log_prior`), what turns ``log p`` into
+    the log-density of the model with ``tau`` given (a scale mixture's component), for
+    moves made at a fixed ``tau`` (:func:`discrepancy_precision_draw`).  ``()`` array; 0
+    without a discrepancy."""
+    if post.discrepancy is None:
+        return jnp.zeros(())
+    log_p, q = discrepancy_log_prior(post, d)
+    return -tau * q - log_p
+
+
+def data_log_likelihood(post: Posterior, u):
+    """The terms of ``log p`` that see the nodal displacement ``u`` ``(N, 3)`` mm alone: the
+    similarity (:func:`similarity_log_likelihood`) and the smooth skull barrier (0 without
+    one); not the elastic prior, the discrepancy's, or the hard constraints.  ``()``."""
+    check_shape("u", u, tuple(post.nodes.shape), "one row per node")
+    e_s = post.similarity.energy(u[post.tets])
+    return similarity_log_likelihood(post, e_s) + skull_barrier(post.skull, post.nodes + u)[0]
+
+
 def nodal_displacement(post: Posterior, theta, interior):
     """Every node's displacement ``(N, 3)`` mm of a position ``theta`` ``(dim,)``: ``u_b`` and
     the interior ``interior`` ``(n_i, 3)`` (the FE solve's, as :class:`Aux` returns it) plus
@@ -932,6 +994,34 @@ def solve_position(post: Posterior, theta, u_i0=None, *, rtol=1e-8, maxiter=1000
                            maxiter=int(maxiter))
 
 
+def similarity_curvature(post: Posterior, theta) -> tuple[np.ndarray, np.ndarray]:
+    """The nodal displacement at ``theta`` and the similarity's Gauss-Newton curvature there
+    (host convenience: NumPy out).
+
+    Parameters
+    ----------
+    post : Posterior
+    theta : (dim,) array
+        A position (with its discrepancy, if any).
+
+    Returns
+    -------
+    u : (N, 3) array
+        Every node's displacement (mm): the FE solve (:func:`solve_position`) plus the
+        discrepancy.
+    curvature : (3N, 3N) array
+        ``2 J^T J / T_s`` over the nodal DOFs ``3 node + axis``: ``J`` the Jacobian of the
+        similarity's residuals in the nodal displacement (its exact ``gram``), ``1 / T_s``
+        :func:`similarity_weight` at ``u``.  What
+        :func:`bayesreg.sampling.kernels.target.nodal_laplace_likelihood` linearises with.
+    """
+    theta = jnp.asarray(theta)
+    u = np.asarray(solve_position(post, theta)[0])
+    e_s = energies(post, jnp.asarray(u), theta[post.n_displacement:])[0]
+    gram = post.similarity.gram(u, np.asarray(post.tets), u.shape[0]).toarray()
+    return u, 2.0 * float(similarity_weight(post, e_s)) * gram
+
+
 @partial(jax.jit, static_argnames=("rtol", "maxiter"))
 def _solve_position(post: Posterior, theta, u_i0, *, rtol, maxiter):
     u_b, phi = split_position(post, theta)
@@ -1025,6 +1115,13 @@ def prior_precision(post: Posterior, phi):
         DOF order ``3 k + axis`` of the ``k``-th boundary node (:attr:`Posterior.boundary`);
         NaN where the factorisation fails (non-positive parameters).
     """
+    return interior_map_and_precision(post, phi)[1]
+
+
+def interior_map_and_precision(post: Posterior, phi):
+    """The interior map ``H`` ``(3 n_i, 3 n_b)`` (``u_i = H u_b`` solves ``K_ii u_i = -K_ib
+    u_b``, :func:`condensation`) and :func:`prior_precision` ``(3 n_b, 3 n_b)`` at ``phi``
+    ``(n_free,)``, from one dense Cholesky factorisation of ``K_ii``; NaN where it fails."""
     k = _dense_k(post, phi)
     ni3 = k.shape[0] - 3 * post.n_boundary
     k_ii, k_ib, k_bb = k[:ni3, :ni3], k[:ni3, ni3:], k[ni3:, ni3:]
@@ -1033,4 +1130,4 @@ def prior_precision(post: Posterior, phi):
     schur = k_bb - k_ib.T @ x
     rigid = post.normaliser.rigid_b
     prec = post.inv_t_r * schur + post.inv_rigid_var * rigid @ rigid.T
-    return 0.5 * (prec + prec.T)
+    return -x, 0.5 * (prec + prec.T)

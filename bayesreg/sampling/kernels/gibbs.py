@@ -23,7 +23,9 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    walk and ``u_b`` carried along by a Gaussian approximation of ``u_b`` given the
    parameters (:attr:`bayesreg.sampling.kernels.target.Target.conditional`), with the Jacobian of
    that map in the acceptance (exact whatever the approximation); they move parameters
-   that ``u_b`` pins down given it but not in the marginal.
+   that ``u_b`` pins down given it but not in the marginal.  With a model discrepancy they
+   carry ``[u_b, d]``, at the discrepancy's precision drawn from its conditional (the
+   Student prior as a scale mixture: data augmentation, Tanner and Wong 1987).
 
 With a joint target (:func:`bayesreg.sampling.kernels.target.joint_target`) part 1 moves ``u_b`` and
 the elastic parameters together along one trajectory, through the CG solve with implicit
@@ -62,7 +64,7 @@ from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, W
 from bayesreg.sampling.kernels.target import Cache, Target
 
 __all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
-           "as_algorithm", "default_target_acceptance"]
+           "collapsed_proposal", "as_algorithm", "default_target_acceptance"]
 
 
 KINDS = ("mala", "hmc", "nuts")
@@ -210,7 +212,11 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         det C'``.  Where that approximation is exact the move samples the parameters'
         marginal (``u_b`` integrated out) however strongly ``u_b`` and the parameters are
         coupled; elsewhere it stays exact and accepts less.  Needs a target with
-        ``conditional``.
+        ``conditional``.  With a :attr:`~bayesreg.sampling.kernels.target.Target.mixture` (a
+        model discrepancy) the moves of one transition are made at a precision ``tau`` of the
+        discrepancy drawn from its conditional first, against the log-density at that
+        ``tau`` (a Gibbs step of the scale mixture, then moves that leave its conditional
+        invariant): the Gaussian they transport ``[u_b, d]`` by is then exact in both priors.
 
     Returns
     -------
@@ -326,22 +332,23 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             acc.append(jnp.mean(p_acc))
             accepted.append(do)
             if collapsed_moves:
+                if target.mixture is not None:  # the discrepancy's precision, given d, for these moves
+                    k_c, k_t = jax.random.split(k_c)
+                    tau = target.mixture.draw(k_t, target.position(w, eta_new)[:-target.n_free])
+                else:
+                    tau = jnp.zeros(())
+
                 def collapsed_move(carry, key):
                     w_c, eta_c, lz, lnat, int_, ln, mean_c, chol_c, n_its, n_fail = carry
                     k_prop, k_a = jax.random.split(key)
                     z = jax.random.normal(k_prop, eta_c.shape)
                     scale = params.eta_scale if params.collapsed_scale is None else params.collapsed_scale
                     eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
-                    mean_p, chol_p = target.conditional(eta_p)
-                    u_c = target.position(w_c, eta_c)[:-target.n_free]
-                    r = chol_c.T @ (u_c - mean_c)
-                    u_p = mean_p + solve_triangular(chol_p, r, lower=True, trans="T")
-                    phi_p = target.position(w_c, eta_p)[-target.n_free:]
-                    w_p, _ = target.coordinates(jnp.concatenate([u_p, phi_p]))
+                    w_p, mean_p, chol_p, log_corr = collapsed_proposal(target, w_c, eta_c, eta_p, tau,
+                                                                       mean_c, chol_c)
                     norm_p = target.log_norm(eta_p)
                     lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w_p, eta_p, int_, norm_p)
-                    log_jac = (jnp.sum(jnp.log(jnp.diag(chol_c))) - jnp.sum(jnp.log(jnp.diag(chol_p))))
-                    log_ratio = lz_p - lz + log_jac
+                    log_ratio = lz_p - lz + log_corr
                     log_ratio = jnp.where(jnp.isnan(log_ratio) | ~ok_c, -jnp.inf, log_ratio)
                     _, (do_, p_acc_, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()),
                                                                   jnp.ones(()))
@@ -350,7 +357,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                     new = tuple(jnp.where(do_, a, b) for a, b in zip(keep, old))
                     return new + (n_its + its_p, n_fail + (~ok_p).astype(jnp.int32)), (p_acc_, do_)
 
-                mean0, chol0 = target.conditional(eta_new)
+                mean0, chol0 = target.conditional(eta_new, tau)
                 carry0 = (w, eta_new, lz, lp_nat, interior, norm_new, mean0, chol0, its_e, fail_e)
                 (w, eta_new, _, lp_nat, interior, norm_new, _, _, its_e, fail_e), (p_c, dos_c) = \
                     jax.lax.scan(collapsed_move, carry0, jax.random.split(k_c, collapsed_moves))
@@ -406,6 +413,49 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         return cache._replace(precond=target.build_precond(state.eta))
 
     return Kernel(step, init_cache, per_chain_params=True)
+
+
+def collapsed_proposal(target: Target, w, eta, eta_p, tau, mean, chol):
+    """A collapsed move's proposal: the displacement carried from the parameters ``eta`` to
+    ``eta_p`` by the target's Gaussian of it given them
+    (:attr:`~bayesreg.sampling.kernels.target.Target.conditional`), ``x' = m' + C'^-T C^T (x -
+    m)`` (the same standardised residual; ``x`` the displacement block of ``(w, eta)``).
+
+    Parameters
+    ----------
+    target : Target
+        With ``conditional`` and free parameters.
+    w : (n,) array
+        Coordinates of the displacement now.
+    eta, eta_p : (n_free,) arrays
+        The parameters' logits now and proposed.
+    tau : () array
+        The discrepancy's precision of the moves (ignored without a
+        :attr:`~bayesreg.sampling.kernels.target.Target.mixture`).
+    mean, chol : (n,), (n, n) arrays
+        ``target.conditional(eta, tau)``.
+
+    Returns
+    -------
+    w_p : (n,) array
+        Coordinates of ``x'``.
+    mean_p, chol_p : (n,), (n, n) arrays
+        ``target.conditional(eta_p, tau)``.
+    log_correction : () array
+        The acceptance's log-ratio less that of the target's log-density (the kernel's
+        ``evaluate``): the Jacobian ``log det C - log det C'`` plus, with a mixture, its
+        ``log_ratio`` at ``x'`` less at ``x`` (the log-density at ``tau`` instead of the
+        marginal's).
+    """
+    n_f = target.n_free
+    x = target.position(w, eta)[:-n_f]
+    mean_p, chol_p = target.conditional(eta_p, tau)
+    x_p = mean_p + solve_triangular(chol_p, chol.T @ (x - mean), lower=True, trans="T")
+    w_p, _ = target.coordinates(jnp.concatenate([x_p, target.position(w, eta_p)[-n_f:]]))
+    log_corr = jnp.sum(jnp.log(jnp.diag(chol))) - jnp.sum(jnp.log(jnp.diag(chol_p)))
+    if target.mixture is not None:
+        log_corr = log_corr + target.mixture.log_ratio(x_p, tau) - target.mixture.log_ratio(x, tau)
+    return w_p, mean_p, chol_p, log_corr
 
 
 def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: float = 0.2,

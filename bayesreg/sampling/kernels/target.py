@@ -19,10 +19,12 @@ from jax.scipy.linalg import cho_solve
 from bayesreg.fem.normaliser import add_normaliser
 from bayesreg.model.parameters import from_unconstrained, to_unconstrained
 from bayesreg.model.posterior import (
-    Posterior, condensation, log_density, log_density_condensed, log_normaliser, preconditioner,
-    prior_precision)
+    Posterior, condensation, data_log_likelihood, discrepancy_mixture_log_ratio, discrepancy_of,
+    discrepancy_precision_draw, discrepancy_stiffness, interior_map_and_precision, log_density, log_density_condensed,
+    log_normaliser, preconditioner, prior_precision)
 
-__all__ = ["Cache", "Target", "make_target", "joint_target", "laplace_likelihood"]
+__all__ = ["Cache", "Mixture", "Target", "make_target", "joint_target", "laplace_likelihood",
+           "nodal_laplace_likelihood"]
 
 
 class Cache(NamedTuple):
@@ -44,6 +46,27 @@ class Cache(NamedTuple):
     h: jax.Array
     log_norm: jax.Array
     precond: object = None
+
+
+class Mixture(NamedTuple):
+    """A Student prior on part of the displacement block as a Gaussian scale mixture (the
+    model discrepancy's, :class:`bayesreg.model.posterior.Discrepancy`): the collapsed moves
+    draw its precision ``tau`` from its conditional, then move at that ``tau``, where the
+    prior is Gaussian and so is their approximation of the displacement given the
+    parameters.
+
+    Attributes
+    ----------
+    draw : callable
+        ``(key, x) -> tau``: ``tau`` ``()`` given the displacement block ``x``
+        ``(n_displacement,)`` (:func:`bayesreg.model.posterior.discrepancy_precision_draw`).
+    log_ratio : callable
+        ``(x, tau) -> ()``: the log-density at ``tau`` less the marginal's, up to a constant
+        (:func:`bayesreg.model.posterior.discrepancy_mixture_log_ratio`).
+    """
+
+    draw: Callable
+    log_ratio: Callable
 
 
 class Target(NamedTuple):
@@ -82,9 +105,12 @@ class Target(NamedTuple):
         The CG preconditioner of the target's solves: ``"dense"`` (``build_precond``),
         ``"spectral"`` or ``"block-jacobi"`` (the posterior's own).
     conditional : callable or None
-        ``eta -> (mean (3 n_b,), chol (3 n_b, 3 n_b))``: a Gaussian approximation
-        ``N(mean, (chol chol^T)^-1)`` of ``u_b`` given the parameters (targets made with
-        ``likelihood``), what the kernel's collapsed moves transport ``u_b`` with.
+        ``(eta, tau) -> (mean (n,), chol (n, n))``: a Gaussian approximation ``N(mean,
+        (chol chol^T)^-1)`` of the displacement block (``u_b``, ``n = 3 n_b``; with a model
+        discrepancy ``[u_b, d]``, ``n = n_displacement``) given the parameters and, with a
+        :attr:`mixture`, the discrepancy's precision ``tau`` (ignored without one): what the
+        kernel's collapsed moves transport the displacement with (targets made with
+        ``likelihood``).
     log_jacobian : callable or None
         A joint target's (:func:`joint_target`: ``w`` holds the elastic coordinates too, and
         ``n_free`` is 0): ``w -> ()``, the log-Jacobian inside ``u_logdensity`` that the
@@ -94,6 +120,9 @@ class Target(NamedTuple):
         (:func:`joint_target` ``surrogate``): ``w -> ()``, the exact normaliser less the
         surrogate at ``w``'s parameters (NaN where the exact one fails), what the kernel's
         Metropolis correction after each trajectory uses (:mod:`bayesreg.sampling.kernels.gibbs`).
+    mixture : Mixture or None
+        The model discrepancy's prior as a scale mixture (targets of a posterior with one),
+        which the collapsed moves condition on.
     """
 
     u_logdensity: Callable
@@ -110,6 +139,7 @@ class Target(NamedTuple):
     conditional: Callable | None = None
     log_jacobian: Callable | None = None
     correction: Callable | None = None
+    mixture: Mixture | None = None
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
@@ -141,6 +171,12 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
         :func:`laplace_likelihood`): then the target has a :attr:`Target.conditional`, the
         Gaussian ``u_b | phi`` it makes with the elastic prior, precision ``A + Q(phi)``
         (:func:`bayesreg.model.posterior.prior_precision`), mean ``(A + Q(phi))^-1 b``.
+        With a model discrepancy, of the nodal displacement ``u = [u_b, u_i]`` instead (``A``
+        ``(3N, 3N)``, ``b`` ``(3N,)``, boundary DOFs first; :func:`nodal_laplace_likelihood`):
+        the conditional of ``x = [u_b, d]`` given ``phi`` and the discrepancy's precision
+        ``tau`` is then the Gaussian of ``u = L(phi) x`` (``u_i = H(phi) u_b + d``, ``d = V
+        c`` low rank) under it and the prior ``N(0, Q(phi)^-1) x N(0, (tau K0_ii)^-1)``:
+        precision ``L^T A L + diag(Q(phi), tau K0_ii)``, mean its inverse times ``L^T b``.
     factor_inv : (3 n_b, 3 n_b) array, optional
         ``F^-1`` of a dense ``factor`` where the caller has it (a target built inside a
         transition, as :func:`bayesreg.sampling.kernels.gibbs.build_kernel` does for
@@ -203,14 +239,22 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
         return preconditioner(post, theta_of(jnp.zeros(nb3), eta))
 
     conditional = None
-    if likelihood is not None:
+    if likelihood is not None and post.discrepancy is not None:
+        conditional = _discrepancy_conditional(post, *likelihood)
+    elif likelihood is not None:
         a_lik, b_lik = (jnp.asarray(v) for v in likelihood)
 
-        def conditional(eta):
+        def conditional(eta, _tau=None):
             phi, _ = from_unconstrained(post.prior, eta)
             prec = a_lik + prior_precision(post, phi)
             chol = jnp.linalg.cholesky(0.5 * (prec + prec.T))
             return cho_solve((chol, True), b_lik), chol
+
+    mixture = None
+    if post.discrepancy is not None:
+        mixture = Mixture(
+            draw=lambda key, x: discrepancy_precision_draw(post, key, discrepancy_of(post, x)),
+            log_ratio=lambda x, tau: discrepancy_mixture_log_ratio(post, discrepancy_of(post, x), tau))
 
     if precondition:
         name = "dense"
@@ -218,7 +262,40 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
         name = "spectral" if post.spectral is not None else "block-jacobi"
     return Target(u_logdensity, u_evaluate, evaluate, log_norm, build_cache, theta_of, coordinates,
                   int(post.n_free), build_precond if precondition else None, bool(condensed), name,
-                  conditional)
+                  conditional, mixture=mixture)
+
+
+def _discrepancy_conditional(post: Posterior, a_nodal, b_nodal):
+    """``(eta, tau) -> (mean, chol)`` of ``x = [u_b, d]`` (``[u_b, c]`` low rank) given the
+    parameters and the discrepancy's precision, from the likelihood ``(A, b)`` of the nodal
+    displacement (boundary DOFs first; see :func:`make_target`'s ``likelihood``)."""
+    nb3 = 3 * post.n_boundary
+    a, b = jnp.asarray(a_nodal), jnp.asarray(b_nodal)
+    n = nb3 + 3 * post.op.n_interior
+    if a.shape != (n, n) or b.shape != (n,):
+        raise ValueError(f"a model discrepancy's likelihood is of the nodal displacement: A "
+                         f"({n}, {n}) and b ({n},), got {a.shape} and {b.shape}")
+    a_bb, a_bi, a_ii, b_b, b_i = a[:nb3, :nb3], a[:nb3, nb3:], a[nb3:, nb3:], b[:nb3], b[nb3:]
+    basis = post.discrepancy.basis
+    k0 = discrepancy_stiffness(post)
+    if basis is None:
+        a_dd, b_d = a_ii, b_i
+    else:  # d = V c
+        a_dd, b_d = basis.T @ a_ii @ basis, basis.T @ b_i
+
+    def conditional(eta, tau):
+        phi, _ = from_unconstrained(post.prior, eta)
+        h, q = interior_map_and_precision(post, phi)
+        cross = a_bi + h.T @ a_ii  # (3 n_b, 3 n_i): L's boundary rows against the interior
+        # L^T A L's boundary block: a_bb + a_bi H + H^T a_ib + H^T a_ii H
+        p_bb = a_bb + (a_bi @ h).T + cross @ h + q
+        p_bd = cross if basis is None else cross @ basis
+        prec = jnp.block([[p_bb, p_bd], [p_bd.T, a_dd + tau * k0]])
+        chol = jnp.linalg.cholesky(0.5 * (prec + prec.T))
+        rhs = jnp.concatenate([b_b + h.T @ b_i, b_d])
+        return cho_solve((chol, True), rhs), chol
+
+    return conditional
 
 
 def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian, surrogate=None) -> Target:
@@ -318,6 +395,33 @@ def joint_target(base: Target, *, center_eta, eta_scale, log_jacobian, surrogate
         log_jacobian=lambda z: log_jacobian(split(z)[1]), correction=correction)
 
 
+def nodal_laplace_likelihood(post: Posterior, u0, a_nodal):
+    """``(A, b)`` of :func:`make_target`'s ``likelihood`` for a posterior with a model
+    discrepancy: the data terms (:func:`bayesreg.model.posterior.data_log_likelihood`: the
+    similarity and the skull barrier) linearised in the nodal displacement at ``u0``
+    ``(N, 3)`` mm with curvature ``a_nodal`` ``(3N, 3N)`` (DOFs ``3 node + axis``; the
+    Gauss-Newton curvature there, ``2 J^T J / T_s``), ``b = A u_0 + g`` with ``g`` the data
+    terms' gradient, by JAX.  Both are returned in the order ``[u_b, u_i]``: the boundary
+    nodes' DOFs (:attr:`~bayesreg.model.posterior.Posterior.boundary` order), then the
+    interior nodes' (the solver's order).
+
+    Raises
+    ------
+    ValueError
+        ``u0`` not ``(N, 3)`` or ``a_nodal`` not ``(3N, 3N)``.
+    """
+    u0 = jnp.asarray(u0)
+    n3 = 3 * post.nodes.shape[0]
+    if u0.shape != tuple(post.nodes.shape) or jnp.shape(a_nodal) != (n3, n3):
+        raise ValueError(f"nodal_laplace_likelihood needs u0 {tuple(post.nodes.shape)} and a_nodal "
+                         f"({n3}, {n3}), got {u0.shape} and {jnp.shape(a_nodal)}")
+    order = jnp.argsort(post.perm)  # node of each position in concat(boundary, interior)
+    dofs = (3 * order[:, None] + jnp.arange(3)).reshape(-1)
+    g = jax.grad(lambda u: data_log_likelihood(post, u))(u0).reshape(-1)[dofs]
+    a = jnp.asarray(a_nodal)[dofs][:, dofs]
+    return a, a @ u0.reshape(-1)[dofs] + g
+
+
 def laplace_likelihood(post: Posterior, theta0, a_lik):
     """``(A, b)`` of :func:`make_target`'s ``likelihood``: the likelihood linearised at the
     position ``theta0`` ``(dim,)`` with curvature ``a_lik`` ``(3 n_b, 3 n_b)`` (its
@@ -326,8 +430,8 @@ def laplace_likelihood(post: Posterior, theta0, a_lik):
     in ``log p`` but the elastic prior: the similarity, the skull barrier), by JAX.
     """
     if post.discrepancy is not None:
-        raise ValueError("the collapsed moves' Gaussian likelihood is of u_b alone: not with a "
-                         "model discrepancy")
+        raise ValueError("laplace_likelihood is of u_b alone: with a model discrepancy the "
+                         "likelihood is of the nodal displacement (nodal_laplace_likelihood)")
     theta0 = jnp.asarray(theta0)
     nb3 = 3 * post.n_boundary
     h = condensation(post, theta0)
