@@ -39,8 +39,7 @@ from bayesreg.inference.targets import make_logdensity
 
 __all__ = ["Initialisation", "initialise", "start_center", "start_check", "registration_field",
            "initial_positions",
-           "laplace_precision", "gauss_newton_precision", "schur_complement",
-           "reference_stiffness", "proposal_scale"]
+           "laplace_precision", "gauss_newton_precision", "schur_complement", "proposal_scale"]
 
 
 def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tuple[np.ndarray, dict]:
@@ -308,19 +307,10 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
         disc = post.discrepancy
         _, q = discrepancy_log_prior(post, jnp.asarray(d.reshape(-1, 3)))
         tau = float(disc.shape) / (float(disc.rate) + float(q))
-        prec[3 * nb:, 3 * nb:] += tau * reference_stiffness(post)
+        prec[3 * nb:, 3 * nb:] += tau * np.asarray(discrepancy_stiffness(post))
     prec = 0.5 * (prec + prec.T)
     ridge = 1e-6 * np.trace(prec) / len(prec)
     return prec + ridge * np.eye(len(prec))
-
-
-def reference_stiffness(post: Posterior) -> np.ndarray:
-    """``K0_ii`` dense ``(3 n_i, 3 n_i)``: the model discrepancy's prior precision per unit
-    ``1 / T_d`` (:attr:`~bayesreg.model.posterior.Discrepancy.k_ii`, the interior block of
-    ``K`` at :attr:`~bayesreg.model.posterior.Posterior.phi_ref`), from the posterior's own
-    blocks; low rank, that of its coordinates ``c``: ``diag(Lambda)`` ``(r, r)``
-    (:func:`~bayesreg.model.posterior.discrepancy_stiffness`, as NumPy)."""
-    return np.asarray(discrepancy_stiffness(post))
 
 
 def proposal_scale(problem: Problem, cfg: Config, prec=None):

@@ -20,8 +20,8 @@ from bayesreg.fem.normaliser import add_normaliser
 from bayesreg.model.parameters import from_unconstrained, to_unconstrained
 from bayesreg.model.posterior import (
     Posterior, condensation, data_log_likelihood, discrepancy_mixture_log_ratio, discrepancy_of,
-    discrepancy_precision_draw, discrepancy_stiffness, interior_map_and_precision, log_density, log_density_condensed,
-    log_normaliser, preconditioner, prior_precision)
+    discrepancy_precision_draw, discrepancy_stiffness, interior_map_and_precision, log_density,
+    log_density_condensed, log_normaliser, preconditioner, prior_precision)
 
 __all__ = ["Cache", "Mixture", "Target", "make_target", "joint_target", "laplace_likelihood",
            "nodal_laplace_likelihood"]
