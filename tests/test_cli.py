@@ -539,12 +539,15 @@ def test_paper_notebook_executes_on_a_tiny_reproduction(tmp_path, monkeypatch, c
 @pytest.mark.heavy
 # MALA: NUTS runs end to end in the tiny quickstart above (and in the notebook); the two
 # kinds share the driver, and each recovers a known joint in tests/test_kernels.py
-@pytest.mark.parametrize("kind,discrepancy", [("mala", "none"), ("mala", "interior")])
+@pytest.mark.parametrize("kind,discrepancy,carry", [("mala", "none", "conditional"),
+                                                    ("mala", "interior", "conditional"),
+                                                    ("mala", "interior", "displacement")])
 def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_path, capsys, kind,
-                                                                          discrepancy, tiny_mesh):
+                                                                          discrepancy, carry, tiny_mesh):
     """A gradient kernel end to end: exact normaliser, no fixed parameter, collapsed moves of
-    the parameters (Laplace proposal; with a model discrepancy they carry ``[u_b, d]``),
-    sample stats and adapted values written."""
+    the parameters (Laplace proposal; with a model discrepancy they carry ``[u_b, d]`` by
+    their Gaussian or keep the nodal displacement, the default there), sample stats and
+    adapted values written."""
     out = tmp_path / "run"
     tiny = [s for s in TINY if not s.startswith(("sampler.thinning", "sampler.warmup_steps",
                                                  "sampler.proposal", "sampler.max_draws"))]
@@ -554,13 +557,15 @@ def test_gradient_kernel_run_with_exact_normaliser_and_all_parameters_free(tmp_p
                    "sampler.proposal=laplace", "sampler.collapsed_moves=1",
                    f"model.discrepancy={discrepancy}",
                    "init.method=perturb"]  # (the mode search under exact: the tiny run above)
+    if carry == "conditional" and discrepancy != "none":
+        sets.append("sampler.carry=conditional")
     args = ["run", "configs/quickstart.yaml", "--out", str(out)] + sum((["--set", s] for s in sets), [])
     assert main(args) == 0
     assert f"{kind}: gradients/step" in capsys.readouterr().out
     info = json.loads((out / "run.json").read_text())
     s = info["sampler"]
     assert s["kind"] == kind and s["prior_normaliser"] == "exact"
-    assert s["blocks"] == ["u_b", "elastic", "collapsed"]
+    assert s["blocks"] == ["u_b", "elastic", "collapsed"] and s["collapsed_carry"] == carry
     assert len(s["adapted"]["collapsed_proposal_sd_per_chain"]) == 3
     assert info["parameters"]["fixed"] == [] and len(info["parameters"]["free"]) == 6
     assert len(s["adapted"]["step_size_per_chain"]) == 3 and all(x > 0 for x in s["adapted"]["step_size_per_chain"])

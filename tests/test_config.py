@@ -371,7 +371,21 @@ def test_a_model_discrepancy_needs_the_solved_interior_and_a_gradient_sampler():
     # collapsed moves carry [u_b, d] (their Gaussian is of the nodal displacement)
     cfg = load_config("configs/quickstart.yaml", overrides=[
         "model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false"])
-    assert cfg.sampler.collapsed_moves == 2
+    assert cfg.sampler.collapsed_moves == 2 and cfg.collapsed_carry == "displacement"
+    # carrying the displacement needs no Laplace curvature; the Gaussian does
+    cfg = load_config("configs/quickstart.yaml", overrides=[
+        "model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false",
+        "sampler.proposal=isotropic"])
+    assert cfg.collapsed_carry == "displacement"
+    assert "carry: conditional needs sampler.proposal: laplace" in _error(
+        ["model.discrepancy=interior", "sampler.collapsed_moves=2", "sampler.joint=false",
+         "sampler.proposal=isotropic", "sampler.carry=conditional"])
+    assert load_config("configs/quickstart.yaml", overrides=[
+        "sampler.collapsed_moves=2", "sampler.joint=false"]).collapsed_carry == "conditional"
+    assert "carry: displacement needs a model discrepancy" in _error(
+        ["sampler.collapsed_moves=2", "sampler.joint=false", "sampler.carry=displacement"])
+    assert "carry: conditional needs sampler.proposal: laplace" in _error(
+        ["sampler.collapsed_moves=2", "sampler.joint=false", "sampler.proposal=isotropic"])
     assert "floor_mm" in _error(["model.discrepancy=interior", "model.discrepancy_prior.floor_mm=0"])
     # the low-rank discrepancy: the same rules, and at least one mode
     cfg = load_config("configs/quickstart.yaml", overrides=["model.discrepancy=modes"])

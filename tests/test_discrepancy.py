@@ -429,3 +429,61 @@ def test_the_discrepancys_precision_given_d_is_its_gamma_conditional(pair):
     d2 = 2.0 * d
     log_p2, q2 = (float(v) for v in discrepancy_log_prior(post_d, d2))
     np.testing.assert_allclose(log_p2 - log_p, log_marginal(q2) - log_marginal(q), rtol=1e-6)
+
+
+def _fe_interior(mesh, post, phi, u_b):
+    """``u_i`` ``(n_i, 3)`` solving ``K_ii u_i = -K_ib u_b`` at ``phi``, by SciPy's assembly and
+    sparse LU (the reference of the solver's interior)."""
+    import scipy.sparse.linalg as spla
+
+    lam_g, mu_g = (np.asarray(v) for v in elastic_groups(post, jnp.asarray(phi)))
+    group = np.asarray(post.group)
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[group], mu_g[group]).tocsc()
+    di = (3 * mesh.interior[:, None] + np.arange(3)).ravel()
+    db = (3 * mesh.boundary[:, None] + np.arange(3)).ravel()
+    return spla.spsolve(k[di][:, di], -(k[di][:, db] @ u_b.ravel())).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("modes", [None, MODES])
+def test_a_move_that_carries_the_displacement_keeps_every_node_where_it_was(modes):
+    """:func:`~bayesreg.sampling.kernels.gibbs.displacement_proposal`: from ``phi`` to ``phi'``
+    with ``u_b`` kept and ``d' = d + H(phi) u_b - H(phi') u_b`` (the interiors by SciPy), every
+    node's displacement is unchanged, so is the data term, and the elastic prior's energy is
+    not; low rank, the change lies outside the modes' span.  The move back from ``phi'``
+    returns the start (a shear: Jacobian 1, its own reverse)."""
+    from bayesreg.model.parameters import to_unconstrained
+    from bayesreg.model.posterior import data_log_likelihood
+    from bayesreg.sampling.kernels.gibbs import displacement_proposal
+    from bayesreg.sampling.kernels.target import make_target
+
+    mesh, _, post_d = _posteriors(discrepancy=(1.0, 0.05) if modes is None else (1.0, 0.05, modes))
+    rng = np.random.default_rng(11)
+    n_d = post_d.n_displacement
+    x = np.r_[0.4 * rng.normal(size=3 * len(mesh.boundary)), 0.1 * rng.normal(size=n_d - 3 * len(mesh.boundary))]
+    phi, phi_p = PHI, PHI * np.exp(0.4 * rng.normal(size=PHI.size))
+    target = make_target(post_d, center_u=np.zeros(n_d), factor=np.full(n_d, 0.5), exact=True,
+                         condensed=False)
+    eta, eta_p = (to_unconstrained(post_d.prior, jnp.asarray(p)) for p in (phi, phi_p))
+    w, _ = target.coordinates(jnp.asarray(np.r_[x, phi]))
+    u_b = x[:3 * len(mesh.boundary)].reshape(-1, 3)
+    fe, fe_p = _fe_interior(mesh, post_d, phi, u_b), _fe_interior(mesh, post_d, phi_p, u_b)
+    assert np.abs(fe - fe_p).max() > 1e-2  # the parameters move the FE interior
+    w_p = displacement_proposal(target, w, eta, eta_p, jnp.asarray(fe), jnp.asarray(fe_p))
+    theta, theta_p = target.position(w, eta), target.position(w_p, eta_p)
+    np.testing.assert_allclose(np.asarray(theta_p[-PHI.size:]), phi_p, rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(theta_p[:u_b.size]), u_b.ravel(), atol=1e-12)
+    u = np.asarray(nodal_displacement(post_d, theta, jnp.asarray(fe)))
+    u_p = np.asarray(nodal_displacement(post_d, theta_p, jnp.asarray(fe_p)))
+    if modes is None:
+        np.testing.assert_allclose(u_p, u, atol=1e-10)
+        np.testing.assert_allclose(float(data_log_likelihood(post_d, jnp.asarray(u_p))),
+                                   float(data_log_likelihood(post_d, jnp.asarray(u))), rtol=1e-10)
+    else:
+        change = (u_p - u)[mesh.interior].ravel()
+        assert np.abs(change).max() > 1e-3  # what the modes cannot take up
+        np.testing.assert_allclose(np.asarray(post_d.discrepancy.basis).T @ change, 0.0, atol=1e-10)
+    np.testing.assert_allclose(u_p[mesh.boundary], u[mesh.boundary], atol=1e-12)
+    w_back = displacement_proposal(target, w_p, eta_p, eta, jnp.asarray(fe_p), jnp.asarray(fe))
+    np.testing.assert_allclose(np.asarray(w_back), np.asarray(w), atol=1e-10)
+    with pytest.raises(ValueError, match="one row per interior node"):
+        target.shift(theta[:n_d], jnp.zeros((len(mesh.interior) + 1, 3)))

@@ -359,6 +359,23 @@ def _mixture_moments(a, b):
     return out
 
 
+def _assert_mixture_moments(res, a, b):
+    """Draws of :func:`_mixture_toy` (or :func:`_shift_toy`): the means and variances of
+    ``d`` and ``eta`` within 5 Monte Carlo standard errors of their quadrature, the ``u``'s
+    means at ``A E[eta] + E[d]``, the collapsed moves accepted neither never nor always."""
+    from helpers import A
+
+    (m_d, v_d, f_d), (m_e, v_e, f_e) = _mixture_moments(a, b)
+    assert_moments(res.positions[..., 0], m_d, v_d, f_d, n_se=5.0, what="d")
+    assert_moments(res.positions[..., D + 1], m_e, v_e, f_e, n_se=5.0, what="eta")
+    for j in range(1, D + 1):
+        x = res.positions[..., j]
+        se = np.sqrt(x.var() / float(az.ess(x, method="mean")))
+        assert abs(x.mean() - (A * m_e + m_d)) < 5 * se, (j, x.mean(), se)
+    acc = res.acceptance.reshape(-1, 3).mean(axis=0)
+    assert 0.05 < acc[2] < 0.95, acc
+
+
 def test_collapsed_moves_at_a_drawn_discrepancy_precision_keep_the_student_marginal():
     """Collapsed moves of ``eta`` carrying ``[d, u]`` along a ridge (``d`` follows ``eta``),
     each transition's made at a precision ``tau`` of ``d`` drawn from its conditional and
@@ -373,16 +390,7 @@ def test_collapsed_moves_at_a_drawn_discrepancy_precision_keep_the_student_margi
                        step_size=0.3, eta_scale=0.5, warmup_steps=300, elastic_moves=1,
                        collapsed_moves=4, max_draws=1500, min_draws=1500, chunk_draws=100,
                        progress=False)
-    (m_d, v_d, f_d), (m_e, v_e, f_e) = _mixture_moments(a, b)
-    assert_moments(res.positions[..., 0], m_d, v_d, f_d, n_se=5.0, what="d")
-    assert_moments(res.positions[..., D + 1], m_e, v_e, f_e, n_se=5.0, what="eta")
-    from helpers import A
-    for j in range(1, D + 1):
-        x = res.positions[..., j]
-        se = np.sqrt(x.var() / float(az.ess(x, method="mean")))
-        assert abs(x.mean() - (A * m_e + m_d)) < 5 * se, (j, x.mean(), se)
-    acc = res.acceptance.reshape(-1, 3).mean(axis=0)
-    assert 0.05 < acc[2] < 0.95, acc
+    _assert_mixture_moments(res, a, b)
 
 
 def test_a_collapsed_proposal_under_the_exact_conditional_accepts_by_the_parameters_marginal():
@@ -419,3 +427,47 @@ def test_a_collapsed_proposal_under_the_exact_conditional_accepts_by_the_paramet
         gaps.append(abs(float(target.mixture.log_ratio(target.position(w_p, eta_p)[:-1], tau)
                               - target.mixture.log_ratio(x, tau))))
     assert max(gaps) > 1e-2  # the mixture's term is not negligible in these moves
+
+
+def _shift_toy(a=3.0, b=1.0):
+    """:func:`_mixture_toy` with an "FE interior" ``eta`` (what the target's evaluations
+    return as ``interior``) and the discrepancy ``d`` beside it (``Y_OBS`` sees ``eta + d``):
+    the target's ``shift`` moves ``d``, so a move that carries the displacement keeps ``eta +
+    d``."""
+    base = _mixture_toy(a, b)
+
+    def fe(eta):
+        return jnp.full((1, 3), eta[0])
+
+    def evaluate(w, eta, interior, ln):
+        v = base.evaluate(w, eta, interior, ln)
+        return v[:2] + (fe(eta),) + v[3:]
+
+    def u_evaluate(w, eta, cache, interior):
+        v = base.u_evaluate(w, eta, cache, interior)
+        return (v[0], fe(eta)) + v[2:]
+
+    return base._replace(evaluate=evaluate, u_evaluate=u_evaluate, conditional=None, mixture=None,
+                         shift=lambda x, delta: x.at[0].add(delta[0, 0]))
+
+
+def test_collapsed_moves_that_carry_the_displacement_keep_the_joint():
+    """Collapsed moves of ``eta`` with ``carry="displacement"`` (``d`` takes up the "FE
+    interior"'s change, :func:`_shift_toy`) leave the joint invariant: the means and
+    variances of ``d`` and ``eta`` within 5 Monte Carlo standard errors of their quadrature,
+    the ``u``'s means at ``A E[eta] + E[d]``."""
+    a, b = 3.0, 1.0
+    rng = np.random.default_rng(4)
+    x0 = np.concatenate([rng.normal(size=(4, D + 1)), rng.normal(M_ETA, SD_ETA, size=(4, 1))], axis=1)
+    res = sample_gibbs(jax.random.key(8), _shift_toy(a, b), x0, jnp.zeros((1, 3)), kind="nuts",
+                       step_size=0.3, eta_scale=0.5, warmup_steps=300, elastic_moves=1,
+                       collapsed_moves=4, carry="displacement", max_draws=1500, min_draws=1500,
+                       chunk_draws=100, progress=False)
+    _assert_mixture_moments(res, a, b)
+
+
+def test_carrying_the_displacement_needs_a_target_that_can_shift_it():
+    with pytest.raises(ValueError, match="Target.shift"):
+        gk.build_kernel(toy_target(), "nuts", collapsed_moves=2, carry="displacement")
+    with pytest.raises(ValueError, match="unknown carry"):
+        gk.build_kernel(_shift_toy(), "nuts", collapsed_moves=2, carry="both")

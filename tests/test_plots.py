@@ -52,3 +52,21 @@ def test_parameter_figures_log_ratio_axes_rank_plot_and_a_named_node_with_its_tr
     assert "mesh node 12 at (1.5, -2.2, 30.0) mm" in marginals._suptitle.get_text()
     for a, ax in enumerate(marginals.axes):
         assert any(np.isclose(line.get_xdata()[0], u_true_b[2, a]) for line in ax.get_lines())
+
+
+def test_a_node_whose_draws_differ_by_rounding_alone_still_gets_its_marginals():
+    """A boundary node that moved by rounding only (a move that rewrote ``u_b`` through its
+    coordinates): NumPy refuses 40 bins over a range of 1e-15 mm; the figure draws them over
+    one mm instead, and the chains share their bins."""
+    c, d, nb = 3, 10, 2
+    ub = np.zeros((c, d, nb, 3)) + 1.25
+    ub[:, ::2, 0, :] += 1e-15
+    ub[:, :, 1, :] += np.linspace(0.0, 1e-12, d)[None, :, None]
+    tree = to_datatree({"ratio": np.full((c, d, 3), 10.0), "u_b": ub},
+                       dims={"ratio": ["group"], "u_b": ["node", "axis"]},
+                       coords={"group": ["csf", "gm", "wm"], "node": np.arange(nb),
+                               "axis": ["x", "y", "z"]})
+    _, marginals = parameter_figures(tree, ["csf", "gm", "wm"], None)
+    for ax in marginals.axes:
+        lo, hi = ax.get_xlim()
+        assert lo <= 0.75 + 1e-9 and hi >= 1.75 - 1e-9

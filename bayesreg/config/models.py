@@ -598,22 +598,27 @@ class SamplerConfig(_Strict):
         "under the exact normaliser (which has no surrogate there)")
     elastic_moves: Int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
                                "elastic parameters per transition (cheap next to a trajectory)")
-    collapsed_moves: Int = Field(0, ge=0, description="gradient kernels with proposal laplace: "
+    collapsed_moves: Int = Field(0, ge=0, description="gradient kernels: "
                                  "collapsed moves of the elastic parameters per transition, which "
-                                 "carry u_b (with a model discrepancy [u_b, d]) along by its "
-                                 "Laplace approximation given the "
-                                 "parameters (one dense factorisation each): they move the "
+                                 "carry u_b (with a model discrepancy [u_b, d]) along (carry): "
+                                 "they move the "
                                  "parameters as if u_b were integrated out, where random-walk "
                                  "moves given u_b barely move them")
+    carry: Literal["conditional", "displacement"] | None = Field(
+        None, description="how collapsed_moves carry the displacement along: conditional, by "
+        "its Laplace approximation given the parameters (one dense factorisation per move; "
+        "needs proposal laplace); displacement (with a model discrepancy): u_b stays and the "
+        "discrepancy takes up the FE interior's change, so every node's displacement stays "
+        "(one more interior solve per move, no factorisation; the parameters given u instead "
+        "of given [u_b, d]).  Default: displacement with a model discrepancy, else conditional")
     sigma_eta: Float = Field(0.1, gt=0, description="gradient kernels: initial scale of the elastic "
                              "random walk in the unconstrained (logit) space (adapted); with "
                              "joint, the logits' unit in the trajectory's coordinates")
 
     @model_validator(mode="after")
     def _collapsed(self):
-        if self.collapsed_moves and not (self.gradient and self.proposal == "laplace"):
-            raise ValueError("sampler.collapsed_moves needs a gradient kernel (mala, hmc, nuts) "
-                             "and sampler.proposal laplace")
+        if self.collapsed_moves and not self.gradient:
+            raise ValueError("sampler.collapsed_moves needs a gradient kernel (mala, hmc, nuts)")
         if self.joint and not self.gradient:
             raise ValueError("sampler.joint needs a gradient kernel (mala, hmc, nuts): rwmh's "
                              "blocked: false is the paper's joint proposal")
@@ -773,11 +778,27 @@ class Config(_Strict):
                 raise ValueError(f"{which} needs a gradient sampler "
                                  "(sampler.kind: nuts, hmc or mala): it samples the interior's "
                                  "deviation too")
+        elif self.sampler.collapsed_moves and self.sampler.carry == "displacement":
+            raise ValueError("sampler.carry: displacement needs a model discrepancy "
+                             "(model.discrepancy: interior or modes), which takes up the FE "
+                             "interior's change; use carry: conditional")
+        if (self.sampler.collapsed_moves and self.collapsed_carry == "conditional"
+                and self.sampler.proposal != "laplace"):
+            raise ValueError("sampler.collapsed_moves with carry: conditional needs "
+                             "sampler.proposal: laplace (the likelihood's Gauss-Newton curvature)")
         self._initial_in_support()
         if self.init.start == "between" and not self.synthetic.enabled and self.init.fraction > 0:
             raise ValueError("init.start 'between' needs a synthetic truth (synthetic.enabled); "
                              "use init.start: registration for real data")
         return self
+
+    @property
+    def collapsed_carry(self) -> str:
+        """``sampler.carry`` with its default filled in: ``"displacement"`` with a model
+        discrepancy, else ``"conditional"``."""
+        if self.sampler.carry is not None:
+            return self.sampler.carry
+        return "displacement" if self.model.discrepancy != "none" else "conditional"
 
     def _initial_in_support(self):
         """The start of each free elastic parameter (``model.initial_*``) must lie strictly

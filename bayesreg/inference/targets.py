@@ -162,8 +162,8 @@ def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
                        exact=cfg.model.prior_normaliser == "exact",
                        condensed=cfg.sampler.use_condensed and not joint, rtol=cfg.solver.rtol,
                        maxiter=cfg.solver.maxiter, precondition=dense_preconditioning(problem, cfg),
-                       likelihood=_likelihood(problem, center, factor) if cfg.sampler.collapsed_moves
-                       else None)
+                       likelihood=(_likelihood(problem, center, factor) if cfg.sampler.collapsed_moves
+                                   and cfg.collapsed_carry == "conditional" else None))
     if not joint:
         return base
     surrogate = None
@@ -242,7 +242,7 @@ def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm
             target, interior0, kind=s.kind, step_size=s.step_size,
             eta_scale=init.sigma[1] if target.n_free else np.zeros(0), dense_mass=s.dense_mass,
             adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
-            collapsed_moves=s.collapsed_moves, num_integration_steps=s.hmc_steps,
+            collapsed_moves=s.collapsed_moves, carry=cfg.collapsed_carry, num_integration_steps=s.hmc_steps,
             jitter_integration_steps=s.hmc_jitter, max_tree_depth=s.max_tree_depth,
             target_acceptance=s.target_acceptance)
     if init.blocked:

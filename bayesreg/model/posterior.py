@@ -68,6 +68,7 @@ __all__ = [
     "discrepancy_stiffness",
     "discrepancy_precision_draw",
     "discrepancy_mixture_log_ratio",
+    "shift_discrepancy",
     "data_log_likelihood",
     "similarity_curvature",
     "interior_map_and_precision",
@@ -601,6 +602,29 @@ def discrepancy_of(post: Posterior, theta):
     if post.discrepancy.basis is not None:
         d = d @ post.discrepancy.basis.T
     return d.reshape(d.shape[:-1] + (-1, 3))
+
+
+def shift_discrepancy(post: Posterior, x, delta):
+    """The displacement block ``x`` ``(n_displacement,)`` (``[u_b, d]``, low rank ``[u_b,
+    c]``) with the discrepancy moved by ``delta`` ``(n_i, 3)`` mm: ``d + delta`` (low rank
+    ``c + V^T delta``, the move's projection on the orthonormal modes).  With ``delta`` the
+    FE interior's change, ``H(phi) u_b - H(phi') u_b``, every node's displacement ``u`` stays
+    where it was (low rank: its part in the modes' span).  A shear by a function of ``u_b``
+    alone: volume-preserving, undone by ``-delta``.
+
+    Raises
+    ------
+    ValueError
+        A posterior without a discrepancy, or ``x`` or ``delta`` of another shape.
+    """
+    if post.discrepancy is None:
+        raise ValueError("shifting the discrepancy needs a posterior with a model discrepancy")
+    check_shape("x", x, (post.n_displacement,), "the displacement block [u_b, d]")
+    check_shape("delta", delta, (post.op.n_interior, 3), "one row per interior node")
+    step = delta.reshape(-1)
+    if post.discrepancy.basis is not None:
+        step = step @ post.discrepancy.basis
+    return x.at[3 * post.n_boundary:].add(step)
 
 
 def discrepancy_log_prior(post: Posterior, d):

@@ -101,8 +101,13 @@ def parameter_figures(tree, names, truth_ratio, *, nodes=None, u_true_b=None):
     fig = Figure(figsize=(11, 3.2))
     axes = fig.subplots(1, 3)
     for a, ax in enumerate(axes):
+        x = ub[:, :, b, a]
+        lo, hi = float(x.min()), float(x.max())
+        if hi - lo <= 1e-9 * max(1.0, abs(hi)):  # (draws equal to rounding: one bin a mm wide)
+            lo, hi = lo - 0.5, hi + 0.5
+        edges = np.linspace(lo, hi, 41)  # shared by the chains, so their shapes compare
         for c in range(ub.shape[0]):
-            ax.hist(ub[c, :, b, a], bins=40, histtype="step", density=True, label=f"chain {c}")
+            ax.hist(x[c], bins=edges, histtype="step", density=True, label=f"chain {c}")
         if u_true_b is not None:
             ax.axvline(u_true_b[b, a], color="k", ls="--", lw=1, label="truth")
         ax.set_xlabel(f"u_{'xyz'[a]} (mm)")

@@ -486,6 +486,8 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
             "thinning": s_info.thinning,
             "steps_per_chain": int(d * s_info.thinning + s_info.warmup_steps),
             "blocks": block_names,
+            # how the collapsed moves carried the displacement (sampler.carry, resolved)
+            **({"collapsed_carry": cfg.collapsed_carry} if "collapsed" in block_names else {}),
             "acceptance": [float(a) for a in result.acceptance.reshape(-1, len(block_names)).mean(0)],
             # None without a warm-up (the paper's fixed kernel), not NaN (not JSON)
             "warmup_acceptance": ([float(a) for a in result.warmup_acceptance]

@@ -25,7 +25,9 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    that map in the acceptance (exact whatever the approximation); they move parameters
    that ``u_b`` pins down given it but not in the marginal.  With a model discrepancy they
    carry ``[u_b, d]``, at the discrepancy's precision drawn from its conditional (the
-   Student prior as a scale mixture: data augmentation, Tanner and Wong 1987).
+   Student prior as a scale mixture: data augmentation, Tanner and Wong 1987), or
+   (``carry="displacement"``) keep every node's displacement, the discrepancy taking up the
+   FE interior's change (:func:`displacement_proposal`).
 
 With a joint target (:func:`bayesreg.sampling.kernels.target.joint_target`) part 1 moves ``u_b`` and
 the elastic parameters together along one trajectory, through the CG solve with implicit
@@ -63,11 +65,13 @@ from bayesreg.sampling.kernels import adaptation
 from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup, marginal_sd
 from bayesreg.sampling.kernels.target import Cache, Target
 
-__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
-           "collapsed_proposal", "as_algorithm", "default_target_acceptance"]
+__all__ = ["KINDS", "CARRIES", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
+           "collapsed_proposal", "displacement_proposal", "as_algorithm",
+           "default_target_acceptance"]
 
 
 KINDS = ("mala", "hmc", "nuts")
+CARRIES = ("conditional", "displacement")
 
 
 def default_target_acceptance(kind: str) -> float:
@@ -176,7 +180,7 @@ def init(target: Target, theta, interior0, data=None) -> tuple[GibbsState, Cache
 def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                  jitter_integration_steps: bool = True, max_num_doublings: int = 10,
                  divergence_threshold: float = 1000.0, elastic_moves: int = 1,
-                 collapsed_moves: int = 0) -> Kernel:
+                 collapsed_moves: int = 0, carry: str = "conditional") -> Kernel:
     """The Gibbs kernel over a :class:`~bayesreg.sampling.kernels.target.Target`.
 
     Parameters
@@ -217,6 +221,19 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         discrepancy drawn from its conditional first, against the log-density at that
         ``tau`` (a Gibbs step of the scale mixture, then moves that leave its conditional
         invariant): the Gaussian they transport ``[u_b, d]`` by is then exact in both priors.
+    carry : {"conditional", "displacement"}
+        How the collapsed moves carry the displacement block along.  ``"conditional"``: by
+        the target's Gaussian, as above (one dense factorisation of the block's order per
+        move).  ``"displacement"`` (a target with :attr:`~bayesreg.sampling.kernels.target.
+        Target.shift`: a model discrepancy): ``u_b`` stays and the discrepancy takes up the
+        FE interior's change, ``d' = d + H(phi) u_b - H(phi') u_b``, so every node's
+        displacement, and with it the likelihood, stays where it was
+        (:func:`displacement_proposal`; one more interior solve per move, no
+        factorisation).  The moves then sample the parameters given ``u`` rather than given
+        ``[u_b, d]``: the sufficient parametrisation beside the Gibbs step's ancillary one
+        (Yu and Meng 2011, "To center or not to center", *JCGS* 20(3)).  The map is a shear
+        (Jacobian 1) that the reverse move undoes, so the acceptance is the log-density's
+        ratio alone.
 
     Returns
     -------
@@ -233,10 +250,21 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     """
     per_chain = callable(target)  # a function data -> Target (a Target is a tuple)
 
+    if carry not in CARRIES:
+        raise ValueError(f"unknown carry {carry!r} of the collapsed moves; expected one of {CARRIES}")
+    by_displacement = carry == "displacement"
+
     def check(target):
-        if collapsed_moves and (target.conditional is None or not target.n_free):
-            raise ValueError("collapsed moves need free elastic parameters and a target with a "
-                             "Gaussian conditional of u_b (make_target(likelihood=...))")
+        if not collapsed_moves:
+            return target
+        if not target.n_free:
+            raise ValueError("collapsed moves need free elastic parameters")
+        if by_displacement and target.shift is None:
+            raise ValueError("collapsed moves that carry the displacement need a target with a "
+                             "model discrepancy (Target.shift)")
+        if not by_displacement and target.conditional is None:
+            raise ValueError("collapsed moves need a target with a Gaussian conditional of u_b "
+                             "(make_target(likelihood=...))")
         return target
 
     if not per_chain:
@@ -332,7 +360,8 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             acc.append(jnp.mean(p_acc))
             accepted.append(do)
             if collapsed_moves:
-                if target.mixture is not None:  # the discrepancy's precision, given d, for these moves
+                if target.mixture is not None and not by_displacement:
+                    # the discrepancy's precision, given d, for these moves
                     k_c, k_t = jax.random.split(k_c)
                     tau = target.mixture.draw(k_t, target.position(w, eta_new)[:-target.n_free])
                 else:
@@ -344,12 +373,21 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                     z = jax.random.normal(k_prop, eta_c.shape)
                     scale = params.eta_scale if params.collapsed_scale is None else params.collapsed_scale
                     eta_p = eta_c + (scale @ z if scale.ndim == 2 else scale * z)
-                    w_p, mean_p, chol_p, log_corr = collapsed_proposal(target, w_c, eta_c, eta_p, tau,
-                                                                       mean_c, chol_c)
                     norm_p = target.log_norm(eta_p)
-                    lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w_p, eta_p, int_, norm_p)
+                    if by_displacement:  # the FE interior at eta_p, which d' takes up the change of
+                        _, _, int_fe, its_0, ok_0 = evaluate(w_c, eta_p, int_, norm_p)
+                        w_p = displacement_proposal(target, w_c, eta_c, eta_p, int_, int_fe)
+                        mean_p, chol_p, log_corr = mean_c, chol_c, jnp.zeros(())
+                    else:
+                        w_p, mean_p, chol_p, log_corr = collapsed_proposal(target, w_c, eta_c, eta_p,
+                                                                           tau, mean_c, chol_c)
+                        int_fe, its_0, ok_0 = int_, 0, True
+                    lz_p, lnat_p, int_p, its_p, ok_p = evaluate(w_p, eta_p, int_fe, norm_p)
+                    its_p, ok_p = its_p + its_0, ok_p & ok_0
                     log_ratio = lz_p - lz + log_corr
-                    log_ratio = jnp.where(jnp.isnan(log_ratio) | ~ok_c, -jnp.inf, log_ratio)
+                    # (a failed solve at eta_p rejects: the shifted d of a wrong interior would
+                    # not be the reverse move's)
+                    log_ratio = jnp.where(jnp.isnan(log_ratio) | ~ok_c | ~ok_p, -jnp.inf, log_ratio)
                     _, (do_, p_acc_, _) = static_binomial_sampling(k_a, log_ratio, jnp.zeros(()),
                                                                   jnp.ones(()))
                     keep = (w_p, eta_p, lz_p, lnat_p, int_p, norm_p, mean_p, chol_p)
@@ -357,7 +395,10 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
                     new = tuple(jnp.where(do_, a, b) for a, b in zip(keep, old))
                     return new + (n_its + its_p, n_fail + (~ok_p).astype(jnp.int32)), (p_acc_, do_)
 
-                mean0, chol0 = target.conditional(eta_new, tau)
+                if by_displacement:  # (no Gaussian: placeholders in the carry)
+                    mean0, chol0 = jnp.zeros((0,)), jnp.zeros((0, 0))
+                else:
+                    mean0, chol0 = target.conditional(eta_new, tau)
                 carry0 = (w, eta_new, lz, lp_nat, interior, norm_new, mean0, chol0, its_e, fail_e)
                 (w, eta_new, _, lp_nat, interior, norm_new, _, _, its_e, fail_e), (p_c, dos_c) = \
                     jax.lax.scan(collapsed_move, carry0, jax.random.split(k_c, collapsed_moves))
@@ -415,6 +456,34 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     return Kernel(step, init_cache, per_chain_params=True)
 
 
+def displacement_proposal(target: Target, w, eta, eta_p, interior, interior_p):
+    """A collapsed move's proposal that keeps every node's displacement: ``u_b`` stays and the
+    discrepancy takes up the FE interior's change, ``d' = d + interior - interior_p``
+    (:attr:`~bayesreg.sampling.kernels.target.Target.shift`; low rank, its projection on the
+    modes).
+
+    Parameters
+    ----------
+    target : Target
+        With ``shift`` (a model discrepancy) and free parameters.
+    w : (n,) array
+        Coordinates of the displacement block now.
+    eta, eta_p : (n_free,) arrays
+        The parameters' logits now and proposed.
+    interior, interior_p : (n_i, 3) arrays
+        The FE interior solve ``H(phi) u_b`` at ``eta`` and at ``eta_p`` (mm).
+
+    Returns
+    -------
+    (n,) array
+        Coordinates of the proposal at ``eta_p``.  The map is a shear by a function of
+        ``u_b`` alone (Jacobian 1), and the move from ``eta_p`` back undoes it.
+    """
+    n_f = target.n_free
+    x_p = target.shift(target.position(w, eta)[:-n_f], interior - interior_p)
+    return target.coordinates(jnp.concatenate([x_p, target.position(w, eta_p)[-n_f:]]))[0]
+
+
 def collapsed_proposal(target: Target, w, eta, eta_p, tau, mean, chol):
     """A collapsed move's proposal: the displacement carried from the parameters ``eta`` to
     ``eta_p`` by the target's Gaussian of it given them
@@ -462,7 +531,7 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
                  eta_scale=0.1, dense_mass: bool = False, adapt_mass: bool = True,
                  num_integration_steps: int = 16, jitter_integration_steps: bool = True,
                  max_tree_depth: int = 10, elastic_moves: int = 1, collapsed_moves: int = 0,
-                 target_acceptance: float | None = None, chain_data=None,
+                 carry: str = "conditional", target_acceptance: float | None = None, chain_data=None,
                  refresh=None) -> SamplingAlgorithm:
     """The gradient Gibbs kernel with its windowed warm-up, for
     :func:`bayesreg.sampling.driver.sample`.
@@ -502,6 +571,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
     collapsed_moves : int
         collapsed moves of the elastic parameters per transition (a target with
         ``conditional``; :func:`build_kernel`)
+    carry : {"conditional", "displacement"}
+        how they carry the displacement along (:func:`build_kernel`)
     target_acceptance : float, optional
         Default :func:`default_target_acceptance` of ``kind``.
     chain_data : pytree, optional
@@ -543,7 +614,7 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
     kernel = build_kernel(target, kind, num_integration_steps=num_integration_steps,
                           jitter_integration_steps=jitter_integration_steps,
                           max_num_doublings=max_tree_depth, elastic_moves=elastic_moves,
-                          collapsed_moves=collapsed_moves)
+                          collapsed_moves=collapsed_moves, carry=carry)
     ws_init, ws_step, ws_final = adaptation.build_warmup_step(
         kernel, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
         adapt_mass=adapt_mass)

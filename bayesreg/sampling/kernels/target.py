@@ -21,7 +21,7 @@ from bayesreg.model.parameters import from_unconstrained, to_unconstrained
 from bayesreg.model.posterior import (
     Posterior, condensation, data_log_likelihood, discrepancy_mixture_log_ratio, discrepancy_of,
     discrepancy_precision_draw, discrepancy_stiffness, interior_map_and_precision, log_density,
-    log_density_condensed, log_normaliser, preconditioner, prior_precision)
+    log_density_condensed, log_normaliser, preconditioner, prior_precision, shift_discrepancy)
 
 __all__ = ["Cache", "Mixture", "Target", "make_target", "joint_target", "laplace_likelihood",
            "nodal_laplace_likelihood"]
@@ -123,6 +123,11 @@ class Target(NamedTuple):
     mixture : Mixture or None
         The model discrepancy's prior as a scale mixture (targets of a posterior with one),
         which the collapsed moves condition on.
+    shift : callable or None
+        ``(x, delta) -> x'``: the displacement block ``x`` ``(n_displacement,)`` with the
+        discrepancy moved by ``delta`` ``(n_i, 3)`` mm
+        (:func:`bayesreg.model.posterior.shift_discrepancy`; targets of a posterior with a
+        model discrepancy): what the collapsed moves that keep the nodal displacement use.
     """
 
     u_logdensity: Callable
@@ -140,6 +145,7 @@ class Target(NamedTuple):
     log_jacobian: Callable | None = None
     correction: Callable | None = None
     mixture: Mixture | None = None
+    shift: Callable | None = None
 
 
 def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bool, rtol=1e-8,
@@ -250,11 +256,14 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
             chol = jnp.linalg.cholesky(0.5 * (prec + prec.T))
             return cho_solve((chol, True), b_lik), chol
 
-    mixture = None
+    mixture = shift = None
     if post.discrepancy is not None:
         mixture = Mixture(
             draw=lambda key, x: discrepancy_precision_draw(post, key, discrepancy_of(post, x)),
             log_ratio=lambda x, tau: discrepancy_mixture_log_ratio(post, discrepancy_of(post, x), tau))
+
+        def shift(x, delta):
+            return shift_discrepancy(post, x, delta)
 
     if precondition:
         name = "dense"
@@ -262,7 +271,7 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
         name = "spectral" if post.spectral is not None else "block-jacobi"
     return Target(u_logdensity, u_evaluate, evaluate, log_norm, build_cache, theta_of, coordinates,
                   int(post.n_free), build_precond if precondition else None, bool(condensed), name,
-                  conditional, mixture=mixture)
+                  conditional, mixture=mixture, shift=shift)
 
 
 def _discrepancy_conditional(post: Posterior, a_nodal, b_nodal):
