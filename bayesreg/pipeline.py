@@ -209,7 +209,8 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
             with stages.stage("starts"):
                 if cfg.init.start == "registration":
                     t = time.perf_counter()
-                    flow = registration_field(problem, cfg.init.registration)
+                    flow = registration_field(problem, cfg.init.registration,
+                                              outside=cfg.synthetic.outside)
                     t = time.perf_counter() - t
                 init = initialise(problem, cfg, flow=flow)
                 if flow is not None:

@@ -82,7 +82,7 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     if cfg.init.start == "registration":
         if flow is None:
             t = time.perf_counter()
-            flow = registration_field(problem, cfg.init.registration)
+            flow = registration_field(problem, cfg.init.registration, outside=cfg.synthetic.outside)
             info["registration_s"] = time.perf_counter() - t
         base_u = displacement_at(flow, mesh.nodes[mesh.boundary])
     elif problem.truth is not None:
@@ -112,15 +112,18 @@ def start_center(problem: Problem, cfg: Config, *, check=None, flow=None) -> tup
     raise ValueError("could not find a valid central start (skull, inverted element or solve)")
 
 
-def registration_field(problem: Problem, method: str = "tvl1") -> Image:
+def registration_field(problem: Problem, method: str = "tvl1", *, outside: str = "extend") -> Image:
     """A dense registration of ``f`` to ``m`` on the brain, kept within 3 voxels of the
     intracranial tissues and zero beyond: scikit-image optical flow (``method`` ``"tvl1"``
     or ``"ilk"``, :func:`bayesreg.data.registration.optical_flow_displacement`) or ANTs SyN
     (``"syn"``, :func:`bayesreg.interop.syn.syn_displacement`).
 
-    For a synthetic truth of the FE map (whose ``m`` holds the warped brain) ``f`` is
-    registered with its brain alone; otherwise (real data, a dense truth that moved the
-    whole image) both images as they are.
+    Both images as they are, except for a synthetic FE truth whose ``m`` holds the warped
+    brain alone (``outside="background"``, ``synthetic.outside``: 0 where no deformed
+    element reaches): then ``f``'s brain alone, so that neither image has tissue the other
+    lacks.  With ``m`` continued outside the brain (``"extend"``, the default), real data
+    and dense truths, masking ``f`` alone would pull the brain's surface toward the skull
+    and scalp that only ``m`` shows.
 
     Returns
     -------
@@ -129,14 +132,18 @@ def registration_field(problem: Problem, method: str = "tvl1") -> Image:
 
     Raises
     ------
+    ValueError
+        ``outside`` neither ``"extend"`` nor ``"background"``.
     ImportError
         ``"syn"`` without ANTsPy installed.
     RuntimeError
         ANTs failed (``"syn"``).
     """
     brain = np.isin(problem.labels.data, L.TISSUE_LABELS)
+    if outside not in ("extend", "background"):
+        raise ValueError(f"outside must be 'extend' or 'background' (synthetic.outside), got {outside!r}")
     f_reg = problem.f
-    if problem.truth is not None and problem.truth.field is None:
+    if problem.truth is not None and problem.truth.field is None and outside == "background":
         f_reg = Image(np.where(brain, problem.f.data, 0.0), problem.f.affine)
     mask = ndi.binary_dilation(brain, iterations=3)
     if method == "syn":

@@ -439,7 +439,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     else:  # the point estimate to beat
         if reference is None or method != cfg.init.registration:
             t_ref = time.perf_counter()
-            reference = registration_field(problem, method)
+            reference = registration_field(problem, method, outside=cfg.synthetic.outside)
             timings = {**timings, "reference_s": time.perf_counter() - t_ref}
         save_displacement(reference.data, aff, run_dir.file("displacement_reference.nii.gz"),
                           description=f"{method} reference: {FIXED_TO_MOVING}")
