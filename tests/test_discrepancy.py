@@ -446,14 +446,14 @@ def _fe_interior(mesh, post, phi, u_b):
 
 @pytest.mark.parametrize("modes", [None, MODES])
 def test_a_move_that_carries_the_displacement_keeps_every_node_where_it_was(modes):
-    """:func:`~bayesreg.sampling.kernels.gibbs.displacement_proposal`: from ``phi`` to ``phi'``
+    """:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`: from ``phi`` to ``phi'``
     with ``u_b`` kept and ``d' = d + H(phi) u_b - H(phi') u_b`` (the interiors by SciPy), every
     node's displacement is unchanged, so is the data term, and the elastic prior's energy is
     not; low rank, the change lies outside the modes' span.  The move back from ``phi'``
     returns the start (a shear: Jacobian 1, its own reverse)."""
     from bayesreg.model.parameters import to_unconstrained
     from bayesreg.model.posterior import data_log_likelihood
-    from bayesreg.sampling.kernels.gibbs import displacement_proposal
+    from bayesreg.sampling.kernels.collapsed import displacement_proposal
     from bayesreg.sampling.kernels.target import make_target
 
     mesh, _, post_d = _posteriors(discrepancy=(1.0, 0.05) if modes is None else (1.0, 0.05, modes))

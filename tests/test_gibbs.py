@@ -9,6 +9,7 @@ import jax.numpy as jnp
 
 from bayesreg.sampling.chains import build_chunk
 from bayesreg.sampling.kernels import gibbs as gk
+from bayesreg.sampling.kernels.collapsed import collapsed_proposal
 from bayesreg.sampling.kernels.target import make_target
 from helpers import (
     assert_moments, D, gaussian_target, M_ETA, S, sample_gibbs, SD_ETA, toy_moments,
@@ -395,7 +396,7 @@ def test_collapsed_moves_at_a_drawn_discrepancy_precision_keep_the_student_margi
 
 def test_a_collapsed_proposal_under_the_exact_conditional_accepts_by_the_parameters_marginal():
     """With the exact Gaussian of ``x = [d, u]`` given ``eta`` and ``tau``, a collapsed move's
-    log acceptance ratio (the log-density ratio plus :func:`collapsed_proposal`'s correction:
+    log acceptance ratio (the log-density ratio plus :func:`~bayesreg.sampling.kernels.collapsed.collapsed_proposal`'s correction:
     the Jacobian and the mixture's term) is that of the parameters' marginal at ``tau``
     whatever ``x``: for the ridge toy ``log N(eta; M, s^2) + log N(Y - eta; 0, 1/tau +
     SD_OBS^2)`` (``d`` integrated out in closed form).  Without the mixture's term the
@@ -419,7 +420,7 @@ def test_a_collapsed_proposal_under_the_exact_conditional_accepts_by_the_paramet
         tau = float(rng.gamma(2.0, 0.5))
         w, _ = target.coordinates(jnp.concatenate([x, eta]))
         mean, chol = target.conditional(eta, tau)
-        w_p, mean_p, chol_p, log_corr = gk.collapsed_proposal(target, w, eta, eta_p, tau, mean, chol)
+        w_p, mean_p, chol_p, log_corr = collapsed_proposal(target, w, eta, eta_p, tau, mean, chol)
         np.testing.assert_allclose(np.asarray(target.conditional(eta_p, tau)[0]), np.asarray(mean_p))
         ratio = lz(w_p, eta_p) - lz(w, eta) + float(log_corr)
         expected = log_marginal(float(eta_p[0]), tau) - log_marginal(float(eta[0]), tau)

@@ -27,7 +27,7 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
    carry ``[u_b, d]``, at the discrepancy's precision drawn from its conditional (the
    Student prior as a scale mixture: data augmentation, Tanner and Wong 1987), or
    (``carry="displacement"``) keep every node's displacement, the discrepancy taking up the
-   FE interior's change (:func:`displacement_proposal`).
+   FE interior's change (:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`).
 
 With a joint target (:func:`bayesreg.sampling.kernels.target.joint_target`) part 1 moves ``u_b`` and
 the elastic parameters together along one trajectory, through the CG solve with implicit
@@ -58,20 +58,17 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
-
 from bayesreg.sampling.chains import build_adaptive_chunk
 from bayesreg.sampling.kernels import adaptation
 from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup, marginal_sd
+from bayesreg.sampling.kernels.collapsed import CARRIES, collapsed_proposal, displacement_proposal
 from bayesreg.sampling.kernels.target import Cache, Target
 
-__all__ = ["KINDS", "CARRIES", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
-           "collapsed_proposal", "displacement_proposal", "as_algorithm",
-           "default_target_acceptance"]
+__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
+           "as_algorithm", "default_target_acceptance"]
 
 
 KINDS = ("mala", "hmc", "nuts")
-CARRIES = ("conditional", "displacement")
 
 
 def default_target_acceptance(kind: str) -> float:
@@ -228,7 +225,7 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         Target.shift`: a model discrepancy): ``u_b`` stays and the discrepancy takes up the
         FE interior's change, ``d' = d + H(phi) u_b - H(phi') u_b``, so every node's
         displacement, and with it the likelihood, stays where it was
-        (:func:`displacement_proposal`; one more interior solve per move, no
+        (:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`; one more interior solve per move, no
         factorisation).  The moves then sample the parameters given ``u`` rather than given
         ``[u_b, d]``: the sufficient parametrisation beside the Gibbs step's ancillary one
         (Yu and Meng 2011, "To center or not to center", *JCGS* 20(3)).  The map is a shear
@@ -454,77 +451,6 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         return cache._replace(precond=target.build_precond(state.eta))
 
     return Kernel(step, init_cache, per_chain_params=True)
-
-
-def displacement_proposal(target: Target, w, eta, eta_p, interior, interior_p):
-    """A collapsed move's proposal that keeps every node's displacement: ``u_b`` stays and the
-    discrepancy takes up the FE interior's change, ``d' = d + interior - interior_p``
-    (:attr:`~bayesreg.sampling.kernels.target.Target.shift`; low rank, its projection on the
-    modes).
-
-    Parameters
-    ----------
-    target : Target
-        With ``shift`` (a model discrepancy) and free parameters.
-    w : (n,) array
-        Coordinates of the displacement block now.
-    eta, eta_p : (n_free,) arrays
-        The parameters' logits now and proposed.
-    interior, interior_p : (n_i, 3) arrays
-        The FE interior solve ``H(phi) u_b`` at ``eta`` and at ``eta_p`` (mm).
-
-    Returns
-    -------
-    (n,) array
-        Coordinates of the proposal at ``eta_p``.  The map is a shear by a function of
-        ``u_b`` alone (Jacobian 1), and the move from ``eta_p`` back undoes it.
-    """
-    n_f = target.n_free
-    x_p = target.shift(target.position(w, eta)[:-n_f], interior - interior_p)
-    return target.coordinates(jnp.concatenate([x_p, target.position(w, eta_p)[-n_f:]]))[0]
-
-
-def collapsed_proposal(target: Target, w, eta, eta_p, tau, mean, chol):
-    """A collapsed move's proposal: the displacement carried from the parameters ``eta`` to
-    ``eta_p`` by the target's Gaussian of it given them
-    (:attr:`~bayesreg.sampling.kernels.target.Target.conditional`), ``x' = m' + C'^-T C^T (x -
-    m)`` (the same standardised residual; ``x`` the displacement block of ``(w, eta)``).
-
-    Parameters
-    ----------
-    target : Target
-        With ``conditional`` and free parameters.
-    w : (n,) array
-        Coordinates of the displacement now.
-    eta, eta_p : (n_free,) arrays
-        The parameters' logits now and proposed.
-    tau : () array
-        The discrepancy's precision of the moves (ignored without a
-        :attr:`~bayesreg.sampling.kernels.target.Target.mixture`).
-    mean, chol : (n,), (n, n) arrays
-        ``target.conditional(eta, tau)``.
-
-    Returns
-    -------
-    w_p : (n,) array
-        Coordinates of ``x'``.
-    mean_p, chol_p : (n,), (n, n) arrays
-        ``target.conditional(eta_p, tau)``.
-    log_correction : () array
-        The acceptance's log-ratio less that of the target's log-density (the kernel's
-        ``evaluate``): the Jacobian ``log det C - log det C'`` plus, with a mixture, its
-        ``log_ratio`` at ``x'`` less at ``x`` (the log-density at ``tau`` instead of the
-        marginal's).
-    """
-    n_f = target.n_free
-    x = target.position(w, eta)[:-n_f]
-    mean_p, chol_p = target.conditional(eta_p, tau)
-    x_p = mean_p + solve_triangular(chol_p, chol.T @ (x - mean), lower=True, trans="T")
-    w_p, _ = target.coordinates(jnp.concatenate([x_p, target.position(w, eta_p)[-n_f:]]))
-    log_corr = jnp.sum(jnp.log(jnp.diag(chol))) - jnp.sum(jnp.log(jnp.diag(chol_p)))
-    if target.mixture is not None:
-        log_corr = log_corr + target.mixture.log_ratio(x_p, tau) - target.mixture.log_ratio(x, tau)
-    return w_p, mean_p, chol_p, log_corr
 
 
 def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: float = 0.2,
