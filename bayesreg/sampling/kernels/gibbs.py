@@ -221,12 +221,12 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
     carry : {"conditional", "displacement"}
         How the collapsed moves carry the displacement block along.  ``"conditional"``: by
         the target's Gaussian, as above (one dense factorisation of the block's order per
-        move).  ``"displacement"`` (a target with :attr:`~bayesreg.sampling.kernels.target.
-        Target.shift`: a model discrepancy): ``u_b`` stays and the discrepancy takes up the
-        FE interior's change, ``d' = d + H(phi) u_b - H(phi') u_b``, so every node's
-        displacement, and with it the likelihood, stays where it was
-        (:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`; one more interior solve per move, no
-        factorisation).  The moves then sample the parameters given ``u`` rather than given
+        move).  ``"displacement"`` (a target with
+        :attr:`~bayesreg.sampling.kernels.target.Target.shift`: a model discrepancy): ``u_b``
+        stays and the discrepancy takes up the FE interior's change, ``d' = d + H(phi) u_b -
+        H(phi') u_b``, so every node's displacement, and with it the likelihood, stays where
+        it was (:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`; one more
+        interior solve per move, no factorisation).  The moves then sample the parameters given ``u`` rather than given
         ``[u_b, d]``: the sufficient parametrisation beside the Gibbs step's ancillary one
         (Yu and Meng 2011, "To center or not to center", *JCGS* 20(3)).  The map is a shear
         (Jacobian 1) that the reverse move undoes, so the acceptance is the log-density's
