@@ -448,8 +448,9 @@ def _fe_interior(mesh, post, phi, u_b):
 def test_a_move_that_carries_the_displacement_keeps_every_node_where_it_was(modes):
     """:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`: from ``phi`` to ``phi'``
     with ``u_b`` kept and ``d' = d + H(phi) u_b - H(phi') u_b`` (the interiors by SciPy), every
-    node's displacement is unchanged, so is the data term, and the elastic prior's energy is
-    not; low rank, the change lies outside the modes' span.  The move back from ``phi'``
+    node's displacement is unchanged, so is the data term, and ``log p`` is not (the
+    priors see the new parameters and ``d'``); low rank, the change lies outside the modes'
+    span.  The move back from ``phi'``
     returns the start (a shear: Jacobian 1, its own reverse)."""
     from bayesreg.model.parameters import to_unconstrained
     from bayesreg.model.posterior import data_log_likelihood
@@ -483,6 +484,7 @@ def test_a_move_that_carries_the_displacement_keeps_every_node_where_it_was(mode
         assert np.abs(change).max() > 1e-3  # what the modes cannot take up
         np.testing.assert_allclose(np.asarray(post_d.discrepancy.basis).T @ change, 0.0, atol=1e-10)
     np.testing.assert_allclose(u_p[mesh.boundary], u[mesh.boundary], atol=1e-12)
+    assert abs(float(log_p(post_d, np.asarray(theta_p))[0]) - float(log_p(post_d, np.asarray(theta))[0])) > 1e-3
     w_back = displacement_proposal(target, w_p, eta_p, eta, jnp.asarray(fe_p), jnp.asarray(fe))
     np.testing.assert_allclose(np.asarray(w_back), np.asarray(w), atol=1e-10)
     with pytest.raises(ValueError, match="one row per interior node"):
