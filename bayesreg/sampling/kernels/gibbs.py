@@ -226,11 +226,11 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
         stays and the discrepancy takes up the FE interior's change, ``d' = d + H(phi) u_b -
         H(phi') u_b``, so every node's displacement, and with it the likelihood, stays where
         it was (:func:`~bayesreg.sampling.kernels.collapsed.displacement_proposal`; one more
-        interior solve per move, no factorisation).  The moves then sample the parameters given ``u`` rather than given
-        ``[u_b, d]``: the sufficient parametrisation beside the Gibbs step's ancillary one
-        (Yu and Meng 2011, "To center or not to center", *JCGS* 20(3)).  The map is a shear
-        (Jacobian 1) that the reverse move undoes, so the acceptance is the log-density's
-        ratio alone.
+        interior solve per move, no factorisation).  The moves then sample the parameters
+        given ``u`` rather than given ``[u_b, d]``: the sufficient parametrisation beside the
+        Gibbs step's ancillary one (Yu and Meng 2011, "To center or not to center", *JCGS*
+        20(3)).  The map is a shear (Jacobian 1) that the reverse move undoes, so the
+        acceptance is the log-density's ratio alone.
 
     Returns
     -------
