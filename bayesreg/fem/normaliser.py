@@ -47,6 +47,7 @@ for the tests and for :func:`bayesreg.model.posterior.prior_precision`.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -57,7 +58,7 @@ import scipy.sparse as sps
 
 __all__ = ["NormaliserData", "SparsePattern", "Surrogate", "normaliser_data", "dense_stiffness",
            "log_pdet_schur", "log_pdet_sparse", "build_surrogate", "surrogate_log_pdet",
-           "add_normaliser", "trace_inverse_interior", "SAFE_RATIO"]
+           "add_normaliser", "trace_inverse_interior", "sparse_logdet", "SAFE_RATIO"]
 
 #: Parameters below this fraction of the largest are not factorised (NaN; module docstring):
 #: such a stiffness is singular to round-off, and CHOLMOD would stop the program.
@@ -226,6 +227,73 @@ def _values(p: SparsePattern, klam, kmu, lam_g, mu_g, group):
     return jax.ops.segment_sum(v, p.dest, num_segments=p.rows.shape[0])
 
 
+def sparse_logdet(p: SparsePattern, values, *, host: bool | None = None):
+    """``log det A`` of the positive definite matrix of pattern ``p`` with stored values
+    ``values`` ``(nnz,)``, by CHOLMOD (``sparsax.logdet``); differentiable in ``values``
+    (reverse mode, by selected inversion).
+
+    sparsax's XLA handlers exist for the CPU alone.  With ``host`` (default: JAX's default
+    backend is not the CPU, e.g. a GPU) the factorisation runs on the host CPU through
+    :func:`jax.pure_callback` (chains mapped by ``vmap`` call it once per chain), its
+    gradient through a ``custom_vjp`` from the same selected inversion; the values travel
+    to the host and the result back.  The same numbers either way.
+
+    Raises
+    ------
+    jax.errors.JaxRuntimeError
+        CHOLMOD's factorisation failed (``A`` not positive definite), when the program runs.
+    """
+    import sparsax
+
+    if host is None:
+        host = jax.default_backend() != "cpu"
+    if not host:
+        return sparsax.logdet(p.rows, p.cols, values, n=p.n)
+    return _host_logdet(p.rows, p.cols, values, p.n)
+
+
+def _host_call(rows, cols, values, n: int, grad: bool):
+    """``(log det,)`` or ``(log det, d log det / d values)`` computed on the host CPU."""
+    import sparsax
+
+    def value(r, c, v):
+        return (sparsax.logdet(r, c, v, n=n),)
+
+    def value_grad(r, c, v):
+        return jax.value_and_grad(lambda x: sparsax.logdet(r, c, x, n=n))(v)
+
+    program = jax.jit(value_grad if grad else value)
+
+    def on_host(r, c, v):
+        cpu = jax.devices("cpu")[0]
+        out = program(*(jax.device_put(np.asarray(a), cpu) for a in (r, c, v)))
+        return tuple(np.asarray(o, np.float64) for o in out)
+
+    shapes = (jax.ShapeDtypeStruct((), jnp.float64),)
+    if grad:
+        shapes = shapes + (jax.ShapeDtypeStruct(values.shape, jnp.float64),)
+    return jax.pure_callback(on_host, shapes, rows, cols, values, vmap_method="sequential")
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _host_logdet(rows, cols, values, n):
+    return _host_call(rows, cols, values, n, grad=False)[0]
+
+
+def _host_logdet_fwd(rows, cols, values, n):
+    value, grad = _host_call(rows, cols, values, n, grad=True)
+    return value, (rows, cols, grad)
+
+
+def _host_logdet_bwd(n, res, ct):
+    rows, cols, grad = res
+    return (np.zeros(rows.shape, jax.dtypes.float0), np.zeros(cols.shape, jax.dtypes.float0),
+            ct * grad)
+
+
+_host_logdet.defvjp(_host_logdet_fwd, _host_logdet_bwd)
+
+
 def _flat(k):
     """Element blocks ``(M, 4, 4, 3, 3)`` flattened as the patterns index them."""
     return k.transpose(0, 1, 3, 2, 4).reshape(-1)
@@ -250,8 +318,6 @@ def log_pdet_sparse(data: NormaliserData, klam, kmu, lam_g, mu_g, group):
         where a parameter is not finite, not positive, or below :data:`SAFE_RATIO` times the
         largest (the matrices are then not factorised).
     """
-    import sparsax
-
     theta = jnp.concatenate([lam_g, mu_g])
     safe = jnp.all(jnp.isfinite(theta)) & jnp.all(theta > SAFE_RATIO * jnp.max(theta))
     lam_s = jnp.where(safe, lam_g, jnp.ones_like(lam_g))
@@ -259,7 +325,7 @@ def log_pdet_sparse(data: NormaliserData, klam, kmu, lam_g, mu_g, group):
     kl, km = _flat(klam), _flat(kmu)
 
     def logdet(p: SparsePattern):
-        return sparsax.logdet(p.rows, p.cols, _values(p, kl, km, lam_s, mu_s, group), n=p.n)
+        return sparse_logdet(p, _values(p, kl, km, lam_s, mu_s, group))
 
     value = 0.5 * logdet(data.grounded) - data.log_det_nj
     if data.interior.n:
@@ -281,8 +347,6 @@ def trace_inverse_interior(data: NormaliserData, klam, kmu, lam_g, mu_g, group) 
     ValueError
         No interior nodes, or the factorisation fails (non-finite result).
     """
-    import sparsax
-
     p = data.interior
     if p.n == 0:
         raise ValueError("tr(K_ii^-1) needs interior nodes")
@@ -290,7 +354,7 @@ def trace_inverse_interior(data: NormaliserData, klam, kmu, lam_g, mu_g, group) 
     lam_g, mu_g = jnp.asarray(lam_g, jnp.float64), jnp.asarray(mu_g, jnp.float64)
 
     def logdet(values):
-        return sparsax.logdet(p.rows, p.cols, values, n=p.n)
+        return sparse_logdet(p, values)
 
     grad = jax.grad(logdet)(_values(p, kl, km, lam_g, mu_g, group))
     trace = float(jnp.sum(grad[p.diag]))
