@@ -116,8 +116,11 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     with the normaliser's smooth surrogate built where the round starts
     (:func:`bayesreg.model.posterior.normaliser_surrogate`: exact there in value, its gradient
     close; an exact gradient costs a selected inversion per step), at most 100 steps, until a round
-    moves no parameter by more than 0.1% (at most :data:`SURROGATE_ROUNDS`); the mode's
-    ``log p`` is then the exact one.  With every node sampled (no interior,
+    moves no parameter by more than 0.1% (at most :data:`SURROGATE_ROUNDS`).  A round is kept
+    only where the exact ``log p`` rose: far from its centre the surrogate's quadratic part
+    grows without bound, and a round that followed it there is undone and the parameters
+    are optimised with the exact gradient from that round's start.  The mode's ``log p``
+    is the exact one.  With every node sampled (no interior,
     ``model.interior: sample``) the whole search runs with the surrogate built at
     ``theta0``'s parameters (without any normaliser the whole ``K``'s energy drives the
     parameters onto their lower edge), then the same rounds.  The per-element model, which
@@ -231,6 +234,8 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
             """Backtracking (Armijo) along ``-g`` from a step that moves the largest
             coordinate by 1 (mm or log units): the point, or ``None``."""
             g = np.where(mask, np.asarray(g), 0.0)
+            if not np.all(np.isfinite(g)):  # no direction to search along
+                return None
             gg, t = float(g @ g), 1.0 / max(float(np.abs(g).max()), 1e-300)
             for _ in range(60):
                 y = jnp.asarray(np.asarray(x) - t * g)
@@ -340,23 +345,38 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     logp_mode, exact_its = -float(res.fun), None
     if joint and exact and post.n_free:
         # the parameters alone with the normaliser: rounds of its surrogate built where each
-        # starts (the per-element model: the exact gradient, once)
-        exact_its = 0
-        for _ in range(SURROGATE_ROUNDS if surrogates else 1):
+        # starts, each kept only where the exact log p rose (the surrogate is exact at its
+        # centre, and its quadratic part grows without bound far from there); otherwise, and
+        # for the per-element model, the exact gradient from that round's start
+        exact_its, sl_p, exact_search = 0, slice(nb3, post.dim), not surrogates
+        for _ in range(SURROGATE_ROUNDS if surrogates else 0):
+            x = to_log(to_theta(x))  # inside the margins: where the surrogate is built
             before = to_theta(x)[nb3:]
-            data = ((width, normaliser_surrogate(post, before), jnp.asarray(True)) if surrogates
-                    else (width,))
-            x, _, res_p = maximise(normalised, x, slice(nb3, post.dim), 100, data)
+            data = (width, normaliser_surrogate(post, before), jnp.asarray(True))
+            x_new, lp_start, res_p = maximise(normalised, x, sl_p, 100, data)
             exact_its += int(res_p.nit)
+            # exact log p at both ends: the surrogate's values with it swapped for the exact
+            # normaliser (no program compiled for the whole exact log-density)
+            lp_start += float(_normaliser_gap(post, data[1], jnp.asarray(before)))
+            phi_new = jnp.asarray(lo + np.exp(np.asarray(x_new)[nb3:]))
+            lp_new = -float(res_p.fun) + float(_normaliser_gap(post, data[1], phi_new))
+            if not lp_new >= lp_start:  # (NaN too: parameters CHOLMOD is not given)
+                exact_search = True
+                break
+            x, logp_mode, last = x_new, lp_new, data
             if np.max(np.abs(np.log(to_theta(x)[nb3:] / before))) < 1e-3:
                 break
-        # the exact log p: the last round's value with its surrogate swapped for the exact
-        # normaliser (no program compiled for the whole exact log-density)
-        if surrogates:
-            phi = jnp.asarray(to_theta(x)[nb3:])
-            logp_mode = -float(res_p.fun) + float(_normaliser_gap(post, data[1], phi))
-        else:
-            logp_mode = float(jax.jit(in_log(with_normaliser))(jnp.asarray(x), zeros, (width,))[0])
+        if exact_search:  # (the rounds' budget left, or one round's for the per-element model)
+            budget = max(100, 100 * SURROGATE_ROUNDS - exact_its) if surrogates else 100
+            x, _, res_p = maximise(normalised, x, sl_p, budget, (width,))
+            exact_its += int(res_p.nit)
+            logp_mode, last = -float(res_p.fun), (width,)
+        inside = to_log(to_theta(x))
+        if not np.array_equal(inside, np.asarray(x)):  # a parameter beyond its margin: the
+            x = inside  # exact log p where the search's point is returned
+            logp_mode = -float(steps[normalised][2](jnp.asarray(x), last))
+            if len(last) > 1:
+                logp_mode += float(_normaliser_gap(post, last[1], jnp.asarray(to_theta(x)[nb3:])))
     theta = to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])
     return ModeSearch(theta, float(start), logp_mode, int(nit), str(res.message), bool(joint),
                       float(search_barrier), exact_its)
