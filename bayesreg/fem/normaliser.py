@@ -238,6 +238,19 @@ def sparse_logdet(p: SparsePattern, values, *, host: bool | None = None):
     gradient through a ``custom_vjp`` from the same selected inversion; the values travel
     to the host and the result back.  The same numbers either way.
 
+    Parameters
+    ----------
+    p : SparsePattern
+        The matrix's upper triangle (``rows``, ``cols``: ``(nnz,)``; order ``p.n``).
+    values : (nnz,) float64 array
+        Its stored values ([lam] mm: stiffness entries).
+    host : bool, optional
+        Force (``True``) or forbid (``False``) the host route; default by the backend.
+
+    Returns
+    -------
+    () float64 array
+
     Raises
     ------
     jax.errors.JaxRuntimeError
