@@ -265,21 +265,23 @@ def sparse_logdet(p: SparsePattern, values, *, host: bool | None = None):
     return _host_logdet(p.rows, p.cols, values, p.n)
 
 
-def _host_call(rows, cols, values, n: int, grad: bool):
-    """``(log det,)`` or ``(log det, d log det / d values)`` computed on the host CPU."""
+@functools.partial(jax.jit, static_argnames=("n", "grad"))
+def _on_cpu(r, c, v, *, n: int, grad: bool):
+    """``(log det,)`` or ``(log det, d log det / d values)``: the CPU program of the host
+    route, compiled once per matrix order (not once per program that calls it)."""
     import sparsax
 
-    def value(r, c, v):
-        return (sparsax.logdet(r, c, v, n=n),)
-
-    def value_grad(r, c, v):
+    if grad:
         return jax.value_and_grad(lambda x: sparsax.logdet(r, c, x, n=n))(v)
+    return (sparsax.logdet(r, c, v, n=n),)
 
-    program = jax.jit(value_grad if grad else value)
+
+def _host_call(rows, cols, values, n: int, grad: bool):
+    """``(log det,)`` or ``(log det, d log det / d values)`` computed on the host CPU."""
 
     def on_host(r, c, v):
         cpu = jax.devices("cpu")[0]
-        out = program(*(jax.device_put(np.asarray(a), cpu) for a in (r, c, v)))
+        out = _on_cpu(*(jax.device_put(np.asarray(a), cpu) for a in (r, c, v)), n=n, grad=grad)
         return tuple(np.asarray(o, np.float64) for o in out)
 
     shapes = (jax.ShapeDtypeStruct((), jnp.float64),)

@@ -345,8 +345,8 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     logp_mode, exact_its = -float(res.fun), None
     if joint and exact and post.n_free:
         # the parameters alone with the normaliser: rounds of its surrogate built where each
-        # starts, each kept only where the exact log p rose (the surrogate is exact at its
-        # centre, and its quadratic part grows without bound far from there); otherwise, and
+        # starts, each kept only where the exact log p did not fall (the surrogate is exact at
+        # its centre, and its quadratic part grows without bound far from there); otherwise, and
         # for the per-element model, the exact gradient from that round's start
         exact_its, sl_p, exact_search = 0, slice(nb3, post.dim), not surrogates
         for _ in range(SURROGATE_ROUNDS if surrogates else 0):
