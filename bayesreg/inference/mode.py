@@ -178,16 +178,20 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     grouped = post.normaliser.grounded.unit is not None
 
     def with_normaliser(theta, guess, data):
-        """``log p`` with the normaliser: with ``data = (width, surrogate, on)``, its surrogate
-        where ``on`` (``()`` bool; all traced, so that every stage and round shares one
-        compiled step) and none elsewhere; the exact one where ``data`` is ``(width,)``."""
+        """``log p`` with the normaliser.  With ``data = (width, surrogate, on, exact)``
+        (``on``, ``exact``: ``()`` bools; all traced, so that every stage, round and the exact
+        search share one compiled step): the exact normaliser where ``exact`` (a
+        ``lax.cond``: its factorisations run only then), else its surrogate where ``on`` and
+        none elsewhere.  Where ``data`` is ``(width,)`` (no surrogate: the per-element model),
+        the exact one."""
         lp, aux = plain(theta, guess, data)
         phi = split_position(post, theta)[1]
         if len(data) == 1:
             return add_normaliser(lp, log_normaliser(post, phi)), aux
-        _, surrogate, on = data
-        ln = surrogate_normaliser(post, surrogate, phi)
-        return add_normaliser(lp, jnp.where(on, ln, 0.0)), aux
+        _, surrogate, on, exact_now = data
+        ln = jax.lax.cond(exact_now, lambda: log_normaliser(post, phi),
+                          lambda: jnp.where(on, surrogate_normaliser(post, surrogate, phi), 0.0))
+        return add_normaliser(lp, ln), aux
 
     joint = optimize_parameters
     free = slice(0, post.dim if joint else nb3)
@@ -322,7 +326,8 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     surrogates = exact and grouped and post.n_free
     if surrogates:  # one objective for every stage: the surrogate (at theta0's parameters) on or off
         objective = normalised
-        data = (width, normaliser_surrogate(post, to_theta(x)[nb3:]), jnp.asarray(exact_joint))
+        data = (width, normaliser_surrogate(post, to_theta(x)[nb3:]), jnp.asarray(exact_joint),
+                jnp.asarray(False))
     elif exact_joint:
         objective = normalised
     wide = wide_barrier_mm is not None and wide_barrier_mm > search_barrier
@@ -352,7 +357,7 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         for _ in range(SURROGATE_ROUNDS if surrogates else 0):
             x = to_log(to_theta(x))  # inside the margins: where the surrogate is built
             before = to_theta(x)[nb3:]
-            data = (width, normaliser_surrogate(post, before), jnp.asarray(True))
+            data = (width, normaliser_surrogate(post, before), jnp.asarray(True), jnp.asarray(False))
             x_new, lp_start, res_p = maximise(normalised, x, sl_p, 100, data)
             exact_its += int(res_p.nit)
             # exact log p at both ends: the surrogate's values with it swapped for the exact
@@ -365,20 +370,21 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
             if not lp_new >= lp_start - 1e-8 * max(abs(lp_start), 1.0):
                 exact_search = True
                 break
-            x, logp_mode, last = x_new, lp_new, data
+            x, logp_mode = x_new, lp_new
             if np.max(np.abs(np.log(to_theta(x)[nb3:] / before))) < 1e-3:
                 break
+        # the exact normaliser: on the surrogates' step (one compiled program whether or not
+        # the rounds fall back), or the per-element model's own
+        exact_data = data[:2] + (jnp.asarray(True), jnp.asarray(True)) if surrogates else (width,)
         if exact_search:  # (the rounds' budget left, or one round's for the per-element model)
             budget = max(100, 100 * SURROGATE_ROUNDS - exact_its) if surrogates else 100
-            x, _, res_p = maximise(normalised, x, sl_p, budget, (width,))
+            x, _, res_p = maximise(normalised, x, sl_p, budget, exact_data)
             exact_its += int(res_p.nit)
-            logp_mode, last = -float(res_p.fun), (width,)
+            logp_mode = -float(res_p.fun)
         inside = to_log(to_theta(x))
         if not np.array_equal(inside, np.asarray(x)):  # a parameter beyond its margin: the
             x = inside  # exact log p where the search's point is returned
-            logp_mode = -float(steps[normalised][2](jnp.asarray(x), last))
-            if len(last) > 1:
-                logp_mode += float(_normaliser_gap(post, last[1], jnp.asarray(to_theta(x)[nb3:])))
+            logp_mode = -float(steps[normalised][2](jnp.asarray(x), exact_data))
     theta = to_theta(x) if joint else np.concatenate([x[:nb3], theta0[nb3:]])
     return ModeSearch(theta, float(start), logp_mode, int(nit), str(res.message), bool(joint),
                       float(search_barrier), exact_its)
