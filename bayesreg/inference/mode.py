@@ -23,7 +23,7 @@ from bayesreg.model.posterior import (
 from bayesreg.inference.targets import logdensity_fn
 
 __all__ = ["ModeSearch", "find_mode", "MODE_BARRIER_MM", "MODE_WIDE_BARRIER_MM", "MODE_VOLUME_RATIO",
-           "SURROGATE_ROUNDS"]
+           "MODE_STALL_NATS", "MODE_STALL_ITERATIONS", "SURROGATE_ROUNDS"]
 
 MODE_BARRIER_MM = 1.0
 """Width (mm) of the skull barrier that :func:`find_mode` adds to a model without one."""
@@ -34,6 +34,11 @@ MODE_WIDE_BARRIER_MM = 3.0
 MODE_VOLUME_RATIO = 0.1
 """Volume ratio below which :func:`find_mode`'s objective bends down against an element's
 inversion (:func:`bayesreg.mesh.constraints.inversion_barrier`)."""
+
+MODE_STALL_NATS, MODE_STALL_ITERATIONS = 0.1, 100
+"""An L-BFGS stage of :func:`find_mode` stops once its best ``log p`` gained less than
+``MODE_STALL_NATS`` over the last ``MODE_STALL_ITERATIONS`` iterations: a crawl along a ridge,
+whose gain is far below the chains' own spread of ``log p`` (about ``sqrt(dim / 2)`` nats)."""
 
 SURROGATE_ROUNDS = 4
 """At most this many rounds of the parameters' search with the normaliser's surrogate
@@ -53,8 +58,9 @@ class ModeSearch(NamedTuple):
     iterations : int
         L-BFGS iterations, all stages.
     message : str
-        Why the search stopped (``"converged: ..."``, ``"reached N iterations"``, or that the
-        line search found no feasible step: a hard constraint); why each stage stopped
+        Why the search stopped (``"converged: ..."``, ``"stalled: ..."``
+        (:data:`MODE_STALL_NATS`), ``"reached N iterations"``, or that the line search found
+        no feasible step: a hard constraint); why each stage stopped
         (``"wide barrier (3 mm), u_b alone: ...; u_b alone: ...; joint: ..."``).
     parameters_optimized : bool
     search_barrier_mm : float
@@ -108,7 +114,9 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
     objective has :func:`bayesreg.mesh.constraints.inversion_barrier` below the volume ratio
     :data:`MODE_VOLUME_RATIO` (on the hard ``J > 0`` alone a step toward the mode would
     crush an element and stall there).  Where L-BFGS's line search gives up, a backtracking
-    gradient step is taken and L-BFGS starts afresh.  The barrier's own wall
+    gradient step is taken and L-BFGS starts afresh.  Each stage also stops where it stalls:
+    less than :data:`MODE_STALL_NATS` gained over :data:`MODE_STALL_ITERATIONS` iterations
+    (a crawl along a ridge, far below the chains' spread).  The barrier's own wall
     (:func:`bayesreg.mesh.constraints.skull_barrier`) is off in the search: there the barrier's
     huge finite values shorten the step, where ``-inf`` would stop the search.  With
     ``exact`` the search runs without the normaliser (it depends on the parameters only),
@@ -255,8 +263,15 @@ def find_mode(post: Posterior, theta0, *, iterations: int = 1000, optimize_param
         # typed (same dtypes): made strong here so that `step` compiles once, not twice
         state = jax.tree.map(lambda a: jnp.asarray(a, dtype=a.dtype), state)
         best_x, best_f, message, nit = x, np.inf, f"reached {maxiter} iterations", 0
-        fallbacks = 0
+        fallbacks, history = 0, []  # best_f after each iteration
         for nit in range(1, maxiter + 1):
+            history.append(best_f)
+            if nit > MODE_STALL_ITERATIONS and \
+                    history[-1 - MODE_STALL_ITERATIONS] - best_f < MODE_STALL_NATS:
+                message = (f"stalled: gained < {MODE_STALL_NATS:g} nats over the last "
+                           f"{MODE_STALL_ITERATIONS} iterations")
+                nit -= 1  # (this one not run)
+                break
             x_new, state, v, g = step(x, state)
             v = float(v)  # the value at x
             if nit == 1:  # the start's value from the first step (no separate compilation of neg)
