@@ -66,8 +66,9 @@ def elastic_fit(mesh, w, target, lam_t, mu_t):
 
 def parameters_given(post, u, phi0):
     """The elastic parameters' conditional mode given every node's displacement ``u``
-    ``(N, 3)`` mm: ``argmax_phi log p(u_b, d, phi)`` with ``d = u_i - H(phi) u_b`` (without a
-    model discrepancy, ``u_b`` alone: the paper's interior is the FE solve), the exact
+    ``(N, 3)`` mm: ``argmax_phi log p(u_b, d, phi)`` with ``d = u_i - H(phi) u_b`` (low rank: its
+    projection on the modes; without a model discrepancy, ``u_b`` alone: the paper's
+    interior is the FE solve), the exact
     normaliser included; the target of the collapsed moves that hold ``u``.  L-BFGS-B over
     ``log phi`` from ``phi0`` ``(n_free,)``, the prior's support shrunk by 0.1%.  Returns the
     groups' ``lam / mu`` ``(G,)`` at the mode, NaN (and a message) where the search fails.  Given the truth's ``u`` it says which ratios
@@ -92,6 +93,8 @@ def parameters_given(post, u, phi0):
         phi = jnp.exp(x)
         interior = lp(jnp.concatenate([u_b, jnp.zeros(n_d), phi]), zeros)[1].interior
         d = (u_i - interior).ravel() if n_d else jnp.zeros(0)
+        if n_d and post.discrepancy.basis is not None:  # low rank: its coordinates in the modes
+            d = d @ post.discrepancy.basis
         return -lp(jnp.concatenate([u_b, d, phi]), interior)[0]
 
     lo, hi = np.asarray(post.prior.r1), np.asarray(post.prior.r2)
