@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,7 @@ from bayesreg.checkpoint import Checkpoint
 from bayesreg.fem.element import stiffness_matrix
 from bayesreg.data.labels import TISSUE_LABELS
 from bayesreg.mesh.warp import interpolation_matrix
-from bayesreg.outputs.fields import mesh_best_fit
+from bayesreg.outputs.fields import mesh_best_fit, node_slots
 from bayesreg.model.problem import assemble
 from bayesreg.outputs.printed import reference_method
 
@@ -64,80 +65,90 @@ def elastic_fit(mesh, w, target, lam_t, mu_t):
     return (w @ (p @ u_b).reshape(-1, 3))
 
 
-def parameters_given(post, u, phi0):
-    """The elastic parameters' conditional mode given every node's displacement ``u``
-    ``(N, 3)`` mm: ``argmax_phi log p(u_b, d, phi)`` with ``d = u_i - H(phi) u_b`` (low rank: its
-    projection on the modes; without a model discrepancy, ``u_b`` alone: the paper's
-    interior is the FE solve), the exact
-    normaliser included; the target of the collapsed moves that hold ``u``.  L-BFGS-B over
-    ``log phi`` from ``phi0`` ``(n_free,)``, the prior's support shrunk by 0.1%.  Returns the
-    groups' ``lam / mu`` ``(G,)`` at the mode, NaN (and a message) where the search fails.  Given the truth's ``u`` it says which ratios
-    the model itself reads from the true field (apart from the images and the sampler)."""
+def _fe_interior(post, lp, u_b, phi):
+    """The FE interior solve ``H(phi) u_b`` ``(n_i, 3)`` mm (``Aux.interior``: without the
+    discrepancy) through ``lp``, a :func:`~bayesreg.inference.targets.logdensity_fn`."""
+    import jax.numpy as jnp
+
+    n_d = post.n_displacement - 3 * post.n_boundary
+    theta = jnp.concatenate([jnp.ravel(u_b), jnp.zeros(n_d), phi])
+    return lp(theta, jnp.zeros((post.op.n_interior, 3)))[1].interior
+
+
+def parameters_given(problem, us, phi0):
+    """The elastic parameters' conditional mode given every node's displacement, for each
+    ``u`` ``(N, 3)`` mm of ``us``: ``argmax_phi log p(u_b, d, phi)`` with ``d = u_i - H(phi)
+    u_b`` (low rank: its projection on the modes; without a model discrepancy, ``u_b`` alone:
+    the paper's interior is the FE solve), the exact normaliser included; the target of the
+    collapsed moves that hold ``u``.  L-BFGS-B over ``log phi`` from ``phi0`` ``(n_free,)``,
+    the prior's support shrunk by 0.1%, one compiled objective for every ``u``.  Returns the
+    groups' ``lam / mu`` ``(len(us), G)`` at the modes, a row of NaN (and a message) where a
+    search fails.  Given the truth's ``u`` it says which ratios the model itself reads from
+    the true field (apart from the images and the sampler)."""
     import jax
     import jax.numpy as jnp
     import scipy.optimize as so
 
     from bayesreg.inference.targets import logdensity_fn
 
-    perm, nb = np.asarray(post.perm), post.n_boundary
-    blocks = np.empty_like(u)
-    blocks[perm] = u
-    u_b, u_i = jnp.asarray(blocks[:nb].ravel()), jnp.asarray(blocks[nb:])
+    post = problem.posterior
+    boundary, interior_nodes = node_slots(problem)
     lp = logdensity_fn(post, exact=True, rtol=1e-10, maxiter=5000)
-    zeros = jnp.zeros((post.op.n_interior, 3))
-    n_d = post.n_displacement - 3 * nb
+    low_rank = post.discrepancy is not None and post.discrepancy.basis is not None
 
     @jax.jit
-    @jax.value_and_grad
-    def neg(x):
+    @partial(jax.value_and_grad, argnums=0)
+    def neg(x, u_b, u_i):
         phi = jnp.exp(x)
-        interior = lp(jnp.concatenate([u_b, jnp.zeros(n_d), phi]), zeros)[1].interior
-        d = (u_i - interior).ravel() if n_d else jnp.zeros(0)
-        if n_d and post.discrepancy.basis is not None:  # low rank: its coordinates in the modes
+        interior = _fe_interior(post, lp, u_b, phi)
+        d = (u_i - interior).ravel() if post.discrepancy is not None else jnp.zeros(0)
+        if low_rank:  # its coordinates in the modes
             d = d @ post.discrepancy.basis
-        return -lp(jnp.concatenate([u_b, d, phi]), interior)[0]
+        return -lp(jnp.concatenate([u_b.ravel(), d, phi]), interior)[0]
 
-    lo, hi = np.asarray(post.prior.r1), np.asarray(post.prior.r2)
-    bounds = [(np.log(max(a, 0.0) + 1e-3 * (b - max(a, 0.0))), np.log(b - 1e-3 * (b - max(a, 0.0))))
-              for a, b in zip(lo, hi)]
-    res = so.minimize(lambda x: tuple(np.asarray(v, float) for v in neg(jnp.asarray(x))),
-                      np.clip(np.log(phi0), *np.transpose(bounds)), jac=True, method="L-BFGS-B",
-                      bounds=bounds)
-    full = np.asarray(post.base, float).copy()
-    g = len(full) // 2
-    if not res.success:  # (without a discrepancy a step can put the FE interior in the skull)
-        print(f"mismatch.py: the parameters' conditional mode was not found: {res.message}",
-              file=sys.stderr)
-        return np.full(g, np.nan)
-    full[np.asarray(post.free_index)] = np.exp(res.x)
-    return full[:g] / full[g:]
+    lo, hi = np.maximum(np.asarray(post.prior.r1), 0.0), np.asarray(post.prior.r2)
+    bounds = np.log(np.stack([lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo)], axis=1))
+    full, g = np.asarray(post.base, float), len(post.base) // 2
+    out = np.full((len(us), g), np.nan)
+    for k, u in enumerate(us):
+        u_b, u_i = jnp.asarray(u[boundary]), jnp.asarray(u[interior_nodes])
+        res = so.minimize(lambda x: tuple(np.asarray(v, float) for v in neg(jnp.asarray(x), u_b, u_i)),
+                          np.clip(np.log(phi0), bounds[:, 0], bounds[:, 1]), jac=True,
+                          method="L-BFGS-B", bounds=bounds)
+        if not res.success:  # (without a discrepancy a step can put the FE interior in the skull)
+            print(f"mismatch.py: the parameters' conditional mode was not found: {res.message}",
+                  file=sys.stderr)
+            continue
+        phi = full.copy()
+        phi[np.asarray(post.free_index)] = np.exp(res.x)
+        out[k] = phi[:g] / phi[g:]
+    return out
 
 
-def posterior_mean_u(path: Path, post, draws: int = 30, seed: int = 0):
+def posterior_mean_u(path: Path, problem, draws: int = 30, seed: int = 0):
     """Every node's displacement ``(N, 3)`` mm averaged over ``draws`` draws of the run's
     ``posterior.nc`` (``u_b``, and ``u_i`` the FE solve at the draw's parameters plus its
     discrepancy ``d``)."""
     import arviz as az
+    import jax
     import jax.numpy as jnp
 
     from bayesreg.inference.targets import logdensity_fn
+    from bayesreg.model.posterior import full_displacement
 
+    post = problem.posterior
     p = az.from_netcdf(path / "posterior.nc").posterior
     lp = logdensity_fn(post, rtol=1e-10, maxiter=5000)
-    nb, perm = post.n_boundary, np.asarray(post.perm)
-    zeros = jnp.zeros((post.op.n_interior, 3))
-    n_d = post.n_displacement - 3 * nb
+    fe = jax.jit(lambda u_b, phi: _fe_interior(post, lp, u_b, phi))
     names = [n for n in ("lam", "mu") if n in p]
-    rng, out = np.random.default_rng(seed), []
+    rng, total = np.random.default_rng(seed), 0.0
     for _ in range(draws):
         c, k = rng.integers(p.sizes["chain"]), rng.integers(p.sizes["draw"])
         u_b = p.u_b.values[c, k]
         phi = np.concatenate([np.atleast_1d(p[n].values[c, k]) for n in names])
-        interior = lp(jnp.concatenate([jnp.asarray(u_b.ravel()), jnp.zeros(n_d), jnp.asarray(phi)]),
-                      zeros)[1].interior
-        u_i = np.asarray(interior) + (p.d.values[c, k] if "d" in p else 0.0)
-        out.append(np.concatenate([u_b, u_i])[perm])
-    return np.mean(out, axis=0)
+        u_i = np.asarray(fe(jnp.asarray(u_b), jnp.asarray(phi))) + (p.d.values[c, k] if "d" in p else 0.0)
+        total = total + np.asarray(full_displacement(post, u_b, u_i))
+    return total / draws
 
 
 def _by_tissue(r):
@@ -167,9 +178,10 @@ def row(path: Path) -> dict:
     scan = {r: mse(elastic_fit(mesh, w, true_v, np.full(3, r), np.ones(3)))
             for r in (1e-3, 0.1, 1.0, 10.0, 100.0)}
     edge = [k for k, v in (info.get("identification") or {}).items() if v.get("at_prior_edge")]
-    post = assemble(ckpt.load_config(), data).posterior
-    given_truth = parameters_given(post, truth.u, np.asarray(post.phi_ref))
-    given_mean = parameters_given(post, posterior_mean_u(path, post), np.asarray(post.phi_ref))
+    problem = assemble(ckpt.load_config(), data)
+    given_truth, given_mean = parameters_given(
+        problem, [np.asarray(truth.u), posterior_mean_u(path, problem)],
+        np.asarray(problem.posterior.phi_ref))
     return {
         "run": path.name, "t_s_prior": info["config"]["model"].get("t_s_prior"),
         "mse": errors["brain"]["mse_mm2"], "q95_boundary": {
