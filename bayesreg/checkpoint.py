@@ -219,8 +219,10 @@ class Checkpoint:
                              "the problem cannot be read back") from exc
 
     def save_init(self, init: Initialisation) -> None:
+        anchor = {} if init.anchor is None else {"anchor": init.anchor}
         savez_atomic(self.dir / "init.npz", x0=init.x0, center=init.center, blocked=init.blocked,
-                     info=np.array(dumps_json(init.info, default=float)), **_numbered("sigma", init.sigma))
+                     info=np.array(dumps_json(init.info, default=float)), **_numbered("sigma", init.sigma),
+                     **anchor)
 
     def load_init(self) -> Initialisation | None:
         """The run's starts and proposal scales, or ``None`` if they were never saved."""
@@ -230,7 +232,8 @@ class Checkpoint:
         with _reading(path):
             z = np.load(path, allow_pickle=False)
             return Initialisation(z["x0"], z["center"], tuple(_read_numbered(z, "sigma")),
-                                  bool(z["blocked"]), json.loads(str(z["info"])))
+                                  bool(z["blocked"]), json.loads(str(z["info"])),
+                                  z["anchor"] if "anchor" in z.files else None)
 
     # ---- sampler progress ----
     def on_chunk(self, ckpt: SamplerCheckpoint, out) -> None:

@@ -20,7 +20,7 @@ from bayesreg.jaxconfig import configure_jax
 from bayesreg.outputs.result import RunResult
 from bayesreg.outputs.write import write_outputs
 from bayesreg.model.posterior import elastic_groups
-from bayesreg.model.problem import Problem, assemble, make_data
+from bayesreg.model.problem import Problem, assemble, at_start, make_data
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampling.driver import SamplerResult, sample
 from bayesreg.stages import Stages
@@ -52,6 +52,7 @@ def sample_problem(problem: Problem, cfg: Config, init: Initialisation | None = 
     init : Initialisation
     """
     init = init or initialise(problem, cfg)
+    problem = at_start(problem, cfg, init)
     post = problem.posterior
     nb3 = post.n_displacement
 
@@ -218,6 +219,7 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
                 stages.tell(starts_line(init.info, len(init.x0)))
             if cfg.output.checkpoint:
                 ckpt.save_init(init)
+        problem = at_start(problem, cfg, init)
         resumable = cfg.output.checkpoint
         state = ckpt.load_state() if resume is not None else None
         warm = ckpt.load_warmup() if resume is not None and state is None else None
@@ -278,6 +280,11 @@ def starts_line(info: dict, chains: int) -> str:
                  f"{info['iterations']} iterations ({info['message']})")
     else:
         line += f", {info.get('method', '?')}"
+    orth = info.get("orthogonal_search")
+    if orth:
+        line += (f"; then, the discrepancy orthogonal to the sensitivities there, log p "
+                 f"{orth['logp_start']:.6g} -> {orth['logp_mode']:.6g} in {orth['iterations']} "
+                 "iterations")
     return line
 
 

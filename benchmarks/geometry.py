@@ -64,6 +64,9 @@ def report(path: Path) -> None:
         raise SystemExit(f"{path}: no checkpoint/init.npz (the run needs output.checkpoint: true)")
     problem = assemble(ckpt.load_config(), ckpt.load_problem())
     post = problem.posterior
+    if ckpt.load_config().model.discrepancy_prior.orthogonal:
+        raise SystemExit(f"{path}: an orthogonal discrepancy's posterior.nc holds the displacing "
+                         "part P d, not the sampled d of the chains' coordinates")
     factor, center = init.sigma[0], init.center
     if np.ndim(factor) != 2:
         raise SystemExit(f"{path}: no Laplace whitening (sampler.proposal is not laplace)")

@@ -42,7 +42,7 @@ from bayesreg.fem.element import stiffness_matrix
 from bayesreg.data.labels import TISSUE_LABELS
 from bayesreg.mesh.warp import interpolation_matrix
 from bayesreg.outputs.fields import mesh_best_fit, node_slots
-from bayesreg.model.problem import assemble
+from bayesreg.model.problem import assemble, at_start
 from bayesreg.outputs.printed import reference_method
 
 
@@ -178,7 +178,7 @@ def row(path: Path) -> dict:
     scan = {r: mse(elastic_fit(mesh, w, true_v, np.full(3, r), np.ones(3)))
             for r in (1e-3, 0.1, 1.0, 10.0, 100.0)}
     edge = [k for k, v in (info.get("identification") or {}).items() if v.get("at_prior_edge")]
-    problem = assemble(ckpt.load_config(), data)
+    problem = at_start(assemble(ckpt.load_config(), data), ckpt.load_config(), ckpt.load_init())
     given_truth, given_mean = parameters_given(
         problem, [np.asarray(truth.u), posterior_mean_u(path, problem)],
         np.asarray(problem.posterior.phi_ref))

@@ -59,7 +59,7 @@ from bayesreg.config import load_config, override_config
 from bayesreg.inference.initialisation import initialise
 from bayesreg.sampling.kernels import gibbs, rwmh
 from bayesreg.model.posterior import log_density
-from bayesreg.model.problem import assemble, make_data
+from bayesreg.model.problem import assemble, at_start, make_data
 from bayesreg.sampling.driver import sample
 from bayesreg.inference.targets import (
     cg_preconditioner, dense_preconditioning, gradient_target, make_logdensity, rw_preconditioner)
@@ -195,7 +195,7 @@ def run_problem(run_dir: Path, kernel: str, overrides=()):
         raise ValueError(f"--run {run_dir} was started for {base.sampler.kind}: its starts and "
                          f"preconditioner do not fit {kernel}")
     cfg = override_config(base, list(overrides)) if overrides else base
-    return cfg, assemble(cfg, ckpt.load_problem()), init
+    return cfg, at_start(assemble(cfg, ckpt.load_problem()), cfg, init), init
 
 
 def with_chains(cfg, n: int):

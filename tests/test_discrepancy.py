@@ -307,11 +307,15 @@ def _images():
 
 
 @pytest.mark.slow
-def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, capsys, tiny_mesh):
+@pytest.mark.parametrize("orthogonal", [False, True])
+def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, capsys, tiny_mesh,
+                                                                      orthogonal):
     """``model.discrepancy: interior`` end to end on the tiny quickstart: ``d`` and its rms in
     ``posterior.nc``, the amplitude map and figure, ``run.json["discrepancy"]``, the printed
     line; the draws that ``export`` and ``apply`` rebuild (the FE solve by SciPy, plus each
-    draw's ``d``) average to ``mesh.vtu``'s nodal mean."""
+    draw's ``d``) average to ``mesh.vtu``'s nodal mean.  Orthogonal: the written ``d`` is
+    the part that displaces the interior, ``K0_ii``-orthogonal to the sensitivities at the
+    saved central start."""
     import arviz as az
     import meshio
 
@@ -320,7 +324,8 @@ def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, c
 
     out = tmp_path / "run"
     sets = TINY + [f"mesh.file={tiny_mesh}", "model.discrepancy=interior", "sampler.max_draws=10",
-                   "sampler.min_draws=10", "sampler.warmup_steps=20"]
+                   "sampler.min_draws=10", "sampler.warmup_steps=20",
+                   f"model.discrepancy_prior.orthogonal={str(orthogonal).lower()}"]
     assert main(["run", "configs/quickstart.yaml", "--out", str(out)]
                 + sum((["--set", s] for s in sets), [])) == 0
     printed = capsys.readouterr().out
@@ -347,10 +352,23 @@ def test_a_run_with_a_discrepancy_writes_its_draws_map_and_amplitude(tmp_path, c
     np.testing.assert_allclose(u.mean(axis=0), mesh.point_data["u_mean"], atol=1e-5)
     np.testing.assert_allclose(u[:, interior] - nodal_field_draws(rp._replace(d=None), np.arange(30))[:, interior],
                                rp.d, atol=1e-12)
+    if orthogonal:
+        from bayesreg.checkpoint import Checkpoint
+        from bayesreg.model.problem import assemble, at_start
+
+        ckpt = Checkpoint(out)
+        init = ckpt.load_init()
+        assert "orthogonal_search" in info["init"]  # the search went on under the model
+        problem = at_start(assemble(ckpt.load_config(), ckpt.load_problem()), ckpt.load_config(), init)
+        assert init.anchor.shape == (problem.posterior.n_boundary, 3)
+        dual = np.asarray(problem.posterior.discrepancy.dual)
+        # every draw's d is K0-orthogonal to S: G^-1 S^T K0 d = dual^T d = 0
+        flat = d.reshape(-1, d.shape[2] * 3)
+        assert np.all(np.abs(flat @ dual) <= 1e-9 * (np.abs(flat) @ np.abs(dual)))
 
 
-@pytest.mark.parametrize("modes", [None, MODES])
-def test_the_collapsed_moves_gaussian_of_u_b_and_d_is_the_gauss_newton_step(modes):
+@pytest.mark.parametrize("modes, orthogonal", [(None, False), (MODES, False), (None, True)])
+def test_the_collapsed_moves_gaussian_of_u_b_and_d_is_the_gauss_newton_step(modes, orthogonal):
     """The collapsed moves' Gaussian of ``x = [u_b, d]`` (``[u_b, c]`` low rank) given the
     parameters and ``tau``, from the likelihood linearised in the nodal displacement at
     ``x0`` (:func:`nodal_laplace_likelihood` of :func:`similarity_curvature`, as a run makes
@@ -364,6 +382,8 @@ def test_the_collapsed_moves_gaussian_of_u_b_and_d_is_the_gauss_newton_step(mode
 
     disc_arg = (1.0, 0.05) if modes is None else (1.0, 0.05, modes)
     mesh, _, post_d = _posteriors(shift=1, discrepancy=disc_arg)
+    if orthogonal:  # the interior moves by P d
+        post_d, _ = _orthogonal(post_d, mesh)
     n = post_d.n_displacement
     rng = np.random.default_rng(11)
     x0 = np.r_[0.3 * rng.normal(size=3 * len(mesh.boundary)), 0.2 * rng.normal(size=n - 3 * len(mesh.boundary))]
@@ -373,7 +393,7 @@ def test_the_collapsed_moves_gaussian_of_u_b_and_d_is_the_gauss_newton_step(mode
                          condensed=False, likelihood=lik)
     assert target.mixture is not None
     disc = post_d.discrepancy
-    d0 = discrepancy_of(post_d, jnp.asarray(theta))
+    d0 = discrepancy_of(post_d, jnp.asarray(theta), projected=False)  # the prior's d
     tau = float(disc.shape) / (float(disc.rate) + float(discrepancy_log_prior(post_d, d0)[1]))
     mean, chol = target.conditional(to_unconstrained(post_d.prior, jnp.asarray(PHI)), tau)
     prec = np.asarray(chol @ chol.T)
@@ -385,7 +405,7 @@ def test_the_collapsed_moves_gaussian_of_u_b_and_d_is_the_gauss_newton_step(mode
     def logp_tau(x):
         th = jnp.concatenate([x, jnp.asarray(PHI)])
         return (log_density(post_d, th, zeros, rtol=1e-13)[0]
-                + discrepancy_mixture_log_ratio(post_d, discrepancy_of(post_d, th), tau))
+                + discrepancy_mixture_log_ratio(post_d, discrepancy_of(post_d, th, projected=False), tau))
 
     grad = np.asarray(jax.grad(logp_tau)(jnp.asarray(x0)))
     np.testing.assert_allclose(np.asarray(mean), x0 + np.linalg.solve(prec, grad), rtol=1e-7,
@@ -489,3 +509,121 @@ def test_a_move_that_carries_the_displacement_keeps_every_node_where_it_was(mode
     np.testing.assert_allclose(np.asarray(w_back), np.asarray(w), atol=1e-10)
     with pytest.raises(ValueError, match="one row per interior node"):
         target.shift(theta[:n_d], jnp.zeros((len(mesh.interior) + 1, 3)))
+
+
+U_B_SENS = 0.5  # amplitude (mm) of the boundary displacement the sensitivities are taken at
+
+
+def _orthogonal(post_d, mesh, seed=3):
+    from bayesreg.model.posterior import orthogonal_discrepancy
+
+    u_b = U_B_SENS * np.random.default_rng(seed).normal(size=(len(mesh.boundary), 3))
+    return orthogonal_discrepancy(post_d, u_b), u_b
+
+
+def test_the_orthogonal_discrepancys_sensitivities_are_the_fe_interiors_derivatives(pair):
+    """``S[:, k] = d(H(phi) u_b) / d log phi_k`` at ``phi_ref``: central differences of SciPy's
+    interior solve (:func:`_fe_interior`) in each free parameter's log."""
+    mesh, _, post_d = pair
+    post_o, u_b = _orthogonal(post_d, mesh)
+    s_mat = np.asarray(post_o.discrepancy.sensitivities)
+    assert s_mat.shape == (3 * len(mesh.interior), PHI.size)
+    h = 1e-5
+    for k in range(PHI.size):
+        up, down = PHI.copy(), PHI.copy()
+        up[k] *= np.exp(h)
+        down[k] *= np.exp(-h)
+        fd = (_fe_interior(mesh, post_o, up, u_b) - _fe_interior(mesh, post_o, down, u_b)).ravel() / (2 * h)
+        np.testing.assert_allclose(s_mat[:, k], fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
+
+
+def test_an_orthogonal_discrepancy_displaces_the_interior_only_k0_orthogonally_to_s(pair):
+    """The map ``M = P`` is a projector with ``P S = 0`` and ``S^T K0 P = 0`` (``K0`` by
+    SciPy's assembly), the interior moves by the FE solve plus ``P d``, the prior's ``q``
+    splits over ``P d`` and ``(I - P) d``, and ``log p`` is the plain discrepancy model's at
+    ``P d`` with the prior of the sampled ``d`` in place of ``P d``'s."""
+    from bayesreg.model.posterior import discrepancy_map
+
+    mesh, _, post_d = pair
+    post_o, _ = _orthogonal(post_d, mesh)
+    s_mat = np.asarray(post_o.discrepancy.sensitivities)
+    k0 = _k0(mesh)
+    proj = discrepancy_map(post_o)
+    scale = np.abs(k0).max() * np.abs(s_mat).max()
+    np.testing.assert_allclose(proj @ proj, proj, atol=1e-10)
+    np.testing.assert_allclose(proj @ s_mat, 0.0, atol=1e-10 * np.abs(s_mat).max())
+    np.testing.assert_allclose(s_mat.T @ k0 @ proj, 0.0, atol=1e-10 * scale)
+    rng = np.random.default_rng(4)
+    n_b3, n_i3 = 3 * len(mesh.boundary), 3 * len(mesh.interior)
+    theta = np.r_[0.3 * rng.normal(size=n_b3), 0.1 * rng.normal(size=n_i3), PHI]
+    d = theta[n_b3:n_b3 + n_i3]
+    pd = proj @ d
+    np.testing.assert_allclose(np.asarray(discrepancy_of(post_o, jnp.asarray(theta))).ravel(), pd, rtol=1e-12)
+    raw = discrepancy_of(post_o, jnp.asarray(theta), projected=False)
+    np.testing.assert_allclose(np.asarray(raw).ravel(), d, rtol=0)
+    q = lambda v: 0.5 * v @ k0 @ v  # noqa: E731
+    np.testing.assert_allclose(q(d), q(pd) + q(d - pd), rtol=1e-10)
+    zeros = jnp.zeros((len(mesh.interior), 3))
+    lp_o, aux = log_density(post_o, jnp.asarray(theta), zeros, rtol=1e-12)
+    u_b = theta[:n_b3].reshape(-1, 3)
+    u = np.asarray(nodal_displacement(post_o, jnp.asarray(theta), aux.interior))
+    np.testing.assert_allclose(u[mesh.interior], _fe_interior(mesh, post_o, PHI, u_b) + pd.reshape(-1, 3),
+                               rtol=1e-8, atol=1e-10)
+    theta_p = theta.copy()
+    theta_p[n_b3:n_b3 + n_i3] = pd
+    lp_d = log_density(post_d, jnp.asarray(theta_p), zeros, rtol=1e-12)[0]
+    prior = lambda v: float(discrepancy_log_prior(post_d, jnp.asarray(v.reshape(-1, 3)))[0])  # noqa: E731
+    np.testing.assert_allclose(float(lp_o), float(lp_d) - prior(pd) + prior(d), rtol=1e-10)
+
+
+def test_the_orthogonal_discrepancys_gradient_and_gauss_newton_precision(pair):
+    """Its gradient against finite differences; at a zero residual its Gauss-Newton precision
+    over ``[u_b, d]`` is ``-`` JAX's Hessian (``J`` through ``P``, ``d``'s prior block
+    ``tau K0`` on the sampled ``d``)."""
+    mesh, _, post_d = pair
+    post_o, _ = _orthogonal(post_d, mesh)
+    rng = np.random.default_rng(9)
+    n_b3, n_i3 = 3 * len(mesh.boundary), 3 * len(mesh.interior)
+    theta = np.r_[0.3 * rng.normal(size=n_b3), 0.1 * rng.normal(size=n_i3), PHI]
+    zeros = jnp.zeros((len(mesh.interior), 3))
+    grad = np.asarray(jax.grad(lambda t: log_density(post_o, t, zeros, rtol=1e-12)[0])(jnp.asarray(theta)))
+    for k in (1, n_b3 + 2, n_b3 + n_i3 - 1, post_o.dim - 1):
+        e = np.zeros_like(theta)
+        e[k] = 1e-5
+        fd = (float(log_p(post_o, theta + e)[0]) - float(log_p(post_o, theta - e)[0])) / 2e-5
+        np.testing.assert_allclose(grad[k], fd, rtol=1e-5, atol=1e-6)
+    mesh, _, post_0 = _posteriors(shift=0)
+    post_0, _ = _orthogonal(post_0, mesh)
+    n = post_0.n_displacement
+
+    def logp_x(x):
+        return log_density(post_0, jnp.concatenate([x, jnp.asarray(PHI)]), zeros, rtol=1e-13)[0]
+
+    column = jax.jit(lambda e: jax.jvp(jax.grad(logp_x), (jnp.zeros(n),), (e,))[1])
+    hess = -np.stack([np.asarray(column(jnp.asarray(e))) for e in np.eye(n)], axis=1)
+    prec = gauss_newton_precision(post_0, mesh, mesh.tissue, np.r_[np.zeros(n), PHI])
+    ridge = 1e-6 * np.trace(hess) / n
+    np.testing.assert_allclose(prec - ridge * np.eye(n), hess, rtol=1e-6, atol=1e-7 * np.abs(hess).max())
+
+
+def test_an_orthogonal_discrepancy_needs_a_start_that_moves_the_tissue(pair, tmp_path):
+    """No sensitivities at ``u_b = 0`` (the paper's start): refused by name, at the posterior
+    and through :func:`~bayesreg.model.problem.at_start`; the config refuses it without a
+    discrepancy and with a parameter per element."""
+    from bayesreg.config import Config
+    from bayesreg.model.posterior import orthogonal_discrepancy
+
+    mesh, post, post_d = pair
+    with pytest.raises(ValueError, match="does not move with every free parameter"):
+        orthogonal_discrepancy(post_d, np.zeros((len(mesh.boundary), 3)))
+    with pytest.raises(ValueError, match="needs a posterior with a model discrepancy"):
+        orthogonal_discrepancy(post, np.ones((len(mesh.boundary), 3)))
+    with pytest.raises(ValueError, match="one row per boundary node"):
+        orthogonal_discrepancy(post_d, np.ones((3, 3)))
+    with pytest.raises(ValueError, match="needs a model discrepancy"):
+        Config.model_validate({"model": {"discrepancy_prior": {"orthogonal": True}}})
+    with pytest.raises(ValueError, match="not one per element"):
+        Config.model_validate({"model": {"discrepancy": "interior", "elastic": "element",
+                                         "discrepancy_prior": {"orthogonal": True}},
+                               "sampler": {"kind": "nuts"}})
+

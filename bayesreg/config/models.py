@@ -335,6 +335,15 @@ class DiscrepancyPrior(_Strict):
     modes: int = Field(64, ge=1, description="discrepancy: modes: how many of the smoothest "
                        "eigenmodes of K0_ii the discrepancy spans (capped at 3 n_i; "
                        "bayesreg.model.posterior.smoothest_modes)")
+    orthogonal: bool = Field(False, description="the discrepancy displaces the interior only "
+                             "K0_ii-orthogonally to the FE interior's sensitivities to the free "
+                             "elastic parameters (Plumlee 2017), taken at the chains' central "
+                             "start (its u_b, model.initial_*): d cannot mimic a change of "
+                             "lam, mu, which are then read from the interior's components "
+                             "along those sensitivities whatever the discrepancy's spread "
+                             "elsewhere (bayesreg.model.posterior.orthogonal_discrepancy).  "
+                             "Needs a start that displaces the tissue: init.method: mode or "
+                             "init.start: registration; parameter groups, not per element")
 
 
 class TissuePriors(_Strict):
@@ -778,6 +787,13 @@ class Config(_Strict):
                 raise ValueError(f"{which} needs a gradient sampler "
                                  "(sampler.kind: nuts, hmc or mala): it samples the interior's "
                                  "deviation too")
+            if self.model.discrepancy_prior.orthogonal and self.model.elastic == "element":
+                raise ValueError("model.discrepancy_prior.orthogonal removes one direction per "
+                                 "free parameter: it needs parameter groups (model.elastic: "
+                                 "tissue or uniform), not one per element")
+        elif self.model.discrepancy_prior.orthogonal:
+            raise ValueError("model.discrepancy_prior.orthogonal needs a model discrepancy "
+                             "(model.discrepancy: interior or modes)")
         elif self.sampler.collapsed_moves and self.sampler.carry == "displacement":
             raise ValueError("sampler.carry: displacement needs a model discrepancy "
                              "(model.discrepancy: interior or modes), which takes up the FE "

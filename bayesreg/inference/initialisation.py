@@ -31,9 +31,9 @@ from bayesreg.data.images import Image
 from bayesreg.inference.mode import find_mode
 from bayesreg.mesh.tetmesh import Mesh
 from bayesreg.model.posterior import (
-    Posterior, discrepancy_log_prior, discrepancy_of, discrepancy_stiffness, elastic_groups, energies,
-    similarity_weight)
-from bayesreg.model.problem import Problem
+    Posterior, discrepancy_log_prior, discrepancy_map, discrepancy_of, discrepancy_stiffness,
+    elastic_groups, energies, similarity_weight)
+from bayesreg.model.problem import Problem, at_start
 from bayesreg.data.registration import displacement_at, optical_flow_displacement
 from bayesreg.inference.targets import make_logdensity
 
@@ -286,7 +286,8 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     # residual Jacobian w.r.t. nodal displacements, through the interior map
     u_b = theta[: 3 * nb]
     disc = post.discrepancy
-    basis = None if disc is None or disc.basis is None else np.asarray(disc.basis)
+    basis = (None if disc is None or (disc.basis is None and disc.sensitivities is None)
+             else discrepancy_map(post))  # the interior moves by basis @ theta's d entries
     d = (np.asarray(discrepancy_of(post, jnp.asarray(theta))).ravel() if disc is not None
          else np.zeros(0))
     u = np.zeros(3 * len(mesh.nodes))
@@ -312,7 +313,7 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     prec[: 3 * nb, : 3 * nb] += prior
     if d.size:
         disc = post.discrepancy
-        _, q = discrepancy_log_prior(post, jnp.asarray(d.reshape(-1, 3)))
+        _, q = discrepancy_log_prior(post, discrepancy_of(post, jnp.asarray(theta), projected=False))
         tau = float(disc.shape) / (float(disc.rate) + float(q))
         prec[3 * nb:, 3 * nb:] += tau * np.asarray(discrepancy_stiffness(post))
     prec = 0.5 * (prec + prec.T)
@@ -355,6 +356,9 @@ class Initialisation(NamedTuple):
         u_b and the elastic parameters in separate blocks
     info : dict
         how the starts were made (mode search figures, timings)
+    anchor : (n_b, 3) or None
+        With an orthogonal discrepancy (``model.discrepancy_prior.orthogonal``): the ``u_b``
+        (mm) its sensitivities were taken at (:func:`bayesreg.model.problem.at_start`).
     """
 
     x0: np.ndarray
@@ -362,6 +366,7 @@ class Initialisation(NamedTuple):
     sigma: tuple
     blocked: bool
     info: dict
+    anchor: np.ndarray | None = None
 
 
 def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
@@ -381,6 +386,20 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
         center = mode.theta
         info.update({k: v for k, v in mode._asdict().items()
                      if k != "theta" and not (k == "parameter_iterations_exact" and v is None)})
+    anchor = None
+    if cfg.model.discrepancy_prior.orthogonal:
+        # the sensitivities at the central start's u_b; the start's deviation along them no
+        # longer displaces the interior, so the search goes on under the orthogonal model
+        anchor = center[:3 * problem.posterior.n_boundary].reshape(-1, 3).copy()
+        problem = at_start(problem, cfg, anchor)
+        if cfg.init.method == "mode":
+            mode = find_mode(problem.posterior, center, iterations=cfg.init.optimizer_iterations,
+                             optimize_parameters=cfg.init.optimize_parameters,
+                             exact=cfg.model.prior_normaliser == "exact", rtol=cfg.solver.rtol,
+                             maxiter=cfg.solver.maxiter)
+            center = mode.theta
+            info["orthogonal_search"] = {k: mode._asdict()[k] for k in
+                                         ("logp_start", "logp_mode", "iterations", "message")}
     prec = None
     if cfg.init.method == "mode" or cfg.sampler.proposal == "laplace":
         prec = laplace_precision(problem, center)
@@ -395,7 +414,8 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
         else:
             factor = np.ones(nb3)
         info["init_s"] = time.perf_counter() - t
-        return Initialisation(x0, center, (factor, np.full(post.n_free, cfg.sampler.sigma_eta)), True, info)
+        return Initialisation(x0, center, (factor, np.full(post.n_free, cfg.sampler.sigma_eta)), True,
+                              info, anchor)
     sigma_u, sigma_p = proposal_scale(problem, cfg, prec)
     info["init_s"] = time.perf_counter() - t
     if cfg.sampler.blocked:
@@ -407,4 +427,4 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
         joint[:nb3, :nb3] = sigma_u * np.sqrt(nb3 / post.dim)
         joint[np.arange(nb3, post.dim), np.arange(nb3, post.dim)] = sigma_p
         sigma = (joint,)
-    return Initialisation(x0, center, sigma, cfg.sampler.blocked, info)
+    return Initialisation(x0, center, sigma, cfg.sampler.blocked, info, anchor)

@@ -21,7 +21,8 @@ node-major (``3*i + axis``, mm) and ``phi`` the free elastic parameters; with a 
 discrepancy (:class:`Discrepancy`) ``theta = [u_b.ravel(), d.ravel(), phi]``, ``d``
 ``(n_i, 3)`` mm the interior nodes' deviation from the FE solve, so that
 ``u_i = -K_ii^-1 K_ib u_b + d``; with a low-rank discrepancy ``theta = [u_b.ravel(), c,
-phi]``, ``c`` ``(r,)`` the coordinates of ``d`` in its basis (:func:`discrepancy_of`).  The
+phi]``, ``c`` ``(r,)`` the coordinates of ``d`` in its basis (:func:`discrepancy_of`); an
+orthogonal discrepancy displaces the interior by ``P d`` (:func:`orthogonal_discrepancy`).  The
 exact normaliser of the elastic prior, ``(1/2) log pdet S(lam, mu)``, is
 :func:`log_normaliser` (:mod:`bayesreg.fem.normaliser`).
 """
@@ -40,7 +41,7 @@ from bayesreg._checks import check_last_axis, check_shape
 from bayesreg.mesh.constraints import (
     SkullConstraint, element_volumes, points_forbidden, skull_barrier, skull_constraint,
     with_barrier)
-from bayesreg.fem.element import element_strain_energy, shape_gradients
+from bayesreg.fem.element import element_strain_energy, shape_gradients, stiffness_matrix
 from bayesreg.data.images import check_image
 from bayesreg.jaxconfig import require_x64
 from bayesreg.mesh.tetmesh import Mesh
@@ -63,6 +64,8 @@ __all__ = [
     "Aux",
     "Discrepancy",
     "discrepancy_of",
+    "discrepancy_map",
+    "orthogonal_discrepancy",
     "discrepancy_log_prior",
     "discrepancy_rate",
     "discrepancy_stiffness",
@@ -140,6 +143,17 @@ class Discrepancy(NamedTuple):
     representable while the interior's finer pattern still follows the FE solve, which is
     what identifies the elastic parameters.
 
+    Orthogonal (``sensitivities`` given; Plumlee 2017, *Bayesian calibration with an
+    orthogonal discrepancy*): the displacement takes the part of the sampled deviation that
+    is ``K0_ii``-orthogonal to the FE interior's sensitivities ``S = d(H(phi) u_b) / d log
+    phi`` ``(3 n_i, k)`` (at ``phi_ref`` and a fixed ``u_b``, :func:`orthogonal_discrepancy`):
+    ``u_i = H(phi) u_b + P d``, ``P = I - S G^-1 S^T K0_ii``, ``G = S^T K0_ii S``.  So ``d``
+    cannot mimic a change of the elastic parameters, and the interior's components along
+    ``S`` are the FE model's alone: the parameters are read from them whatever the
+    discrepancy's spread elsewhere.  The prior above stays on the sampled ``d`` (``P`` is
+    ``K0_ii``-orthogonal, so ``q`` splits into the displacing part's and ``k`` coordinates
+    that displace nothing, which keep the density proper).
+
     Attributes
     ----------
     k_ii : tuple of (R_k, S_k, 3, 3) arrays
@@ -154,6 +168,10 @@ class Discrepancy(NamedTuple):
         Low rank: the orthonormal eigenvectors ``V`` (interior DOFs ``3 i + axis``).
     eigenvalues : (r,) array or None
         Low rank: ``Lambda``, ascending ([lam] mm).
+    sensitivities : (3 n_i, k) array or None
+        Orthogonal: ``S`` (mm per unit ``log phi``, interior DOFs ``3 i + axis``).
+    dual : (3 n_i, k) array or None
+        Orthogonal: ``K0_ii S G^-1``, so that ``P d = d - S (dual^T d)``.
     """
 
     k_ii: tuple
@@ -161,6 +179,8 @@ class Discrepancy(NamedTuple):
     rate: jax.Array
     basis: jax.Array | None = None
     eigenvalues: jax.Array | None = None
+    sensitivities: jax.Array | None = None
+    dual: jax.Array | None = None
 
 
 class Posterior(NamedTuple):
@@ -593,15 +613,107 @@ def split_position(post: Posterior, theta):
     return theta[:nb3].reshape(-1, 3), theta[post.n_displacement:]
 
 
-def discrepancy_of(post: Posterior, theta):
+def discrepancy_of(post: Posterior, theta, *, projected: bool = True):
     """The model discrepancy ``d`` ``(n_i, 3)`` mm of a position ``theta`` ``(..., dim)``
-    (batches allowed; low rank ``d = V c``), or ``None`` without one (:class:`Discrepancy`)."""
+    (batches allowed; low rank ``d = V c``), or ``None`` without one (:class:`Discrepancy`).
+
+    An orthogonal discrepancy gives the part that displaces the interior, ``P d``; with
+    ``projected=False`` the sampled ``d`` itself, which the prior sees."""
     if post.discrepancy is None:
         return None
     d = theta[..., 3 * post.n_boundary:post.n_displacement]
     if post.discrepancy.basis is not None:
         d = d @ post.discrepancy.basis.T
+    if projected and post.discrepancy.sensitivities is not None:
+        disc = post.discrepancy
+        d = d - (d @ disc.dual) @ disc.sensitivities.T
     return d.reshape(d.shape[:-1] + (-1, 3))
+
+
+def discrepancy_map(post: Posterior) -> np.ndarray:
+    """The linear map ``M`` ``(3 n_i, n_discrepancy)`` from the discrepancy's entries of
+    ``theta`` to the interior displacement it adds (:func:`discrepancy_of`): the identity,
+    ``V`` low rank, ``P`` or ``P V`` orthogonal.  Dense host array, for the Gauss-Newton
+    precision and the collapsed moves' Gaussian conditional.
+
+    Raises
+    ------
+    ValueError
+        A posterior without a discrepancy.
+    """
+    disc = post.discrepancy
+    if disc is None:
+        raise ValueError("the discrepancy's map needs a posterior with a model discrepancy")
+    m = np.eye(3 * post.op.n_interior) if disc.basis is None else np.asarray(disc.basis)
+    if disc.sensitivities is not None:
+        m = m - np.asarray(disc.sensitivities) @ (np.asarray(disc.dual).T @ m)
+    return m
+
+
+def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
+    """``post`` with its discrepancy made orthogonal to the FE interior's sensitivities to
+    the elastic parameters (:class:`Discrepancy`; Plumlee 2017), taken at ``phi_ref`` and
+    the boundary displacement ``u_b`` ``(n_b, 3)`` mm (a run's central start).  Host code:
+    SciPy's reference assembly (:func:`bayesreg.fem.element.stiffness_matrix`) and one sparse
+    LU of ``K_ii``; ``S[:, k] = -phi_k K_ii^-1 (dK / dphi_k u)_i`` with ``u`` the FE field.
+
+    Raises
+    ------
+    ValueError
+        ``post`` without a discrepancy; ``u_b`` not ``(n_b, 3)`` or not finite; ``u_b``
+        that moves the interior by nothing (no sensitivities to be orthogonal to: a start
+        without displacement); more free parameters than a quarter of the interior DOFs
+        (per-element parameters).
+    """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    disc = post.discrepancy
+    if disc is None:
+        raise ValueError("an orthogonal discrepancy needs a posterior with a model discrepancy")
+    u_b = np.asarray(u_b, float)
+    check_shape("u_b", u_b, (post.n_boundary, 3), "one row per boundary node")
+    if not np.all(np.isfinite(u_b)):
+        raise ValueError("an orthogonal discrepancy's sensitivities need a finite u_b")
+    n_i, k = post.op.n_interior, post.n_free
+    if 4 * k > 3 * n_i:
+        raise ValueError(f"an orthogonal discrepancy removes one direction per free parameter: "
+                         f"{k} free parameters against {3 * n_i} interior DOFs leave it no "
+                         "freedom (use groups of parameters, not one per element)")
+    perm = np.asarray(post.perm)
+    node = np.empty_like(perm)
+    node[perm] = np.arange(len(perm))
+    dofs = lambda idx: (3 * idx[:, None] + np.arange(3)).ravel()  # noqa: E731
+    bd, idf = dofs(node[:post.n_boundary]), dofs(node[post.n_boundary:])
+    nodes, tets, group = (np.asarray(a) for a in (post.nodes, post.tets, post.group))
+    lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, post.phi_ref))
+    kk = stiffness_matrix(nodes, tets, lam_g[group], mu_g[group]).tocsc()
+    lu = spla.splu(sp.csc_matrix(kk[idf][:, idf]))
+    u = np.zeros(3 * len(nodes))
+    u[bd] = u_b.ravel()
+    u[idf] = lu.solve(-(kk[idf][:, bd] @ u_b.ravel()))
+    g = len(lam_g)
+    full = np.asarray(post.base, float).copy()
+    full[np.asarray(post.free_index)] = np.asarray(post.phi_ref)
+    cols = []
+    for j in np.asarray(post.free_index):
+        is_lam, gj = j < g, j % g
+        on = (group == gj).astype(float)
+        dk = stiffness_matrix(nodes, tets, on if is_lam else 0.0 * on, 0.0 * on if is_lam else on)
+        cols.append(-full[j] * lu.solve((dk @ u)[idf]))
+    s_mat = np.stack(cols, axis=1)
+    k0s = np.stack([np.asarray(ell_matvec(disc.k_ii, post.op.cols_ii, post.op.row_ii,
+                                          jnp.asarray(c.reshape(-1, 3)))).ravel()
+                    for c in s_mat.T], axis=1)
+    gram = s_mat.T @ k0s
+    scale = np.sqrt(np.abs(np.diag(gram)))
+    if not np.all(np.isfinite(gram)) or scale.max() == 0.0 or scale.min() < 1e-12 * scale.max():
+        raise ValueError("the FE interior does not move with every free parameter at this u_b "
+                         "(an orthogonal discrepancy needs a start that displaces the tissue of "
+                         "every group: init.method: mode, or init.start: registration)")
+    dual = np.linalg.solve(gram, k0s.T).T
+    return post._replace(discrepancy=disc._replace(sensitivities=jnp.asarray(s_mat),
+                                                   dual=jnp.asarray(dual)))
 
 
 def shift_discrepancy(post: Posterior, x, delta):
@@ -609,8 +721,9 @@ def shift_discrepancy(post: Posterior, x, delta):
     c]``) with the discrepancy moved by ``delta`` ``(n_i, 3)`` mm: ``d + delta`` (low rank
     ``c + V^T delta``, the move's projection on the orthonormal modes).  With ``delta`` the
     FE interior's change, ``H(phi) u_b - H(phi') u_b``, every node's displacement ``u`` stays
-    where it was (low rank: its part in the modes' span).  A shear by a function of ``u_b``
-    alone: volume-preserving, undone by ``-delta``.
+    where it was (low rank: its part in the modes' span; orthogonal: its part ``P delta``,
+    the sensitivities' directions move).  A shear by a function of ``u_b`` alone:
+    volume-preserving, undone by ``-delta``.
 
     Raises
     ------
@@ -903,7 +1016,7 @@ def _finish(post: Posterior, theta, u_i, info, phi_solve, in_support, log_prior)
     u_b = split_position(post, theta)[0]
     u_fe = full_displacement(post, u_b, u_i)
     d = discrepancy_of(post, theta)
-    log_disc, _ = discrepancy_log_prior(post, d)
+    log_disc, _ = discrepancy_log_prior(post, discrepancy_of(post, theta, projected=False))
     if d is None:
         e_s, e_r = energies(post, u_fe, phi_solve)
         u = u_fe

@@ -33,7 +33,7 @@ from bayesreg._checks import count_nonfinite
 from bayesreg.mesh.tetmesh import Mesh, boundary_nodes, read_mesh, signed_volumes
 from bayesreg.mesh.meshing import carve_skull, mesh_brain, mesh_brain_sized
 from bayesreg.model.parameters import ParamLayout
-from bayesreg.model.posterior import Posterior, build_posterior
+from bayesreg.model.posterior import Posterior, build_posterior, orthogonal_discrepancy
 from bayesreg.model.lncc import build_lncc
 from bayesreg.model.similarity import build_ssd
 from bayesreg.stages import Stages
@@ -554,3 +554,39 @@ def prepare(cfg: Config) -> Problem:
     True
     """
     return assemble(cfg, make_data(cfg))
+
+
+def at_start(problem: Problem, cfg: Config, anchor) -> Problem:
+    """The problem as a run samples it: with ``model.discrepancy_prior.orthogonal`` the
+    posterior's discrepancy made orthogonal to the FE interior's sensitivities at the
+    boundary displacement ``anchor`` (:func:`bayesreg.model.posterior.orthogonal_discrepancy`);
+    otherwise, or where it already is, ``problem`` itself.
+
+    Parameters
+    ----------
+    problem : Problem
+    cfg : Config
+    anchor : (n_b, 3) array or Initialisation
+        ``u_b`` in mm, or a run's :class:`~bayesreg.inference.initialisation.Initialisation`,
+        saved with it: its ``anchor`` (the mode search's ``u_b`` before it went on under
+        the orthogonal model), else its central start's ``u_b``.  So a resumed run and its
+        outputs sample and report the same posterior.
+
+    Raises
+    ------
+    ValueError
+        As :func:`~bayesreg.model.posterior.orthogonal_discrepancy`, the stage named (a start
+        that does not displace the tissue, an ``anchor`` of another shape).
+    """
+    post = problem.posterior
+    if (not cfg.model.discrepancy_prior.orthogonal or post.discrepancy is None
+            or post.discrepancy.sensitivities is not None):
+        return problem
+    if hasattr(anchor, "center"):
+        anchor = (anchor.center[:3 * post.n_boundary].reshape(-1, 3) if anchor.anchor is None
+                  else anchor.anchor)
+    try:
+        post = orthogonal_discrepancy(post, anchor)
+    except ValueError as exc:
+        raise ValueError(f"model.discrepancy_prior.orthogonal: {exc}") from exc
+    return problem._replace(posterior=post)

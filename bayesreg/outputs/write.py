@@ -71,7 +71,7 @@ from bayesreg.outputs.plots import plot_brain_map, plot_parameters, plot_uncerta
 from bayesreg.outputs.result import RunResult
 from bayesreg.outputs.printed import verdict
 from bayesreg.model.posterior import discrepancy_of, elastic_groups, solve_position
-from bayesreg.model.problem import Problem
+from bayesreg.model.problem import Problem, at_start
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampling.driver import SamplerResult
 from bayesreg.data.registration import displacement_at
@@ -302,6 +302,7 @@ def write_outputs(run_dir: RunDirectory, cfg: Config, problem: Problem, result: 
     -------
     RunResult
     """
+    problem = at_start(problem, cfg, init)  # the posterior the chains sampled
     post, mesh, layout = problem.posterior, problem.mesh, problem.layout
     s_info = result.info
     nb = post.n_boundary

@@ -19,8 +19,8 @@ from jax.scipy.linalg import cho_solve
 from bayesreg.fem.normaliser import add_normaliser
 from bayesreg.model.parameters import from_unconstrained, to_unconstrained
 from bayesreg.model.posterior import (
-    Posterior, condensation, data_log_likelihood, discrepancy_mixture_log_ratio, discrepancy_of,
-    discrepancy_precision_draw, discrepancy_stiffness, interior_map_and_precision, log_density,
+    Posterior, condensation, data_log_likelihood, discrepancy_map, discrepancy_mixture_log_ratio,
+    discrepancy_of, discrepancy_precision_draw, discrepancy_stiffness, interior_map_and_precision, log_density,
     log_density_condensed, log_normaliser, preconditioner, prior_precision, shift_discrepancy)
 
 __all__ = ["Cache", "Mixture", "Target", "make_target", "joint_target", "laplace_likelihood",
@@ -259,8 +259,10 @@ def make_target(post: Posterior, *, center_u, factor, exact: bool, condensed: bo
     mixture = shift = None
     if post.discrepancy is not None:
         mixture = Mixture(
-            draw=lambda key, x: discrepancy_precision_draw(post, key, discrepancy_of(post, x)),
-            log_ratio=lambda x, tau: discrepancy_mixture_log_ratio(post, discrepancy_of(post, x), tau))
+            draw=lambda key, x: discrepancy_precision_draw(
+                post, key, discrepancy_of(post, x, projected=False)),
+            log_ratio=lambda x, tau: discrepancy_mixture_log_ratio(
+                post, discrepancy_of(post, x, projected=False), tau))
 
         def shift(x, delta):
             return shift_discrepancy(post, x, delta)
@@ -287,9 +289,10 @@ def _discrepancy_conditional(post: Posterior, a_nodal, b_nodal):
     a_bb, a_bi, a_ii, b_b, b_i = a[:nb3, :nb3], a[:nb3, nb3:], a[nb3:, nb3:], b[:nb3], b[nb3:]
     basis = post.discrepancy.basis
     k0 = discrepancy_stiffness(post)
-    if basis is None:
+    if basis is None and post.discrepancy.sensitivities is None:
         a_dd, b_d = a_ii, b_i
-    else:  # d = V c
+    else:  # the interior moves by M x_d (d = V c; orthogonal: P d, P V c)
+        basis = jnp.asarray(discrepancy_map(post))
         a_dd, b_d = basis.T @ a_ii @ basis, basis.T @ b_i
 
     def conditional(eta, tau):
