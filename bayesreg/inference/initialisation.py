@@ -378,11 +378,15 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
     center, info = start_center(problem, cfg, check=check, flow=flow)
     info["method"] = cfg.init.method
     info["proposal"] = cfg.sampler.proposal
-    if cfg.init.method == "mode":
-        mode = find_mode(problem.posterior, center, iterations=cfg.init.optimizer_iterations,
+
+    def search(posterior, theta):
+        return find_mode(posterior, theta, iterations=cfg.init.optimizer_iterations,
                          optimize_parameters=cfg.init.optimize_parameters,
                          exact=cfg.model.prior_normaliser == "exact", rtol=cfg.solver.rtol,
                          maxiter=cfg.solver.maxiter)
+
+    if cfg.init.method == "mode":
+        mode = search(problem.posterior, center)
         center = mode.theta
         info.update({k: v for k, v in mode._asdict().items()
                      if k != "theta" and not (k == "parameter_iterations_exact" and v is None)})
@@ -393,10 +397,7 @@ def initialise(problem: Problem, cfg: Config, *, flow=None) -> Initialisation:
         anchor = center[:3 * problem.posterior.n_boundary].reshape(-1, 3).copy()
         problem = at_start(problem, cfg, anchor)
         if cfg.init.method == "mode":
-            mode = find_mode(problem.posterior, center, iterations=cfg.init.optimizer_iterations,
-                             optimize_parameters=cfg.init.optimize_parameters,
-                             exact=cfg.model.prior_normaliser == "exact", rtol=cfg.solver.rtol,
-                             maxiter=cfg.solver.maxiter)
+            mode = search(problem.posterior, center)
             center = mode.theta
             info["orthogonal_search"] = {k: mode._asdict()[k] for k in
                                          ("logp_start", "logp_mode", "iterations", "message")}
