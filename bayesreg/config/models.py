@@ -337,13 +337,15 @@ class DiscrepancyPrior(_Strict):
                        "bayesreg.model.posterior.smoothest_modes)")
     orthogonal: bool = Field(False, description="the discrepancy displaces the interior only "
                              "K0_ii-orthogonally to the FE interior's sensitivities to the free "
-                             "elastic parameters (Plumlee 2017), taken at the chains' central "
-                             "start (its u_b, model.initial_*): d cannot mimic a change of "
-                             "lam, mu, which are then read from the interior's components "
-                             "along those sensitivities whatever the discrepancy's spread "
-                             "elsewhere (bayesreg.model.posterior.orthogonal_discrepancy).  "
-                             "Needs a start that displaces the tissue: init.method: mode or "
-                             "init.start: registration; parameter groups, not per element")
+                             "elastic parameters (Plumlee 2017), taken at model.initial_* and "
+                             "the mode search's u_b (the central start's without one), the "
+                             "search then going on under it: d cannot mimic a change of lam, "
+                             "mu, which are then read from the interior's components along "
+                             "those sensitivities whatever the discrepancy's spread elsewhere "
+                             "(bayesreg.model.posterior.orthogonal_discrepancy).  Needs a start "
+                             "that displaces the tissue (init.method: mode or init.start: "
+                             "registration) and parameter groups, not one per element (docs: "
+                             "Method, measured with sampler.joint: true)")
 
 
 class TissuePriors(_Strict):
