@@ -78,8 +78,9 @@ def _fe_interior(post, lp, u_b, phi):
 def parameters_given(problem, us, phi0):
     """The elastic parameters' conditional mode given every node's displacement, for each
     ``u`` ``(N, 3)`` mm of ``us``: ``argmax_phi log p(u_b, d, phi)`` with ``d = u_i - H(phi)
-    u_b`` (low rank: its projection on the modes; without a model discrepancy, ``u_b`` alone:
-    the paper's interior is the FE solve), the exact normaliser included; the target of the
+    u_b`` (low rank: its projection on the modes; orthogonal: ``d`` whole in its prior and
+    ``P d`` in the images; without a model discrepancy, ``u_b`` alone: the paper's interior
+    is the FE solve), the exact normaliser included; the target of the
     collapsed moves that hold ``u``.  L-BFGS-B over ``log phi`` from ``phi0`` ``(n_free,)``,
     the prior's support shrunk by 0.1%, one compiled objective for every ``u``.  Returns the
     groups' ``lam / mu`` ``(len(us), G)`` at the modes, a row of NaN (and a message) where a
