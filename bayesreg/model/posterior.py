@@ -613,6 +613,13 @@ def split_position(post: Posterior, theta):
     return theta[:nb3].reshape(-1, 3), theta[post.n_displacement:]
 
 
+def _discrepancy(post: Posterior, what: str) -> Discrepancy:
+    """``post``'s discrepancy, or ``ValueError`` naming ``what`` needs one."""
+    if post.discrepancy is None:
+        raise ValueError(f"{what} needs a posterior with a model discrepancy")
+    return post.discrepancy
+
+
 def discrepancy_of(post: Posterior, theta, *, projected: bool = True):
     """The model discrepancy ``d`` ``(n_i, 3)`` mm of a position ``theta`` ``(..., dim)``
     (batches allowed; low rank ``d = V c``), or ``None`` without one (:class:`Discrepancy`).
@@ -641,9 +648,7 @@ def discrepancy_map(post: Posterior) -> np.ndarray:
     ValueError
         A posterior without a discrepancy.
     """
-    disc = post.discrepancy
-    if disc is None:
-        raise ValueError("the discrepancy's map needs a posterior with a model discrepancy")
+    disc = _discrepancy(post, "the discrepancy's map")
     m = np.eye(3 * post.op.n_interior) if disc.basis is None else np.asarray(disc.basis)
     if disc.sensitivities is not None:
         m = m - np.asarray(disc.sensitivities) @ (np.asarray(disc.dual).T @ m)
@@ -668,9 +673,7 @@ def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    disc = post.discrepancy
-    if disc is None:
-        raise ValueError("an orthogonal discrepancy needs a posterior with a model discrepancy")
+    disc = _discrepancy(post, "an orthogonal discrepancy")
     u_b = np.asarray(u_b, float)
     check_shape("u_b", u_b, (post.n_boundary, 3), "one row per boundary node")
     if not np.all(np.isfinite(u_b)):
@@ -730,8 +733,7 @@ def shift_discrepancy(post: Posterior, x, delta):
     ValueError
         A posterior without a discrepancy, or ``x`` or ``delta`` of another shape.
     """
-    if post.discrepancy is None:
-        raise ValueError("shifting the discrepancy needs a posterior with a model discrepancy")
+    _discrepancy(post, "shifting the discrepancy")
     check_shape("x", x, (post.n_displacement,), "the displacement block [u_b, d]")
     check_shape("delta", delta, (post.op.n_interior, 3), "one row per interior node")
     step = delta.reshape(-1)
@@ -772,9 +774,7 @@ def discrepancy_stiffness(post: Posterior):
     ValueError
         A posterior without a discrepancy.
     """
-    disc = post.discrepancy
-    if disc is None:
-        raise ValueError("the discrepancy's stiffness needs a posterior with a model discrepancy")
+    disc = _discrepancy(post, "the discrepancy's stiffness")
     if disc.basis is not None:
         return jnp.diag(disc.eigenvalues)
     return ell_dense(disc.k_ii, post.op.cols_ii, post.op.row_ii, post.op.n_interior)
@@ -791,8 +791,7 @@ def discrepancy_precision_draw(post: Posterior, key, d):
     ValueError
         A posterior without a discrepancy.
     """
-    if post.discrepancy is None:
-        raise ValueError("the discrepancy's precision needs a posterior with a model discrepancy")
+    _discrepancy(post, "the discrepancy's precision")
     _, q = discrepancy_log_prior(post, d)
     return jax.random.gamma(key, post.discrepancy.shape) / (post.discrepancy.rate + q)
 
