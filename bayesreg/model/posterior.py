@@ -65,6 +65,7 @@ __all__ = [
     "Discrepancy",
     "discrepancy_of",
     "discrepancy_map",
+    "node_slots",
     "orthogonal_discrepancy",
     "discrepancy_log_prior",
     "discrepancy_rate",
@@ -613,6 +614,15 @@ def split_position(post: Posterior, theta):
     return theta[:nb3].reshape(-1, 3), theta[post.n_displacement:]
 
 
+def node_slots(post: Posterior) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh node indices of the sampled boundary nodes and of the solved interior nodes, in
+    the order of ``u_b`` and ``u_i`` (the inverse of :attr:`Posterior.perm`).  Host arrays."""
+    perm = np.asarray(post.perm)  # full[j] = concat(u_b, u_i)[perm[j]]
+    node = np.empty_like(perm)
+    node[perm] = np.arange(len(perm))
+    return node[:post.n_boundary], node[post.n_boundary:]
+
+
 def _discrepancy(post: Posterior, what: str) -> Discrepancy:
     """``post``'s discrepancy, or ``ValueError`` naming ``what`` needs one."""
     if post.discrepancy is None:
@@ -683,11 +693,7 @@ def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
         raise ValueError(f"an orthogonal discrepancy removes one direction per free parameter: "
                          f"{k} free parameters against {3 * n_i} interior DOFs leave it no "
                          "freedom (use groups of parameters, not one per element)")
-    perm = np.asarray(post.perm)
-    node = np.empty_like(perm)
-    node[perm] = np.arange(len(perm))
-    dofs = lambda idx: (3 * idx[:, None] + np.arange(3)).ravel()  # noqa: E731
-    bd, idf = dofs(node[:post.n_boundary]), dofs(node[post.n_boundary:])
+    bd, idf = ((3 * idx[:, None] + np.arange(3)).ravel() for idx in node_slots(post))
     nodes, tets, group = (np.asarray(a) for a in (post.nodes, post.tets, post.group))
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, post.phi_ref))
     kk = stiffness_matrix(nodes, tets, lam_g[group], mu_g[group]).tocsc()

@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from bayesreg.model.posterior import discrepancy_of
+from bayesreg.model.posterior import node_slots as posterior_node_slots
 from bayesreg.sampling.chains import available_cores
 
 __all__ = ["node_slots", "nodal_draws", "nodal_mean", "nodal_spread", "voxel_norm_spread",
@@ -29,12 +30,8 @@ SPREAD_MAX_BYTES = 1 << 30  # the nodal covariances' accumulators, all threads t
 
 def node_slots(problem):
     """Mesh node indices of the sampled boundary nodes and of the solved interior nodes, in
-    the order of ``u_b`` and ``u_i`` (the inverse of ``posterior.perm``)."""
-    post = problem.posterior
-    perm = np.asarray(post.perm)  # full[:, j] = [u_b, u_i][:, perm[j]]
-    node = np.empty_like(perm)
-    node[perm] = np.arange(len(perm))
-    return node[:post.n_boundary], node[post.n_boundary:]
+    the order of ``u_b`` and ``u_i`` (:func:`bayesreg.model.posterior.node_slots`)."""
+    return posterior_node_slots(problem.posterior)
 
 
 def nodal_draws(problem, result, rows):
