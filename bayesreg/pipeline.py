@@ -224,16 +224,23 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         state = ckpt.load_state() if resume is not None else None
         warm = ckpt.load_warmup() if resume is not None and state is None else None
 
+        def warmup_ended(checkpoint):
+            center = checkpoint.sigma[4] if len(checkpoint.sigma) > 4 else None
+            if center is not None and np.size(center):
+                stages.tell("the normaliser's surrogate rebuilt at the chains' median parameters "
+                            "(" + ", ".join(f"{v:.3g}" for v in np.asarray(center)[0]) + ")")
+            stages.switch("sampling")
+
         def on_chunk(checkpoint, out):
-            if out is None:  # the warm-up ended
-                stages.switch("sampling")
+            if out is None:
+                warmup_ended(checkpoint)
             ckpt.on_chunk(checkpoint, out)
 
         with stages.stage("warm-up" if state is None else "sampling"):
             result, init = sample_problem(
                 problem, cfg, init,
                 on_chunk=on_chunk if cfg.output.checkpoint else
-                (lambda c, out: stages.switch("sampling") if out is None else None),
+                (lambda c, out: warmup_ended(c) if out is None else None),
                 resume=warm if state is None else state[0],
                 resume_draws=None if state is None else state[1],
                 on_warmup_chunk=ckpt.on_warmup_chunk if cfg.output.checkpoint else None,

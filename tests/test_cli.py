@@ -42,8 +42,8 @@ OUTPUTS = [
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory, tiny_mesh):
     """The quickstart through the CLI on tiny settings (3 warm-up chunks, then 4 chunks of 10
-    draws per chain), with a copy of its run directory as it stood after warm-up chunk 2 (a
-    run killed there).
+    draws per chain, the normaliser's surrogate rebuilt after the warm-up), with a copy of
+    its run directory as it stood after warm-up chunk 2 (a run killed there).
 
     One run serves the output checks and the resume check (a tiny run is the costliest
     setup of the suite).  Returns ``(out, killed, args, printed, compiled)``, ``compiled``
@@ -66,7 +66,7 @@ def tiny_run(tmp_path_factory, tiny_mesh):
 
     args = ["run", "configs/quickstart.yaml", "--out", str(out)]
     for s in TINY + [f"mesh.file={tiny_mesh}", "sampler.max_draws=40", "sampler.min_draws=40",
-                     "output.reference=tvl1"]:
+                     "output.reference=tvl1", "sampler.normaliser_surrogate=warmup"]:
         args += ["--set", s]
     printed = io.StringIO()
     with (pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(printed),
@@ -82,9 +82,11 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     out, _, args, printed, compiled = tiny_run
     # one compilation for each program that evaluates the posterior (one trace per shape):
     # the start check (central and dispersed starts share it), the L-BFGS step, the NUTS
-    # states' initialisation and the chunk (warm-up and sampling share it)
-    for program in ("jit(start_logdensity)", "jit(step)", "jit(init_states)", "jit(mapped)"):
+    # states' initialisation and the chunk, which warm-up and sampling share but for the
+    # surrogate rebuilt after the warm-up (a second target: one more chunk program)
+    for program in ("jit(start_logdensity)", "jit(step)", "jit(init_states)"):
         assert compiled.get(program) == 1, (program, compiled)
+    assert compiled.get("jit(mapped)") == 2, compiled
     assert "error vs truth" in printed and "lam/mu posterior" in printed
     for name in OUTPUTS:
         assert (out / name).is_file(), name
@@ -94,6 +96,8 @@ def test_cli_tiny_run_writes_every_output_and_a_killed_run_resumes(tiny_run, cap
     assert info["config"]["sampler"]["max_draws"] == 40
     # joint trajectories on the normaliser's surrogate, corrected once per transition
     assert info["sampler"]["blocks"] == ["joint", "normaliser"]
+    center = info["sampler"]["adapted"]["normaliser_surrogate_center"]  # the chains' median
+    assert len(center) == len(info["parameters"]["free"]) and all(c > 0 for c in center), center
     assert all(0.0 < a < 1.0 for a in info["sampler"]["acceptance"])
     assert info["sampler"]["solve_failures"] == 0
     health = info["sampler"]["health"]  # NUTS: Stan's per-chain checks, one line each printed

@@ -607,6 +607,15 @@ class SamplerConfig(_Strict):
         "moves the parameters.  Default: true (on the quickstart 2.4-3x the effective draws "
         "per second of Gibbs), but false with collapsed_moves and for the per-element model "
         "under the exact normaliser (which has no surrogate there)")
+    normaliser_surrogate: Literal["auto", "warmup", "start"] = Field(
+        "auto", description="joint gradient kernels under prior_normaliser: exact: where the "
+        "trajectories' smooth surrogate of the normaliser is built (each transition's "
+        "Metropolis correction keeps the chains exact either way).  start: at the starts' "
+        "centre (the mode; the correction rejects much where the mode's parameters sit on "
+        "their prior's margin and the chains do not); warmup: rebuilt after the warm-up at "
+        "the chains' median parameters (one more compilation of the sampling program); auto: "
+        "rebuilt as warmup where the correction spans more than 1 nat over the chains' "
+        "positions, else kept")
     elastic_moves: Int = Field(8, ge=1, description="gradient kernels: random-walk updates of the "
                                "elastic parameters per transition (cheap next to a trajectory)")
     collapsed_moves: Int = Field(0, ge=0, description="gradient kernels: "

@@ -36,7 +36,7 @@ from bayesreg.model.problem import Problem
 
 __all__ = ["logdensity_fn", "make_logdensity", "dense_budget_bytes", "dense_preconditioning",
            "cg_preconditioner", "rw_preconditioner", "rw_condensation", "gradient_target",
-           "use_joint", "sampling_algorithm", "DENSE_HOST_BUDGET"]
+           "use_joint", "sampling_algorithm", "DENSE_HOST_BUDGET", "SURROGATE_TOLERANCE"]
 
 
 def logdensity_fn(post: Posterior, *, exact: bool = False, rtol: float = 1e-8, maxiter: int = 1000,
@@ -75,6 +75,11 @@ def make_logdensity(problem: Problem, cfg: Config, *, preconditioned: bool = Fal
                          rtol=cfg.solver.rtol, maxiter=cfg.solver.maxiter,
                          preconditioned=preconditioned)
 
+
+SURROGATE_TOLERANCE = 1.0
+"""Nats: ``sampler.normaliser_surrogate: auto`` rebuilds the surrogate after the warm-up
+where its correction spans more than this over the chains
+(:class:`bayesreg.sampling.kernels.gibbs.SurrogateRebuild`)."""
 
 DENSE_HOST_BUDGET = 2 * 2**30  # bytes of the chains' float32 K_ii^-1 together, on a CPU
 
@@ -149,12 +154,14 @@ def rw_condensation(problem: Problem, cfg: Config) -> Condensation:
     return Condensation(logdensity, build, 0, cfg.sampler.u_moves)
 
 
-def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
+def gradient_target(problem: Problem, cfg: Config, center, factor, *, surrogate_at=None) -> Target:
     """The gradient kernels' target of ``problem`` in the coordinates ``u_b = center + factor w``
     (:func:`bayesreg.sampling.kernels.target.make_target`; ``center`` ``(dim,)``, of which the
     first ``3 n_b`` entries are used, ``3 (n_b + n_i)`` with a model discrepancy: ``[u_b, d]``),
     wrapped by :func:`bayesreg.sampling.kernels.target.joint_target` (the parameters' logits
-    centred on ``center``'s) where :func:`use_joint` says so."""
+    centred on ``center``'s) where :func:`use_joint` says so.  Under the exact normaliser the
+    joint trajectories see its surrogate built at ``surrogate_at`` ``(n_free,)`` (natural
+    parameters; default ``center``'s)."""
     post = problem.posterior
     nb3 = post.n_displacement  # u_b (and a model discrepancy, if any)
     joint = use_joint(problem, cfg)
@@ -170,7 +177,8 @@ def gradient_target(problem: Problem, cfg: Config, center, factor) -> Target:
     if cfg.model.prior_normaliser == "exact" and post.normaliser.grounded.unit is not None:
         # the trajectories see a smooth surrogate built at the starts' centre; one exact
         # normaliser per transition corrects it (kernels.gibbs)
-        s_data = normaliser_surrogate(post, np.asarray(center[nb3:]))
+        s_data = normaliser_surrogate(post, np.asarray(center[nb3:] if surrogate_at is None
+                                                       else surrogate_at))
 
         def surrogate(eta):
             return surrogate_normaliser(post, s_data, from_unconstrained(post.prior, eta)[0])
@@ -238,13 +246,18 @@ def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm
     interior0 = jnp.zeros((post.op.n_interior, 3))
     if s.gradient:
         target = gradient_target(problem, cfg, init.center, init.sigma[0])
+        rebuild = None
+        if target.correction is not None and s.normaliser_surrogate != "start":
+            rebuild = gibbs.SurrogateRebuild(post.n_free, lambda phi: gradient_target(
+                problem, cfg, init.center, init.sigma[0], surrogate_at=phi),
+                tolerance=0.0 if s.normaliser_surrogate == "warmup" else SURROGATE_TOLERANCE)
         return gibbs.as_algorithm(
             target, interior0, kind=s.kind, step_size=s.step_size,
             eta_scale=init.sigma[1] if target.n_free else np.zeros(0), dense_mass=s.dense_mass,
             adapt_mass=s.adapt_mass, elastic_moves=s.elastic_moves,
             collapsed_moves=s.collapsed_moves, carry=cfg.collapsed_carry, num_integration_steps=s.hmc_steps,
             jitter_integration_steps=s.hmc_jitter, max_tree_depth=s.max_tree_depth,
-            target_acceptance=s.target_acceptance)
+            target_acceptance=s.target_acceptance, surrogate=rebuild)
     if init.blocked:
         blocks, adapt, names = (np.arange(nb3), np.arange(nb3, post.dim)), (True, True), ("u_b", "elastic")
     else:

@@ -432,10 +432,10 @@ def run_warmup(warmup: Warmup, states, key_warm, n_warm: int, n_chains: int, n_b
                 [np.asarray(a) for a in jax.tree.leaves(ws)], k + 1, np.asarray(warm_acc),
                 {**timings, "warmup_s": spent + time.perf_counter() - t0}))
     bar.close()
-    frozen = warmup.final(ws)
+    frozen, states = warmup.final(ws, states)
     if spent:
         timings["warmup_s"] = spent
-    return states, tuple(np.asarray(f_) for f_ in frozen), np.asarray(warm_acc), timings
+    return states, _as_arrays(frozen), np.asarray(warm_acc), timings
 
 
 def _check_starts(initial_positions, thinning, chunk_draws, max_draws, min_draws):
@@ -599,4 +599,9 @@ def _stuck(positions) -> tuple:
 
 
 def _as_arrays(frozen) -> tuple:
-    return tuple(np.asarray(f_) for f_ in frozen)
+    """The frozen values' arrays (trailing ``None`` fields, absent from an older checkpoint's
+    tuple, left out)."""
+    fields = list(frozen)
+    while fields and fields[-1] is None:
+        fields.pop()
+    return tuple(np.asarray(f_) for f_ in fields)

@@ -50,7 +50,10 @@ class Warmup(NamedTuple):
         ``(k, keys (C,), states, ws) -> (states, ws, acceptance (B,) ndarray, postfix dict)``:
         warm-up chunk ``k`` of the chains, ``postfix`` the figures the progress bar shows.
     final : callable
-        ``ws -> params``: the tuned values to freeze (arrays, or a NamedTuple of them).
+        ``(ws, states) -> (params, states)``: the tuned values to freeze (arrays, or a
+        NamedTuple of them) and the chains' states to sample from (the warm-up's, or the same
+        positions re-evaluated where the tuned values change what the kernel carries in
+        them: a gradient kernel whose target is rebuilt after the warm-up).
     """
 
     init: Callable

@@ -53,7 +53,7 @@ data, which its state carries (``chain_data``; the replicas of
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -64,8 +64,8 @@ from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, W
 from bayesreg.sampling.kernels.collapsed import CARRIES, collapsed_proposal, displacement_proposal
 from bayesreg.sampling.kernels.target import Cache, Target
 
-__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
-           "as_algorithm", "default_target_acceptance"]
+__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "SurrogateRebuild", "init",
+           "build_kernel", "as_algorithm", "default_target_acceptance", "surrogate_center"]
 
 
 KINDS = ("mala", "hmc", "nuts")
@@ -144,12 +144,55 @@ class GibbsParams(NamedTuple):
     ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
     of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
     ``(n_free,)`` is accepted as independent scales; ``collapsed_scale``, the same for the
-    collapsed moves (``None``: ``eta_scale``)."""
+    collapsed moves (``None``: ``eta_scale``); ``surrogate_center`` ``(n_params,)``, the
+    natural parameters at which the sampling target's normaliser surrogate was rebuilt after
+    the warm-up (:class:`SurrogateRebuild`; ``None`` or empty: the target as given)."""
 
     step_size: jax.Array
     inverse_mass: jax.Array
     eta_scale: jax.Array
     collapsed_scale: jax.Array | None = None
+    surrogate_center: jax.Array | None = None
+
+
+class SurrogateRebuild(NamedTuple):
+    """How :func:`as_algorithm` rebuilds a joint target's normaliser surrogate where the
+    chains are once the warm-up ends.
+
+    A joint target's trajectories see a surrogate of the exact normaliser, corrected by one
+    Metropolis step per transition (:func:`bayesreg.sampling.kernels.target.joint_target`).
+    Built at the starts' centre (the mode), the surrogate can be far from exact where the
+    posterior's mass lies (parameters the mode put on their prior's margin), and the
+    correction then rejects most trajectories.  When the warm-up ends, the correction
+    ``Delta`` (exact normaliser less surrogate) at the chains' positions is compared: where
+    it spans more than ``tolerance`` over the chains, the surrogate is rebuilt at
+    :func:`surrogate_center` of their positions and the sampling kernel, fixed from then
+    on, runs on that target.  The warm-up's draws are discarded, and the chain stays exact
+    whatever the surrogate (the correction).
+
+    Attributes
+    ----------
+    n_params : int
+        The free parameters at the end of each position ``[..., phi]`` (natural units).
+    build : callable
+        ``phi (n_params,) ndarray -> Target``: the joint target, identical but for its
+        surrogate, built at ``phi`` (host code; called once per centre and cached).
+    tolerance : float
+        Nats: the span ``max_c Delta_c - min_c Delta_c`` up to which the surrogate is kept
+        (its correction then accepts nearly every trajectory, and a rebuild would cost a
+        compilation for nothing); ``0`` rebuilds always.
+    """
+
+    n_params: int
+    build: Callable
+    tolerance: float = 1.0
+
+
+def surrogate_center(positions, n_params: int) -> np.ndarray:
+    """Where :class:`SurrogateRebuild` rebuilds the surrogate: the chains' median of each
+    free parameter ending their positions (``positions`` ``(C, dim)``, natural units;
+    returns ``(n_params,)``), robust to a chain that the warm-up left apart."""
+    return np.median(np.asarray(positions, np.float64)[:, -n_params:], axis=0)
 
 
 def init(target: Target, theta, interior0, data=None) -> tuple[GibbsState, Cache]:
@@ -458,7 +501,7 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
                  num_integration_steps: int = 16, jitter_integration_steps: bool = True,
                  max_tree_depth: int = 10, elastic_moves: int = 1, collapsed_moves: int = 0,
                  carry: str = "conditional", target_acceptance: float | None = None, chain_data=None,
-                 refresh=None) -> SamplingAlgorithm:
+                 refresh=None, surrogate: SurrogateRebuild | None = None) -> SamplingAlgorithm:
     """The gradient Gibbs kernel with its windowed warm-up, for
     :func:`bayesreg.sampling.driver.sample`.
 
@@ -513,6 +556,13 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         the warm-up ended).  It may change ``data`` only, and only what the log-density
         does not depend on (the kernel's proposals), so the stored state stays exact.  Warm-up
         draws are discarded, so the sampling kernel, fixed from then on, stays exact.
+    surrogate : SurrogateRebuild, optional
+        Rebuild a joint target's normaliser surrogate at :func:`surrogate_center` of the
+        chains' positions when the warm-up ends, re-evaluate the chains' states on the
+        rebuilt target and sample it (one more compilation of the chunk program).  The
+        centre is frozen with the tuned values (:attr:`GibbsParams.surrogate_center`, in
+        checkpoints and ``run.json``), so a resumed run samples the same target.  Ignored for
+        a target without :attr:`~bayesreg.sampling.kernels.target.Target.correction`.
 
     Returns
     -------
@@ -537,16 +587,34 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
     if (chain_data is None) == callable(target):
         raise ValueError("chain_data goes with a target that is a function data -> Target, "
                          "and only with one")
-    kernel = build_kernel(target, kind, num_integration_steps=num_integration_steps,
+    if surrogate is not None and chain_data is not None:
+        raise ValueError("a rebuilt surrogate needs one target for every chain (no chain_data)")
+
+    def kernel_of(tg):
+        kn = build_kernel(tg, kind, num_integration_steps=num_integration_steps,
                           jitter_integration_steps=jitter_integration_steps,
                           max_num_doublings=max_tree_depth, elastic_moves=elastic_moves,
                           collapsed_moves=collapsed_moves, carry=carry)
-    ws_init, ws_step, ws_final = adaptation.build_warmup_step(
-        kernel, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
-        adapt_mass=adapt_mass)
+        return (kn,) + adaptation.build_warmup_step(
+            kn, GibbsParams, target_acceptance=target_acceptance, dense_mass=dense_mass,
+            adapt_mass=adapt_mass)
+
+    kernel, ws_init, ws_step, ws_final = kernel_of(target)
     target_of, target = target, (target if chain_data is None else
                                  target(jax.tree.map(lambda a: jnp.asarray(a)[0], chain_data)))
     n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
+    if target.correction is None:
+        surrogate = None
+    rebuilt: dict = {}  # surrogate centre -> (target, kernel, ws_step) built at it
+
+    def rebuilt_at(center):
+        center = np.asarray(center, np.float64)
+        key = center.tobytes()
+        if key not in rebuilt:
+            tg = surrogate.build(center)
+            kn, _, step_, _ = kernel_of(tg)
+            rebuilt[key] = (tg, kn, step_)
+        return rebuilt[key]
     # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
 
@@ -584,8 +652,22 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         stages = adaptation.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
         adapt = np.ones(n_chains, bool)
 
+        sampling: dict = {}  # surrogate centre -> the sampling chunk's program on its target
+
+        def program_for(frozen):
+            center = frozen.surrogate_center
+            if surrogate is None or center is None or not np.size(center):
+                return mapped
+            key = np.asarray(center[0], np.float64).tobytes()
+            if key not in sampling:
+                _, kn, step_ = rebuilt_at(center[0])
+                sampling[key] = build_adaptive_chunk(kn, step_, chunk_draws, thinning, n_chains,
+                                                     method=chain_method)
+            return sampling[key]
+
         def chunk(keys, states, frozen):
-            (states, _, _), out = mapped.run(samp_keys(keys), states, (ws_frozen(frozen), no_stage, no_adapt))
+            (states, _, _), out = program_for(frozen).run(samp_keys(keys), states,
+                                                          (ws_frozen(frozen), no_stage, no_adapt))
             return states, out
 
         def warm_chunk(k, keys, states, ws):
@@ -603,7 +685,20 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
             return states, ws, acc, postfix
 
         refreshed = None if refresh is None else jax.jit(jax.vmap(refresh))
-        warmup = Warmup(lambda states: ws_start(), warm_chunk, jax.jit(jax.vmap(ws_final)))
+        frozen_of = jax.jit(jax.vmap(ws_final))
+
+        def final(ws, states):
+            frozen = frozen_of(ws)
+            if surrogate is None or _correction_span(target, states) <= surrogate.tolerance:
+                return frozen._replace(surrogate_center=jnp.zeros((n_chains, 0))), states
+            center = surrogate_center(states.position, surrogate.n_params)
+            tg = rebuilt_at(center)[0]
+            states = jax.jit(jax.vmap(lambda x, interior: init(tg, x, interior)[0]))(
+                states.position, states.interior)
+            _check_states(states, "the chains' states re-evaluated on the rebuilt surrogate")
+            return frozen._replace(surrogate_center=jnp.tile(jnp.asarray(center), (n_chains, 1))), states
+
+        warmup = Warmup(lambda states: ws_start(), warm_chunk, final)
         return Program(chunk, warmup, mapped.method)
 
     if chain_data is None:
@@ -628,12 +723,33 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         + (("tree_depth",) if kind == "nuts" else ()))
 
 
+def _correction_span(target: Target, states: GibbsState) -> float:
+    """``max - min`` over the chains of a joint target's correction ``Delta`` (exact
+    normaliser less surrogate) at their states: ``logdensity`` is the natural log-density
+    with ``Delta``, ``u.logdensity`` the trajectory's, with the surrogate and the
+    log-Jacobian (:func:`init`, :func:`build_kernel`)."""
+    jac = jax.jit(jax.vmap(target.log_jacobian))(states.u.position)
+    delta = np.asarray(states.logdensity - states.u.logdensity + jac)
+    return float(np.ptp(delta)) if np.all(np.isfinite(delta)) else np.inf
+
+
+def _check_states(states: GibbsState, what: str) -> None:
+    """Refuse states whose log-density is not finite (a failed solve, a surrogate that fails)."""
+    lp = np.asarray(states.logdensity)
+    if not np.all(np.isfinite(lp)):
+        raise ValueError(f"{what}: log-density not finite for chains "
+                         f"{np.flatnonzero(~np.isfinite(lp)).tolist()}")
+
+
 def _describe(sigma: tuple) -> dict:
-    """The frozen step sizes, mass matrices and elastic factors, for ``run.json``."""
+    """The frozen step sizes, mass matrices, elastic factors and surrogate centre, for
+    ``run.json``."""
     step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
-    collapsed = {} if len(sigma) < 4 or sigma[3] is None else {
+    extra = {} if len(sigma) < 4 or sigma[3] is None else {
         "collapsed_proposal_sd_per_chain": marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
-    return {**collapsed, "step_size_per_chain": step.tolist(),
+    if len(sigma) > 4 and sigma[4] is not None and np.size(sigma[4]):
+        extra["normaliser_surrogate_center"] = np.asarray(sigma[4])[0].tolist()
+    return {**extra, "step_size_per_chain": step.tolist(),
             "inverse_mass_diag_quantiles_0_50_100": np.quantile(
                 inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
                 [0, 0.5, 1]).tolist(),

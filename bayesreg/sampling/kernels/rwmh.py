@@ -448,8 +448,8 @@ def _robbins_monro(chunk, sigmas, idxs, adapt, n_warm, target_acceptance) -> War
                    "scale": np.array2string(np.exp(log_scales), precision=2)}
         return states, _WarmupState(sig, log_scales, window, np.asarray(k_gain)), acc, postfix
 
-    def final(ws):
-        return tuple(np.asarray(s_) for s_ in _scaled(ws.sigmas, ws.log_scales))
+    def final(ws, states):
+        return tuple(np.asarray(s_) for s_ in _scaled(ws.sigmas, ws.log_scales)), states
 
     return Warmup(init_ws, one_chunk, final)
 
