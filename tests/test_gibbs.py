@@ -478,13 +478,14 @@ def test_carrying_the_displacement_needs_a_target_that_can_shift_it():
 def test_a_surrogate_rebuilt_after_the_warmup_where_the_chains_are_corrects_less_and_stays_exact():
     """A joint target whose surrogate is exact only near the point it was built at
     (``-D eta + 20 (eta - c)^2``), built first far in the tail (``c`` 4 sd above the mean):
-    with :class:`~bayesreg.sampling.kernels.gibbs.SurrogateRebuild` the warm-up's end
+    with :class:`~bayesreg.sampling.kernels.surrogate.SurrogateRebuild` the warm-up's end
     rebuilds it once, at the chains' median ``eta``, frozen with the tuned values (one
     centre for every chain, in ``run.json``'s description); the correction then accepts
     more than with the far surrogate kept, the moments are the exact toy's within 5 Monte
     Carlo standard errors, and a run resumed from the checkpoint written after the warm-up
     gives the same draws."""
     from bayesreg.sampling.driver import sample
+    from bayesreg.sampling.kernels.surrogate import SurrogateRebuild
     from bayesreg.sampling.kernels.target import joint_target
 
     rng = np.random.default_rng(0)
@@ -503,7 +504,7 @@ def test_a_surrogate_rebuilt_after_the_warmup_where_the_chains_are_corrects_less
     alg = dict(kind="nuts", step_size=0.3, eta_scale=np.zeros(0))
     kept = sample_gibbs(jax.random.key(1), target_at(far), x0, jnp.zeros((1, 3)), **alg, **run)
     algorithm = gk.as_algorithm(target_at(far), jnp.zeros((1, 3)), **alg,
-                                surrogate=gk.SurrogateRebuild(1, target_at))
+                                surrogate=SurrogateRebuild(1, target_at))
     ckpts = []
     res = sample(jax.random.key(1), algorithm, x0, **run,
                  on_chunk=lambda ck, out: ckpts.append(ck) if out is None else None)

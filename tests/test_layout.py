@@ -66,7 +66,7 @@ LAYERS = [
     ["sampling.chains"],
     ["sampling.kernels.rwmh"],
     ["sampling.kernels.target"],
-    ["sampling.kernels.adaptation", "sampling.kernels.collapsed"],
+    ["sampling.kernels.adaptation", "sampling.kernels.collapsed", "sampling.kernels.surrogate"],
     ["sampling.kernels.gibbs"],
     ["sampling.convergence"],
     ["sampling.driver"],

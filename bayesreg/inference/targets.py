@@ -23,6 +23,7 @@ from bayesreg.config import Config
 from bayesreg.sampling.kernels import gibbs, rwmh
 from bayesreg.sampling.kernels.base import SamplingAlgorithm
 from bayesreg.sampling.kernels.rwmh import Condensation, Preconditioner
+from bayesreg.sampling.kernels.surrogate import SurrogateRebuild
 from bayesreg.sampling.kernels.target import (
     Target, joint_target, laplace_likelihood, make_target, nodal_laplace_likelihood)
 from bayesreg.fem.normaliser import add_normaliser
@@ -79,7 +80,7 @@ def make_logdensity(problem: Problem, cfg: Config, *, preconditioned: bool = Fal
 SURROGATE_TOLERANCE = 1.0
 """Nats: ``sampler.normaliser_surrogate: auto`` rebuilds the surrogate after the warm-up
 where its correction spans more than this over the chains
-(:class:`bayesreg.sampling.kernels.gibbs.SurrogateRebuild`)."""
+(:class:`bayesreg.sampling.kernels.surrogate.SurrogateRebuild`)."""
 
 DENSE_HOST_BUDGET = 2 * 2**30  # bytes of the chains' float32 K_ii^-1 together, on a CPU
 
@@ -248,7 +249,7 @@ def sampling_algorithm(problem: Problem, cfg: Config, init) -> SamplingAlgorithm
         target = gradient_target(problem, cfg, init.center, init.sigma[0])
         rebuild = None
         if target.correction is not None and s.normaliser_surrogate != "start":
-            rebuild = gibbs.SurrogateRebuild(post.n_free, lambda phi: gradient_target(
+            rebuild = SurrogateRebuild(post.n_free, lambda phi: gradient_target(
                 problem, cfg, init.center, init.sigma[0], surrogate_at=phi),
                 tolerance=0.0 if s.normaliser_surrogate == "warmup" else SURROGATE_TOLERANCE)
         return gibbs.as_algorithm(

@@ -7,7 +7,8 @@
 * :mod:`bayesreg.sampling.kernels.gibbs` - a gradient kernel (NUTS, HMC or MALA, BlackJAX's) on the
   boundary displacements in Gibbs with random-walk moves of the elastic parameters, over
   a :class:`bayesreg.sampling.kernels.target.Target`, with Stan's windowed warm-up
-  (:mod:`bayesreg.sampling.kernels.adaptation`).
+  (:mod:`bayesreg.sampling.kernels.adaptation`) and, for joint targets under the exact
+  normaliser, surrogate transitions (:mod:`bayesreg.sampling.kernels.surrogate`).
 
 Every ``build_kernel`` returns a :class:`bayesreg.sampling.kernels.base.Kernel` and every
 ``as_algorithm`` a :class:`bayesreg.sampling.kernels.base.SamplingAlgorithm` (the kernel with

@@ -37,12 +37,9 @@ normaliser the trajectory sees a smooth surrogate of it (:mod:`bayesreg.fem.norm
 Metropolis step after the trajectory (4.) makes the chain exact.
 
 4. With a joint target that has a :attr:`~bayesreg.sampling.kernels.target.Target.correction`
-   (exact normaliser less its surrogate): the trajectory's end ``z'`` is kept with
-   probability ``min(1, exp(correction(z') - correction(z)))``, else the chain stays at
-   ``z`` (a surrogate transition: the trajectory leaves the surrogate posterior invariant
-   and is reversible, so this step leaves the exact one invariant; Liu 2001, *Monte Carlo
-   Strategies in Scientific Computing*, Sec. 9.4).  Its acceptance is a second column
-   (block ``normaliser``); the cache holds the correction at the chain's position.
+   (exact normaliser less its surrogate): the surrogate transition's Metropolis step
+   (:func:`bayesreg.sampling.kernels.surrogate.correct`), a second column (block
+   ``normaliser``); the cache holds the correction at the chain's position.
 
 :func:`as_algorithm` adds the windowed warm-up (:mod:`bayesreg.sampling.kernels.adaptation`)
 and hands the kernel to the driver, :func:`bayesreg.sampling.driver.sample`.  Chains of one
@@ -53,7 +50,7 @@ data, which its state carries (``chain_data``; the replicas of
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -62,10 +59,11 @@ from bayesreg.sampling.chains import build_adaptive_chunk
 from bayesreg.sampling.kernels import adaptation
 from bayesreg.sampling.kernels.base import Kernel, Program, SamplingAlgorithm, Warmup, marginal_sd
 from bayesreg.sampling.kernels.collapsed import CARRIES, collapsed_proposal, displacement_proposal
+from bayesreg.sampling.kernels.surrogate import Rebuilds, SurrogateRebuild, correct
 from bayesreg.sampling.kernels.target import Cache, Target
 
-__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "SurrogateRebuild", "init",
-           "build_kernel", "as_algorithm", "default_target_acceptance", "surrogate_center"]
+__all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
+           "as_algorithm", "default_target_acceptance"]
 
 
 KINDS = ("mala", "hmc", "nuts")
@@ -144,55 +142,14 @@ class GibbsParams(NamedTuple):
     ``(3 n_b, 3 n_b)``, ``eta_scale`` ``(n_free, n_free)``: the lower-triangular factor ``L``
     of the elastic random walk (proposal ``eta + L z``, covariance ``L L^T``); a vector
     ``(n_free,)`` is accepted as independent scales; ``collapsed_scale``, the same for the
-    collapsed moves (``None``: ``eta_scale``); ``surrogate_center`` ``(n_params,)``, the
-    natural parameters at which the sampling target's normaliser surrogate was rebuilt after
-    the warm-up (:class:`SurrogateRebuild`; ``None`` or empty: the target as given)."""
+    collapsed moves (``None``: ``eta_scale``); ``surrogate_center`` ``(n_params,)``, where the
+    target's surrogate was rebuilt after the warm-up (:class:`SurrogateRebuild`; empty: not)."""
 
     step_size: jax.Array
     inverse_mass: jax.Array
     eta_scale: jax.Array
     collapsed_scale: jax.Array | None = None
     surrogate_center: jax.Array | None = None
-
-
-class SurrogateRebuild(NamedTuple):
-    """How :func:`as_algorithm` rebuilds a joint target's normaliser surrogate where the
-    chains are once the warm-up ends.
-
-    A joint target's trajectories see a surrogate of the exact normaliser, corrected by one
-    Metropolis step per transition (:func:`bayesreg.sampling.kernels.target.joint_target`).
-    Built at the starts' centre (the mode), the surrogate can be far from exact where the
-    posterior's mass lies (parameters the mode put on their prior's margin), and the
-    correction then rejects most trajectories.  When the warm-up ends, the correction
-    ``Delta`` (exact normaliser less surrogate) at the chains' positions is compared: where
-    it spans more than ``tolerance`` over the chains, the surrogate is rebuilt at
-    :func:`surrogate_center` of their positions and the sampling kernel, fixed from then
-    on, runs on that target.  The warm-up's draws are discarded, and the chain stays exact
-    whatever the surrogate (the correction).
-
-    Attributes
-    ----------
-    n_params : int
-        The free parameters at the end of each position ``[..., phi]`` (natural units).
-    build : callable
-        ``phi (n_params,) ndarray -> Target``: the joint target, identical but for its
-        surrogate, built at ``phi`` (host code; called once per centre and cached).
-    tolerance : float
-        Nats: the span ``max_c Delta_c - min_c Delta_c`` up to which the surrogate is kept
-        (its correction then accepts nearly every trajectory, and a rebuild would cost a
-        compilation for nothing); ``0`` rebuilds always.
-    """
-
-    n_params: int
-    build: Callable
-    tolerance: float = 1.0
-
-
-def surrogate_center(positions, n_params: int) -> np.ndarray:
-    """Where :class:`SurrogateRebuild` rebuilds the surrogate: the chains' median of each
-    free parameter ending their positions (``positions`` ``(C, dim)``, natural units;
-    returns ``(n_params,)``), robust to a chain that the warm-up left apart."""
-    return np.median(np.asarray(positions, np.float64)[:, -n_params:], axis=0)
 
 
 def init(target: Target, theta, interior0, data=None) -> tuple[GibbsState, Cache]:
@@ -458,23 +415,12 @@ def build_kernel(target: Target, kind: str, *, num_integration_steps: int = 16,
             grads = grads + do.astype(grads.dtype)
         else:
             if target.correction is not None:  # the surrogate transition's Metropolis step
-                def correct(_):
-                    delta = jnp.asarray(target.correction(ustate.position), jnp.float64)
-                    log_ratio = delta - cache.log_norm
-                    log_ratio = jnp.where(jnp.isnan(log_ratio), -jnp.inf, log_ratio)
-                    _, (do_, p_acc_, _) = static_binomial_sampling(k_e, log_ratio, jnp.zeros(()),
-                                                                  jnp.ones(()))
-                    return do_, p_acc_, jnp.where(do_, delta, cache.log_norm)
-
-                keep, p_c, delta = jax.lax.cond(
-                    moved_u, correct,
-                    lambda _: (jnp.asarray(True), jnp.ones(()), cache.log_norm), None)
-                ustate = jax.tree.map(lambda a, b: jnp.where(keep, a, b), ustate, state.u)
-                interior = jnp.where(keep, interior, state.interior)
+                ustate, interior, delta, p_c, kept = correct(target, k_e, moved_u, ustate, state.u,
+                                                             interior, state.interior, cache.log_norm)
                 w = ustate.position
                 cache = cache._replace(log_norm=delta)
                 acc.append(p_c)
-                accepted.append(moved_u & keep)
+                accepted.append(kept)
             lp_nat = ustate.logdensity + cache.log_norm
             if target.log_jacobian is not None:  # a joint target: its w holds the logits
                 lp_nat = lp_nat - target.log_jacobian(w)
@@ -556,13 +502,9 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         the warm-up ended).  It may change ``data`` only, and only what the log-density
         does not depend on (the kernel's proposals), so the stored state stays exact.  Warm-up
         draws are discarded, so the sampling kernel, fixed from then on, stays exact.
-    surrogate : SurrogateRebuild, optional
-        Rebuild a joint target's normaliser surrogate at :func:`surrogate_center` of the
-        chains' positions when the warm-up ends, re-evaluate the chains' states on the
-        rebuilt target and sample it (one more compilation of the chunk program).  The
-        centre is frozen with the tuned values (:attr:`GibbsParams.surrogate_center`, in
-        checkpoints and ``run.json``), so a resumed run samples the same target.  Ignored for
-        a target without :attr:`~bayesreg.sampling.kernels.target.Target.correction`.
+    surrogate : bayesreg.sampling.kernels.surrogate.SurrogateRebuild, optional
+        Rebuild a joint target's normaliser surrogate where the chains are when the warm-up
+        ends (ignored for a target without a correction).
 
     Returns
     -------
@@ -603,18 +545,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
     target_of, target = target, (target if chain_data is None else
                                  target(jax.tree.map(lambda a: jnp.asarray(a)[0], chain_data)))
     n_blocks = 1 + (target.n_free > 0) + (collapsed_moves > 0) + (target.correction is not None)
-    if target.correction is None:
-        surrogate = None
-    rebuilt: dict = {}  # surrogate centre -> (target, kernel, ws_step) built at it
-
-    def rebuilt_at(center):
-        center = np.asarray(center, np.float64)
-        key = center.tobytes()
-        if key not in rebuilt:
-            tg = surrogate.build(center)
-            kn, _, step_, _ = kernel_of(tg)
-            rebuilt[key] = (tg, kn, step_)
-        return rebuilt[key]
+    rebuilds = Rebuilds(surrogate if target.correction is not None else None, kernel_of,
+                        lambda tg, x, i: init(tg, x, i)[0])
     # scales become a diagonal factor in ws_init
     eta0 = eta0 if eta0.ndim == 2 else np.broadcast_to(eta0, (target.n_free,))
 
@@ -652,22 +584,12 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         stages = adaptation.schedule(n_warm * per_chunk) if n_warm else np.zeros((0, 2), np.int32)
         adapt = np.ones(n_chains, bool)
 
-        sampling: dict = {}  # surrogate centre -> the sampling chunk's program on its target
-
-        def program_for(frozen):
-            center = frozen.surrogate_center
-            if surrogate is None or center is None or not np.size(center):
-                return mapped
-            key = np.asarray(center[0], np.float64).tobytes()
-            if key not in sampling:
-                _, kn, step_ = rebuilt_at(center[0])
-                sampling[key] = build_adaptive_chunk(kn, step_, chunk_draws, thinning, n_chains,
-                                                     method=chain_method)
-            return sampling[key]
+        def chunk_program(kn, step_):  # the sampling chunk of a rebuilt target
+            return build_adaptive_chunk(kn, step_, chunk_draws, thinning, n_chains, method=chain_method)
 
         def chunk(keys, states, frozen):
-            (states, _, _), out = program_for(frozen).run(samp_keys(keys), states,
-                                                          (ws_frozen(frozen), no_stage, no_adapt))
+            program = rebuilds.program(frozen.surrogate_center, mapped, chunk_program)
+            (states, _, _), out = program.run(samp_keys(keys), states, (ws_frozen(frozen), no_stage, no_adapt))
             return states, out
 
         def warm_chunk(k, keys, states, ws):
@@ -686,19 +608,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
 
         refreshed = None if refresh is None else jax.jit(jax.vmap(refresh))
         frozen_of = jax.jit(jax.vmap(ws_final))
-
-        def final(ws, states):
-            frozen = frozen_of(ws)
-            if surrogate is None or _correction_span(target, states) <= surrogate.tolerance:
-                return frozen._replace(surrogate_center=jnp.zeros((n_chains, 0))), states
-            center = surrogate_center(states.position, surrogate.n_params)
-            tg = rebuilt_at(center)[0]
-            states = jax.jit(jax.vmap(lambda x, interior: init(tg, x, interior)[0]))(
-                states.position, states.interior)
-            _check_states(states, "the chains' states re-evaluated on the rebuilt surrogate")
-            return frozen._replace(surrogate_center=jnp.tile(jnp.asarray(center), (n_chains, 1))), states
-
-        warmup = Warmup(lambda states: ws_start(), warm_chunk, final)
+        warmup = Warmup(lambda states: ws_start(), warm_chunk,
+                        lambda ws, states: rebuilds.freeze(target, frozen_of(ws), states))
         return Program(chunk, warmup, mapped.method)
 
     if chain_data is None:
@@ -723,27 +634,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         + (("tree_depth",) if kind == "nuts" else ()))
 
 
-def _correction_span(target: Target, states: GibbsState) -> float:
-    """``max - min`` over the chains of a joint target's correction ``Delta`` (exact
-    normaliser less surrogate) at their states: ``logdensity`` is the natural log-density
-    with ``Delta``, ``u.logdensity`` the trajectory's, with the surrogate and the
-    log-Jacobian (:func:`init`, :func:`build_kernel`)."""
-    jac = jax.jit(jax.vmap(target.log_jacobian))(states.u.position)
-    delta = np.asarray(states.logdensity - states.u.logdensity + jac)
-    return float(np.ptp(delta)) if np.all(np.isfinite(delta)) else np.inf
-
-
-def _check_states(states: GibbsState, what: str) -> None:
-    """Refuse states whose log-density is not finite (a failed solve, a surrogate that fails)."""
-    lp = np.asarray(states.logdensity)
-    if not np.all(np.isfinite(lp)):
-        raise ValueError(f"{what}: log-density not finite for chains "
-                         f"{np.flatnonzero(~np.isfinite(lp)).tolist()}")
-
-
 def _describe(sigma: tuple) -> dict:
-    """The frozen step sizes, mass matrices, elastic factors and surrogate centre, for
-    ``run.json``."""
+    """The frozen tuned values (step sizes, mass matrices, factors, surrogate), for ``run.json``."""
     step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
     extra = {} if len(sigma) < 4 or sigma[3] is None else {
         "collapsed_proposal_sd_per_chain": marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
