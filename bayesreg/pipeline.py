@@ -224,15 +224,15 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         state = ckpt.load_state() if resume is not None else None
         warm = ckpt.load_warmup() if resume is not None and state is None else None
 
-        def warmup_ended(checkpoint):
-            center = checkpoint.sigma[4] if len(checkpoint.sigma) > 4 else None
+        def warmup_ended(checkpoint):  # (a gradient kernel's surrogate centre: GibbsParams[4])
+            center = checkpoint.sigma[4] if cfg.sampler.gradient and len(checkpoint.sigma) > 4 else None
             if center is not None and np.size(center):
                 stages.tell("the normaliser's surrogate rebuilt at the chains' median parameters "
                             "(" + ", ".join(f"{v:.3g}" for v in np.asarray(center)[0]) + ")")
             stages.switch("sampling")
 
         def on_chunk(checkpoint, out):
-            if out is None:
+            if out is None:  # the warm-up ended
                 warmup_ended(checkpoint)
             ckpt.on_chunk(checkpoint, out)
 

@@ -176,8 +176,8 @@ def gradient_target(problem: Problem, cfg: Config, center, factor, *, surrogate_
         return base
     surrogate = None
     if cfg.model.prior_normaliser == "exact" and post.normaliser.grounded.unit is not None:
-        # the trajectories see a smooth surrogate built at the starts' centre; one exact
-        # normaliser per transition corrects it (kernels.gibbs)
+        # the trajectories see a smooth surrogate built at the starts' centre (or at
+        # surrogate_at); one exact normaliser per transition corrects it (kernels.surrogate)
         s_data = normaliser_surrogate(post, np.asarray(center[nb3:] if surrogate_at is None
                                                        else surrogate_at))
 
