@@ -166,17 +166,13 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
     boundary and the interior's FE solve at each draw's ``lam``, ``mu`` (SciPy sparse LU),
     plus the draw's model discrepancy where the run has one.
     Draws sharing their parameters (a fixed-parameter model) share one factorisation."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
-    from bayesreg.fem.element import stiffness_matrix
+    from bayesreg.fem.element import interior_solver, node_dofs, stiffness_matrix
 
     mesh = rp.mesh
     n = len(mesh.nodes)
     b = np.asarray(mesh.boundary)
     inner = mesh.interior
-    db = (3 * b[:, None] + np.arange(3)).ravel()
-    di = (3 * inner[:, None] + np.arange(3)).ravel()
+    db, di = node_dofs(b), node_dofs(inner)
     out = np.empty((len(indices), n, 3))
     cache: dict[bytes, tuple] = {}
     for k, s in enumerate(np.asarray(indices)):
@@ -187,11 +183,9 @@ def nodal_field_draws(rp: RunPosterior, indices) -> np.ndarray:
             if key not in cache:
                 if len(cache) > 8:
                     cache.clear()
-                kk = sp.csr_matrix(stiffness_matrix(mesh.nodes, mesh.tets, rp.lam[s][rp.group],
-                                                    rp.mu[s][rp.group]))
-                cache[key] = (spla.splu(sp.csc_matrix(kk[di][:, di])), kk[di][:, db])
-            lu, k_ib = cache[key]
-            full[di] = lu.solve(-(k_ib @ full[db]))
+                cache[key] = interior_solver(stiffness_matrix(
+                    mesh.nodes, mesh.tets, rp.lam[s][rp.group], rp.mu[s][rp.group]), b, inner)
+            full[di] = cache[key].solve(full[db])
             if rp.d is not None:
                 full[di] += rp.d[s].ravel()
         out[k] = full.reshape(n, 3)

@@ -56,6 +56,22 @@ def test_patch_test_linear_field_constant_strain_and_energy():
     assert 0.5 * u.ravel() @ (k @ u.ravel()) == pytest.approx(expected, rel=1e-12)
 
 
+def test_interior_solver_reproduces_a_linear_field_from_its_boundary_values():
+    """Patch test of the Dirichlet split: a linear field held on the boundary nodes (given
+    in a shuffled order) is solved exactly at the interior nodes (any order), its DOFs
+    ``3*i + axis`` node-major."""
+    m = box_mesh((3, 3, 3))
+    grad = np.array([[0.01, 0.002, -0.003], [0.004, -0.02, 0.001], [0.0, 0.005, 0.015]])
+    u = m.nodes @ grad.T + np.array([0.5, -1.0, 2.0])
+    rng = np.random.default_rng(0)
+    boundary, interior = rng.permutation(m.boundary), rng.permutation(m.interior)
+    assert len(interior) == 8
+    solver = fem.interior_solver(fem.stiffness_matrix(m.nodes, m.tets, 7.0, 1.5), boundary, interior)
+    np.testing.assert_array_equal(solver.boundary_dofs, fem.node_dofs(boundary))
+    np.testing.assert_array_equal(fem.node_dofs([2, 0]), [6, 7, 8, 0, 1, 2])
+    np.testing.assert_allclose(solver.solve(u[boundary].ravel()), u[interior].ravel(), atol=1e-12)
+
+
 def test_rigid_modes_have_zero_energy_and_span_nullspace():
     m = box_mesh((2, 2, 2))
     k = fem.stiffness_matrix(m.nodes, m.tets, 10.0, 1.0).toarray()

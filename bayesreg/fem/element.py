@@ -17,9 +17,12 @@ assembly of ``K``, the strain energy); the JAX functions :func:`strain_energy_de
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from bayesreg._checks import as_index_array
 
@@ -28,6 +31,9 @@ __all__ = [
     "element_stiffness",
     "element_stiffness_voigt",
     "stiffness_matrix",
+    "node_dofs",
+    "InteriorSolver",
+    "interior_solver",
     "strain_energy",
     "strain_energy_density",
     "element_strain_energy",
@@ -241,6 +247,49 @@ def stiffness_matrix(nodes, tets, lam, mu):
     cols = np.tile(dof, (1, 12)).ravel()
     n = 3 * len(nodes)
     return sp.csr_array(sp.coo_array((ke.ravel(), (rows, cols)), shape=(n, n)))
+
+
+def node_dofs(nodes) -> np.ndarray:
+    """The DOF indices ``3*i + axis`` ``(3 n,)`` of the nodes ``nodes`` ``(n,)``, node-major."""
+    return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
+
+
+class InteriorSolver(NamedTuple):
+    """The Dirichlet split of a global stiffness ``K`` (:func:`interior_solver`).
+
+    Attributes
+    ----------
+    lu : scipy.sparse.linalg.SuperLU
+        Sparse LU of ``K_ii``.
+    k_ib : scipy.sparse matrix, shape (3 n_i, 3 n_b)
+    boundary_dofs, interior_dofs : (3 n_b,), (3 n_i,) int arrays
+        :func:`node_dofs` of the boundary and interior nodes, in the order given.
+    """
+
+    lu: object
+    k_ib: object
+    boundary_dofs: np.ndarray
+    interior_dofs: np.ndarray
+
+    def solve(self, u_b):
+        """The interior displacement ``(3 n_i,)`` solving ``K_ii u_i = -K_ib u_b`` for the
+        boundary displacement ``u_b`` ``(3 n_b,)`` mm (or ``(3 n_b, k)`` columns)."""
+        return self.lu.solve(-(self.k_ib @ u_b))
+
+
+def interior_solver(k, boundary, interior) -> InteriorSolver:
+    """SciPy's reference interior solve of a global stiffness ``k`` (``(3N, 3N)`` sparse,
+    :func:`stiffness_matrix`) with the ``boundary`` nodes ``(n_b,)`` held (Dirichlet) and
+    the ``interior`` nodes ``(n_i,)`` free: one sparse LU of ``K_ii``.
+
+    Raises
+    ------
+    RuntimeError
+        ``K_ii`` singular (SciPy's ``splu``): a mesh or parameters without stiffness.
+    """
+    bd, idf = node_dofs(boundary), node_dofs(interior)
+    k = sp.csr_matrix(k)
+    return InteriorSolver(spla.splu(sp.csc_matrix(k[idf][:, idf])), k[idf][:, bd], bd, idf)
 
 
 def strain_energy(nodes, tets, u, lam, mu):

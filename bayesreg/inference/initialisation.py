@@ -20,13 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 import scipy.ndimage as ndi
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from bayesreg.data import labels as L
 from bayesreg.config import Config
 from bayesreg.mesh.constraints import skull_distance
-from bayesreg.fem.element import stiffness_matrix
+from bayesreg.fem.element import interior_solver, node_dofs, stiffness_matrix
 from bayesreg.data.images import Image
 from bayesreg.inference.mode import find_mode
 from bayesreg.mesh.tetmesh import Mesh
@@ -214,11 +212,6 @@ def initial_positions(problem: Problem, cfg: Config, center, rng, prec=None, *,
     raise ValueError(f"could not find valid starts for chains {todo.tolist()}")
 
 
-def _dofs(nodes):
-    """The DOF indices ``3*i + axis`` of ``nodes``, node-major."""
-    return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
-
-
 def laplace_precision(problem: Problem, theta) -> np.ndarray:
     """Gauss-Newton precision of ``u_b`` (and a model discrepancy, if any) at ``theta`` with the
     parameters held fixed (:func:`gauss_newton_precision` of the problem's posterior)."""
@@ -239,11 +232,11 @@ def schur_complement(post: Posterior, mesh: Mesh, element_group, phi):
     """
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, jnp.asarray(phi)))
     g = np.asarray(element_group)
-    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsc()
-    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
-    k_ii, k_ib, k_bb = k[idf][:, idf], k[idf][:, bd], k[bd][:, bd]
-    h = -spla.splu(sp.csc_matrix(k_ii)).solve(k_ib.toarray())
-    return h, k_bb.toarray() + k_ib.T @ h
+    k = stiffness_matrix(mesh.nodes, mesh.tets, lam_g[g], mu_g[g]).tocsr()
+    solver = interior_solver(k, mesh.boundary, mesh.interior)
+    bd = solver.boundary_dofs
+    h = -solver.lu.solve(solver.k_ib.toarray())
+    return h, k[bd][:, bd].toarray() + solver.k_ib.T @ h
 
 
 def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) -> np.ndarray:
@@ -282,7 +275,7 @@ def gauss_newton_precision(post: Posterior, mesh: Mesh, element_group, theta) ->
     theta = np.asarray(theta)
     phi = theta[post.n_displacement:]
     h, schur = schur_complement(post, mesh, element_group, phi)
-    bd, idf = _dofs(mesh.boundary), _dofs(mesh.interior)
+    bd, idf = node_dofs(mesh.boundary), node_dofs(mesh.interior)
     # residual Jacobian w.r.t. nodal displacements, through the interior map
     u_b = theta[: 3 * nb]
     disc = post.discrepancy

@@ -41,7 +41,8 @@ from bayesreg._checks import check_last_axis, check_shape
 from bayesreg.mesh.constraints import (
     SkullConstraint, element_volumes, points_forbidden, skull_barrier, skull_constraint,
     with_barrier)
-from bayesreg.fem.element import element_strain_energy, shape_gradients, stiffness_matrix
+from bayesreg.fem.element import (
+    element_strain_energy, interior_solver, shape_gradients, stiffness_matrix)
 from bayesreg.data.images import check_image
 from bayesreg.jaxconfig import require_x64
 from bayesreg.mesh.tetmesh import Mesh
@@ -669,8 +670,8 @@ def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
     """``post`` with its discrepancy made orthogonal to the FE interior's sensitivities to
     the elastic parameters (:class:`Discrepancy`; Plumlee 2017), taken at ``phi_ref`` and
     the boundary displacement ``u_b`` ``(n_b, 3)`` mm (a run's central start).  Host code:
-    SciPy's reference assembly (:func:`bayesreg.fem.element.stiffness_matrix`) and one sparse
-    LU of ``K_ii``; ``S[:, k] = -phi_k K_ii^-1 (dK / dphi_k u)_i`` with ``u`` the FE field.
+    SciPy's reference assembly and interior solve (:func:`bayesreg.fem.element.stiffness_matrix`,
+    :func:`bayesreg.fem.element.interior_solver`: one sparse LU of ``K_ii``); ``S[:, k] = -phi_k K_ii^-1 (dK / dphi_k u)_i`` with ``u`` the FE field.
 
     Raises
     ------
@@ -680,9 +681,6 @@ def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
         without displacement); more free parameters than a quarter of the interior DOFs
         (per-element parameters).
     """
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
     disc = _discrepancy(post, "an orthogonal discrepancy")
     u_b = np.asarray(u_b, float)
     check_shape("u_b", u_b, (post.n_boundary, 3), "one row per boundary node")
@@ -693,14 +691,14 @@ def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
         raise ValueError(f"an orthogonal discrepancy removes one direction per free parameter: "
                          f"{k} free parameters against {3 * n_i} interior DOFs leave it no "
                          "freedom (use groups of parameters, not one per element)")
-    bd, idf = ((3 * idx[:, None] + np.arange(3)).ravel() for idx in node_slots(post))
     nodes, tets, group = (np.asarray(a) for a in (post.nodes, post.tets, post.group))
     lam_g, mu_g = (np.asarray(a) for a in elastic_groups(post, post.phi_ref))
-    kk = stiffness_matrix(nodes, tets, lam_g[group], mu_g[group]).tocsc()
-    lu = spla.splu(sp.csc_matrix(kk[idf][:, idf]))
+    solver = interior_solver(stiffness_matrix(nodes, tets, lam_g[group], mu_g[group]),
+                             *node_slots(post))
+    bd, idf = solver.boundary_dofs, solver.interior_dofs
     u = np.zeros(3 * len(nodes))
     u[bd] = u_b.ravel()
-    u[idf] = lu.solve(-(kk[idf][:, bd] @ u_b.ravel()))
+    u[idf] = solver.solve(u_b.ravel())
     g = len(lam_g)
     full = np.asarray(post.base, float).copy()
     full[np.asarray(post.free_index)] = np.asarray(post.phi_ref)
@@ -709,7 +707,7 @@ def orthogonal_discrepancy(post: Posterior, u_b) -> Posterior:
         is_lam, gj = j < g, j % g
         on = (group == gj).astype(float)
         dk = stiffness_matrix(nodes, tets, on if is_lam else 0.0 * on, 0.0 * on if is_lam else on)
-        cols.append(-full[j] * lu.solve((dk @ u)[idf]))
+        cols.append(-full[j] * solver.lu.solve((dk @ u)[idf]))
     s_mat = np.stack(cols, axis=1)
     k0s = np.stack([np.asarray(ell_matvec(disc.k_ii, post.op.cols_ii, post.op.row_ii,
                                           jnp.asarray(c.reshape(-1, 3)))).ravel()
