@@ -241,11 +241,23 @@ def test_pad_rejects_a_negative_or_nan_margin(margin):
     assert pad(smooth_image((4, 4, 4)), 0.0).data.shape == (4, 4, 4)
 
 
-# Oblique source grids lose boundary voxels: resample() maps output voxels to source voxel
-# coordinates through np.linalg.solve of the two affines, so a centre on the source grid's
-# boundary lands 1e-16 outside it, where scipy.ndimage's "constant" mode returns cval.
-OBLIQUE = pytest.param(True, id="oblique", marks=pytest.mark.xfail(
-    strict=True, reason="bayesreg.data.images.resample: boundary centres of an oblique grid get cval"))
+# Oblique source grids: resample() maps output voxels to source voxel coordinates through
+# np.linalg.solve of the two affines, so a centre on the source grid's boundary lands 1e-16
+# outside it, where scipy.ndimage's "constant" mode alone would return cval.
+OBLIQUE = pytest.param(True, id="oblique")
+
+
+@pytest.mark.parametrize("order", [0, 1, 3])
+def test_resample_reads_the_edge_within_tolerance_and_cval_beyond(order):
+    """A target centre 1e-9 voxels outside the source's last centre reads the source's edge
+    value; one 1e-3 voxels outside, and one farther, read ``cval``; one inside is unchanged."""
+    src = Image(np.arange(5 * 4 * 3, dtype=float).reshape(5, 4, 3), np.eye(4))
+    for shift, want in ((1e-9, src.data[4]), (1e-3, np.full((4, 3), -7.0)), (-0.0, src.data[4])):
+        tgt = np.eye(4)
+        tgt[0, 3] = 4.0 + shift  # target slab 0 at source coordinate 4 + shift along axis 0
+        out = resample(src, tgt, (2, 4, 3), order=order, cval=-7.0)
+        np.testing.assert_allclose(out.data[0], want, rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(out.data[1], -7.0)  # a whole voxel beyond the grid
 
 
 def _source_affine(spacing, oblique):

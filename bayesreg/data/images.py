@@ -314,7 +314,10 @@ def resample(img: Image, affine, shape, *, order=1, cval=0.0, mode="constant") -
         :func:`scipy.ndimage.affine_transform` boundary mode: ``"constant"`` gives ``cval``
         beyond the outermost voxel centres; ``"grid-constant"`` treats each voxel as
         covering its extent (with ``order=0``, nearest neighbour up to half a voxel
-        outside the centres).
+        outside the centres).  A target centre within ``EDGE_TOLERANCE`` voxels outside
+        the source's outermost centres (rounding in the composed affines: an oblique grid's
+        own centres land ``1e-16`` outside) takes the value at the nearest point of the
+        source grid, not ``cval``.
 
     Raises
     ------
@@ -326,16 +329,48 @@ def resample(img: Image, affine, shape, *, order=1, cval=0.0, mode="constant") -
     affine = check_affine(affine, "target")
     shape = _grid_shape(shape)
     src_from_tgt = np.linalg.solve(img.affine, affine)
-    data = ndi.affine_transform(
-        np.asarray(img.data, dtype=np.float64 if order else img.data.dtype),
-        src_from_tgt[:3, :3],
-        offset=src_from_tgt[:3, 3],
-        output_shape=shape,
-        order=order,
-        mode=mode,
-        cval=cval,
-    )
+    source = np.asarray(img.data, dtype=np.float64 if order else img.data.dtype)
+    data = ndi.affine_transform(source, src_from_tgt[:3, :3], offset=src_from_tgt[:3, 3],
+                                output_shape=shape, order=order, mode=mode, cval=cval)
+    if mode == "constant":
+        index, coords = _edge_rounded(src_from_tgt, shape, source.shape)
+        if len(index):
+            data[tuple(index.T)] = ndi.map_coordinates(source, coords.T, order=order,
+                                                       mode=mode, cval=cval)
     return Image(data, affine)
+
+
+#: Voxels (source grid) by which a target centre may fall outside the source's outermost
+#: centres and still read the source at its nearest point (:func:`resample`).
+EDGE_TOLERANCE = 1e-6
+
+
+def _edge_rounded(src_from_tgt, shape, source_shape):
+    """The target voxels ``(n, 3)`` int whose source coordinates lie outside
+    ``[0, n - 1]`` on some axis by at most :data:`EDGE_TOLERANCE` (and inside it, so
+    widened, on every axis), with those coordinates clamped onto the grid ``(n, 3)``.
+    One target slab at a time: memory of one slab's coordinates."""
+    m, off = src_from_tgt[:3, :3], src_from_tgt[:3, 3]
+    upper = np.asarray(source_shape, float) - 1.0
+    corners = np.stack(np.meshgrid(*[(0, n - 1) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    lo, hi = (f(corners @ m.T + off, axis=0) for f in (np.min, np.max))  # affine: the extremes
+    below = (lo < 0.0) & (hi >= -EDGE_TOLERANCE)
+    above = (hi > upper) & (lo <= upper + EDGE_TOLERANCE)
+    if not np.any(below | above):
+        return np.zeros((0, 3), int), np.zeros((0, 3))  # no centre in either band
+    jk = np.stack(np.meshgrid(np.arange(shape[1]), np.arange(shape[2]), indexing="ij"), -1)
+    plane = jk.reshape(-1, 2) @ m[:, 1:].T + off  # (J K, 3) source coordinates at i = 0
+    index, coords = [], []
+    for i in range(shape[0]):
+        c = plane + i * m[:, 0]
+        near = np.all((c >= -EDGE_TOLERANCE) & (c <= upper + EDGE_TOLERANCE), axis=1)
+        fix = near & np.any((c < 0.0) | (c > upper), axis=1)
+        if fix.any():
+            index.append(np.column_stack([np.full(fix.sum(), i), jk.reshape(-1, 2)[fix]]))
+            coords.append(np.clip(c[fix], 0.0, upper))
+    if not index:
+        return np.zeros((0, 3), int), np.zeros((0, 3))
+    return np.concatenate(index), np.concatenate(coords)
 
 
 def _grid_shape(shape) -> tuple:
