@@ -23,6 +23,7 @@ from bayesreg.model.posterior import elastic_groups
 from bayesreg.model.problem import Problem, assemble, at_start, make_data
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampling.driver import SamplerResult, sample
+from bayesreg.sampling.kernels.gibbs import rebuilt_center
 from bayesreg.stages import Stages
 from bayesreg.inference.targets import sampling_algorithm
 
@@ -224,11 +225,11 @@ def run(config=None, *, out=None, overrides=None, overwrite=None, progress=None,
         state = ckpt.load_state() if resume is not None else None
         warm = ckpt.load_warmup() if resume is not None and state is None else None
 
-        def warmup_ended(checkpoint):  # (a gradient kernel's surrogate centre: GibbsParams[4])
-            center = checkpoint.sigma[4] if cfg.sampler.gradient and len(checkpoint.sigma) > 4 else None
-            if center is not None and np.size(center):
+        def warmup_ended(checkpoint):  # (the tuned values: a gradient kernel's GibbsParams)
+            center = rebuilt_center(checkpoint.sigma) if cfg.sampler.gradient else None
+            if center is not None:
                 stages.tell("the normaliser's surrogate rebuilt at the chains' median parameters "
-                            "(" + ", ".join(f"{v:.3g}" for v in np.asarray(center)[0]) + ")")
+                            "(" + ", ".join(f"{v:.3g}" for v in center[0]) + ")")
             stages.switch("sampling")
 
         def on_chunk(checkpoint, out):

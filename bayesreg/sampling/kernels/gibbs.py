@@ -31,15 +31,12 @@ One transition (Metropolis-within-Gibbs, each part leaving the posterior invaria
 
 With a joint target (:func:`bayesreg.sampling.kernels.target.joint_target`) part 1 moves ``u_b`` and
 the elastic parameters together along one trajectory, through the CG solve with implicit
-differentiation, and parts 2 and 3 are empty (the target has no separate parameters):
-Gibbs alternation mixes slowly where ``u_b`` pins the parameters down.  Under the exact
-normaliser the trajectory sees a smooth surrogate of it (:mod:`bayesreg.fem.normaliser`), and a
-Metropolis step after the trajectory (4.) makes the chain exact.
-
-4. With a joint target that has a :attr:`~bayesreg.sampling.kernels.target.Target.correction`
-   (exact normaliser less its surrogate): the surrogate transition's Metropolis step
-   (:func:`bayesreg.sampling.kernels.surrogate.correct`), a second column (block
-   ``normaliser``); the cache holds the correction at the chain's position.
+differentiation; parts 2 and 3 are empty (Gibbs alternation mixes slowly where ``u_b`` pins
+the parameters down).  Under the exact normaliser the trajectory sees a smooth surrogate of
+it (:mod:`bayesreg.fem.normaliser`), and (4.) the surrogate transition's Metropolis step
+(:func:`bayesreg.sampling.kernels.surrogate.correct`; block ``normaliser``, the cache holding
+the :attr:`~bayesreg.sampling.kernels.target.Target.correction` at the chain's position)
+makes the chain exact.
 
 :func:`as_algorithm` adds the windowed warm-up (:mod:`bayesreg.sampling.kernels.adaptation`)
 and hands the kernel to the driver, :func:`bayesreg.sampling.driver.sample`.  Chains of one
@@ -63,7 +60,7 @@ from bayesreg.sampling.kernels.surrogate import Rebuilds, SurrogateRebuild, corr
 from bayesreg.sampling.kernels.target import Cache, Target
 
 __all__ = ["KINDS", "GibbsState", "GibbsInfo", "GibbsParams", "init", "build_kernel",
-           "as_algorithm", "default_target_acceptance"]
+           "as_algorithm", "default_target_acceptance", "rebuilt_center"]
 
 
 KINDS = ("mala", "hmc", "nuts")
@@ -612,12 +609,8 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
                         lambda ws, states: rebuilds.freeze(target, frozen_of(ws), states))
         return Program(chunk, warmup, mapped.method)
 
-    if chain_data is None:
-        def init_chain(x):
-            return init(target, x, interior0)[0]
-    else:
-        def init_chain(x, data):
-            return init(target_of, x, interior0, data)[0]
+    init_chain = ((lambda x: init(target, x, interior0)[0]) if chain_data is None
+                  else (lambda x, data: init(target_of, x, interior0, data)[0]))
 
     return SamplingAlgorithm(
         kind=kind,
@@ -634,13 +627,20 @@ def as_algorithm(target: Target, interior0, *, kind: str = "nuts", step_size: fl
         + (("tree_depth",) if kind == "nuts" else ()))
 
 
+def rebuilt_center(sigma: tuple) -> np.ndarray | None:
+    """The surrogate's centre ``(C, n_params)`` in the tuned values ``sigma`` (the :class:`GibbsParams`
+    fields, as checkpoints hold them); ``None`` where it was not rebuilt after the warm-up."""
+    center = GibbsParams(*sigma).surrogate_center
+    return None if center is None or not np.size(center) else np.asarray(center)
+
+
 def _describe(sigma: tuple) -> dict:
     """The frozen tuned values (step sizes, mass matrices, factors, surrogate), for ``run.json``."""
     step, inv_mass, eta_scale = (np.asarray(a) for a in sigma[:3])
     extra = {} if len(sigma) < 4 or sigma[3] is None else {
         "collapsed_proposal_sd_per_chain": marginal_sd(np.asarray(sigma[3]), np.ndim(sigma[3]) == 3).tolist()}
-    if len(sigma) > 4 and sigma[4] is not None and np.size(sigma[4]):
-        extra["normaliser_surrogate_center"] = np.asarray(sigma[4])[0].tolist()
+    center = rebuilt_center(sigma)
+    extra |= {} if center is None else {"normaliser_surrogate_center": center[0].tolist()}
     return {**extra, "step_size_per_chain": step.tolist(),
             "inverse_mass_diag_quantiles_0_50_100": np.quantile(
                 inv_mass if inv_mass.ndim == 2 else np.diagonal(inv_mass, axis1=1, axis2=2),
