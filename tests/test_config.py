@@ -345,7 +345,11 @@ def test_truths_the_model_did_not_make_refuse_the_fe_truths_keys(tmp_path):
     assert "go together" in _error(["synthetic.field=u.nii.gz"])
     shipped = load_config("configs/mismatch_bump.yaml")  # the quickstart with a bump
     assert shipped.synthetic.truth == "bump" and shipped.init.start == "registration"
-    assert shipped.model.interior == "sample" and shipped.model.fixed is None
+    assert shipped.model.interior == "solve" and shipped.model.fixed is None
+    # the FE interior with a model discrepancy, sampled as mismatch_discrepancy.yaml samples it
+    assert shipped.model.discrepancy == "interior" and shipped.synthetic.discrepancy_mm == 0.0
+    assert not shipped.sampler.joint and shipped.sampler.collapsed_moves > 0
+    assert shipped.sampler.carry == "displacement" and not shipped.synthetic.solenoidal
     p = tmp_path / "c.yaml"
     p.write_text("synthetic:\n  truth: field\n  field: fields/u.nii.gz\n")
     assert load_config(p).synthetic.field == (tmp_path / "fields" / "u.nii.gz").resolve()
