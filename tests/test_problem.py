@@ -1,5 +1,6 @@
 """The problem's data (bayesreg.model.problem): a run on a given mesh file."""
 
+import jax.numpy as jnp
 import meshio
 import numpy as np
 import pytest
@@ -145,6 +146,16 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
     # truth at the nodes (the bump varies slowly within an element), printed with its coverage
     best = errors["mesh_best_fit"]
     assert best["brain_mse_mm2"] < mse["posterior_mean"]
+    # the images' term at the truth's nodal u and at the draws' mean (0.5 mm of noise off it):
+    # -E_s / T_s of the posterior's own SSD, and the mean fits the images worse than the truth
+    from bayesreg.model.posterior import energies
+    from bayesreg.outputs.fields import nodal_mean
+
+    fit, post = errors["image_fit"], problem.posterior
+    for key, u in (("truth", truth.u), ("posterior_mean", nodal_mean(problem, result))):
+        e_s = float(energies(post, jnp.asarray(u), jnp.asarray(problem.phi_init))[0])
+        np.testing.assert_allclose(fit[key], -e_s * float(post.inv_t_s), rtol=1e-10)
+    assert fit["gain_nats"] == fit["posterior_mean"] - fit["truth"] < 0
     assert 0.0 < best["nodes_from_truth_mm"]["median"] < 0.5
     assert 0.5 < best["coverage_moving"]["0.9"] <= 1.0
     from bayesreg.outputs.printed import format_report
@@ -154,6 +165,8 @@ def test_a_truth_the_model_did_not_make_from_data_to_errors(tmp_path):
                "stuck_chains": [], "draws_per_chain": d, "blocks": ["u_b"], "acceptance": [0.8],
                "thinning": 1, "chains": c, "cg_iterations_per_step_mean": 1.0,
                "solve_failures": 0, "steps_per_s_per_chain": 1.0}
-    line = next(x for x in format_report(errors, {"sampler": sampler}).splitlines()
-                if "best fit" in x)
+    report = format_report(errors, {"sampler": sampler}).splitlines()
+    line = next(x for x in report if "best fit" in x)
     assert f"90% coverage of it {best['coverage_moving']['0.9']:.2f}" in line
+    line = next(x for x in report if "images' term" in x)
+    assert f"truth {fit['truth']:.1f}, posterior mean {fit['posterior_mean']:.1f}" in line

@@ -83,6 +83,12 @@ def format_report(errors: dict | None, info: dict) -> str:
                          f"{errors.get('moving_threshold_mm', 1.0):g} mm: {_f(cm.get('0.9'), '.2f')} "
                          f"({cm['n_components']} components); boundary "
                          f"{_f(errors['coverage_boundary'].get('0.9'), '.2f')}")
+        fit = errors.get("image_fit")
+        if fit:
+            lines.append(f"  images' term -E_s/T_s: truth {_f(fit['truth'], '.1f')}, posterior mean "
+                         f"{_f(fit['posterior_mean'], '.1f')} ({_f(fit['gain_nats'], '+.1f')} nats: "
+                         "what the posterior fits beyond the truth, noise-free images' residual "
+                         "included; benchmarks/residual.py)")
         best = errors.get("mesh_best_fit")
         if best and best.get("coverage_moving"):
             lines.append(f"  the mesh's best fit to the truth (brain MSE "

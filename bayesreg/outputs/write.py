@@ -70,7 +70,8 @@ from bayesreg.mesh.tetmesh import boundary_nodes, mesh_quality
 from bayesreg.outputs.plots import plot_brain_map, plot_parameters, plot_uncertainty
 from bayesreg.outputs.result import RunResult
 from bayesreg.outputs.printed import verdict
-from bayesreg.model.posterior import discrepancy_of, elastic_groups, solve_position
+from bayesreg.model.posterior import (discrepancy_of, elastic_groups, similarity_log_likelihood,
+                                      solve_position)
 from bayesreg.model.problem import Problem, at_start
 from bayesreg.rundir import RunDirectory
 from bayesreg.sampling.driver import SamplerResult
@@ -142,6 +143,7 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         (:func:`bayesreg.outputs.fields.mesh_best_fit` over the brain's voxels), its
         distance from the truth at the nodes (mm), its brain MSE (mm^2) and the coverage of
         its components where the truth moves (the posterior can at best centre on it).
+        ``image_fit``: :func:`image_fit` of the truth's and the posterior mean's ``u``.
     """
     mesh, truth = problem.mesh, problem.truth
     post = problem.posterior
@@ -195,6 +197,7 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
         "coverage_moving": cov_moving,
         "truth_made_by_model": bool(truth.made_by_model),
         "ratio": ratios,
+        "image_fit": image_fit(post, truth.u, u_mean),
     }
     if reference is not None:
         ref_b = displacement_at(reference, mesh.nodes[surface])
@@ -221,6 +224,22 @@ def error_table(problem, result, u_init, u_mean=None, *, grid=None, reference=No
                     draws[:, moving].reshape(len(draws), -1), fit[moving].ravel()).items()}
             out["mesh_best_fit"] = best
     return out
+
+
+def image_fit(post, u_true, u_mean) -> dict:
+    """The images' term of ``log p`` (``-E_s / T_s`` in nats, paper Eqs. 1, 9; the marginal
+    form with ``model.t_s_prior``) at the truth's nodal displacement ``u_true`` and at the
+    posterior mean's ``u_mean`` (both ``(N, 3)`` mm), and ``gain_nats``, the second less the
+    first.  Noise-free synthetic images fit the truth best but for their residual there
+    (``f(x_q) - m(x_q + u(x_q))``: ``m`` re-interpolated, ``benchmarks/residual.py``) and,
+    for a truth the model did not make, the mesh's; a positive gain is what the posterior
+    fitted of it with the displacement and the parameters.  (Noisy images: the posterior
+    fits part of the noise too, some nats per free direction.)"""
+    import jax.numpy as jnp
+
+    term = [float(similarity_log_likelihood(post, post.similarity.energy(jnp.asarray(u)[post.tets])))
+            for u in (u_true, u_mean)]
+    return {"truth": term[0], "posterior_mean": term[1], "gain_nats": term[1] - term[0]}
 
 
 def summary_table(tree, small: list, big: str, dim: str, *, parts: int | None = None):
