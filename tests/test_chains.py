@@ -43,7 +43,7 @@ def test_chains_in_host_threads_equal_vmapped_chains(monkeypatch, per_chain):
 
 
 @pytest.mark.parametrize("method", ["threads", "pieces"])
-def test_ctrl_c_while_chains_run_in_threads_is_raised_at_once(monkeypatch, method):
+def test_ctrl_c_while_chains_run_in_threads_is_raised_at_once(monkeypatch, request, method):
     """Ctrl-C while the chains' chunk runs in worker threads reaches the caller at once, not
     after the running tasks (at a large mesh a chunk runs for minutes)."""
     import signal
@@ -74,6 +74,10 @@ def test_ctrl_c_while_chains_run_in_threads_is_raised_at_once(monkeypatch, metho
     keys, states = jax.random.split(jax.random.key(0), n_chains), jnp.zeros((n_chains, 3))
     mapped.run(keys, states, None)  # the first call compiles (its first task in this thread)
     main = threading.main_thread().ident
+    # Python's Ctrl-C handler, whatever the launcher left: a job started in the background by
+    # a non-interactive shell inherits SIGINT ignored, and Python then installs none
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    request.addfinalizer(lambda: signal.signal(signal.SIGINT, previous))
     timer = threading.Timer(0.3, signal.pthread_kill, (main, signal.SIGINT))
     t0 = time.monotonic()
     timer.start()

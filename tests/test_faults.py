@@ -157,6 +157,14 @@ def test_an_interrupted_new_run_keeps_what_a_resume_needs(reference, tmp_path, m
     assert saved["max_draws"] == saved["min_draws"] == 40
 
 
+#: ``python -c`` program that runs the CLI with Python's Ctrl-C handler, as a terminal's shell
+#: starts it: a test run itself launched in the background by a non-interactive shell has
+#: SIGINT ignored, which its children would inherit (and Python then installs no handler).
+AS_FROM_A_TERMINAL = ("import runpy, signal, sys; "
+                      "signal.signal(signal.SIGINT, signal.default_int_handler); "
+                      "sys.argv[0] = 'bayesreg'; runpy.run_module('bayesreg.cli', run_name='__main__')")
+
+
 def _start(mesh, out, *extra) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "bayesreg.cli", *_args(mesh, out, *extra)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -251,7 +259,7 @@ def test_ctrl_c_in_a_terminal_after_or_during_meshing_puts_the_finished_run_back
         # a warm-up of 30 chunks, the signal after the first is saved: inside it, whatever
         # the machine's load and the compilation cache (a fixed sleep was not)
         extra = ["--set", "sampler.warmup_steps=3000"] if stage == "warm-up" else []
-        proc = subprocess.Popen([sys.executable, "-m", "bayesreg.cli", *args, *extra], text=True,
+        proc = subprocess.Popen([sys.executable, "-c", AS_FROM_A_TERMINAL, *args, *extra], text=True,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 start_new_session=True)
         lines = _stage_line(proc, after)
