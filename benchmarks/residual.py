@@ -31,7 +31,6 @@ Usage (from the repository root; ``--sample`` costs one more run of the sampler)
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -100,6 +99,7 @@ def main(argv=None) -> int:
     from bayesreg.pipeline import sample_problem
     import jax.numpy as jnp
 
+    run = bayesreg.open_run(args.run)  # the run's own draws and verdict (a finished run)
     cfg = override_config(cfg, ["output.progress=false"])
     problem = assemble(cfg, data)
     post = problem.posterior
@@ -112,33 +112,24 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     result, _ = sample_problem(problem, cfg)
     again = ratios(problem, result.positions)
-    run_json = json.loads((args.run / "run.json").read_text()) if (args.run / "run.json").is_file() else {}
-    verdict = run_json.get("sampler", {}).get("verdict", "")
     print(f"sampled again ({args.sample}): {result.positions.shape[1]} draws per chain, "
           f"{time.perf_counter() - t:.0f} s")
-    try:
-        import xarray as xr
-
-        own = xr.open_datatree(args.run / "posterior.nc")["posterior"]["ratio"].values
-        own = own.reshape(-1, own.shape[-1])
-    except (OSError, KeyError):
-        own = None
-    truth = (None if problem.phi_true is None
-             else ratios(problem, np.r_[np.zeros(post.n_displacement), problem.phi_true])[0])
+    own = np.asarray(run.posterior.posterior["ratio"])
+    own = own.reshape(-1, own.shape[-1])
+    truth = None
+    if problem.phi_true is not None:
+        lam_t, mu_t = (np.asarray(a) for a in elastic_groups(post, problem.phi_true))
+        truth = lam_t / mu_t
     names = problem.layout.group_names
     print("group | truth | the run: median (90%) | " + args.sample + ": median (90%)")
     for g, name in enumerate(names):
         cells = []
         for draws in (own, again):
-            if draws is None:
-                cells.append("-")
-                continue
             lo, med, hi = np.quantile(draws[:, g], [0.05, 0.5, 0.95])
             held = "" if truth is None else (" holds" if lo <= truth[g] <= hi else " misses")
             cells.append(f"{med:.3g} ({lo:.3g}-{hi:.3g}){held}")
         print(f"{name} | {'-' if truth is None else f'{truth[g]:.3g}'} | {cells[0]} | {cells[1]}")
-    if verdict:
-        print(f"the run's {verdict}" if verdict.startswith("verdict") else f"the run's verdict: {verdict}")
+    print(f"the run's {run.info['sampler']['verdict']}")
     return 0
 
 
